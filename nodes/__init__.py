@@ -1,0 +1,1 @@
+"""EdgeLoc: pure algorithms (no ROS import) and the thin ROS 2 nodes around them."""

@@ -1,0 +1,1 @@
+"""Reports: read a run's MCAP, compute metrics, draw plots, write html/md/json."""

@@ -1,0 +1,207 @@
+"""`testbed`: the command line. Verbs read as sentences; the work lives in other modules.
+
+Exit codes mean the same thing for every verb:
+  0  done as asked
+  1  the run or the measurement failed (a node died, a link out of tolerance)
+  2  bad input (scenario file, option, unknown run id)
+  3  this host cannot do it (not root, a kernel feature missing)
+  130 interrupted (Ctrl-C); everything created was removed
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+from pathlib import Path
+from typing import Annotated
+
+import typer
+
+from testbed import console as con
+from testbed.errors import TestbedError
+
+EXIT_OK, EXIT_FAILED, EXIT_BAD_INPUT, EXIT_HOST, EXIT_INTERRUPTED = 0, 1, 2, 3, 130
+
+app = typer.Typer(
+    name="testbed",
+    help=(
+        "Emulate a 5G UE-gNB-core network in Linux namespaces and run EdgeLoc over it.\n\n"
+        "Typical session:\n\n"
+        "  testbed check                      # can this host run it?\n\n"
+        "  testbed validate scenarios/*.yaml  # are my scenarios right?\n\n"
+        "  testbed up scenarios/default.yaml  # build the network, leave it up\n\n"
+        "  testbed status ; testbed down      # see it, tear it down"
+    ),
+    no_args_is_help=True,
+    add_completion=False,
+    rich_markup_mode=None,
+    pretty_exceptions_enable=False,
+)
+
+ScenarioFile = Annotated[
+    Path, typer.Argument(help="Scenario YAML file.", show_default=False, dir_okay=False)
+]
+JsonFlag = Annotated[bool, typer.Option("--json", help="Print machine-readable JSON.")]
+
+
+def _fail(err: TestbedError) -> typer.Exit:
+    con.error(str(err))
+    return typer.Exit(err.exit_code)
+
+
+@app.command()
+def validate(
+    files: Annotated[list[Path], typer.Argument(help="Scenario YAML files.", show_default=False)],
+) -> None:
+    """Check scenario files against schema v1 and report every error with file:line:column.
+
+    Example: testbed validate scenarios/*.yaml
+    """
+    from testbed.scenario import ScenarioError, load
+
+    bad = 0
+    for path in files:
+        try:
+            scenario = load(path)
+        except ScenarioError as err:
+            bad += 1
+            con.error(str(err))
+            continue
+        con.ok(
+            f"{path}: valid ({len(scenario.topology.vehicles)} vehicle(s), "
+            f"{len(scenario.topology.cells)} cell(s), {len(scenario.timeline)} timeline event(s))"
+        )
+    if bad:
+        raise typer.Exit(EXIT_BAD_INPUT)
+
+
+@app.command()
+def schema() -> None:
+    """Print the scenario JSON Schema (for editors).
+
+    Save it and point your YAML at it:
+    testbed schema > scenario.schema.json, then put
+    '# yaml-language-server: $schema=scenario.schema.json' at the top of a scenario.
+    """
+    from testbed.scenario import json_schema
+
+    sys.stdout.write(json.dumps(json_schema(), indent=2) + "\n")
+
+
+@app.command()
+def up(
+    file: ScenarioFile,
+    dry_run: Annotated[
+        bool, typer.Option("--dry-run", help="Print the equivalent ip/tc commands; change nothing.")
+    ] = False,
+) -> None:
+    """Build the scenario's network (namespaces, links, routes) and leave it up.
+
+    Example: testbed up scenarios/default.yaml ; ip netns exec <ns> ping ... ; testbed down
+    """
+    from testbed.scenario import ScenarioError, load
+    from testbed.topology import build
+
+    try:
+        scenario = load(file)
+    except ScenarioError as err:
+        raise _fail(err) from None
+    try:
+        net = build(scenario, dry_run=dry_run, echo=con.plain if dry_run else None)
+    except TestbedError as err:
+        raise _fail(err) from None
+    if dry_run:
+        return
+    con.ok(f"run {net.run_id} is up: {len(net.nodes)} namespaces, {len(net.links)} links")
+    for node in net.nodes.values():
+        con.plain(f"  {node.name:<10} {node.role:<8} ip netns exec {node.netns} ...  {node.addresses()}")
+    con.plain(f"tear down with: testbed down {net.run_id}")
+
+
+@app.command()
+def down(
+    run_id: Annotated[
+        str | None, typer.Argument(help="Run id (default: the only live run).", show_default=False)
+    ] = None,
+) -> None:
+    """Tear down a run made by `testbed up`: exactly what its state file records."""
+    from testbed.topology import teardown_run
+
+    try:
+        removed = teardown_run(run_id)
+    except TestbedError as err:
+        raise _fail(err) from None
+    con.ok(f"run {removed.run_id} is down ({removed.summary()})")
+
+
+@app.command()
+def status(json_out: JsonFlag = False) -> None:
+    """List runs on this host: live, detached (`up`) or dead (left by a crash)."""
+    from testbed.state import list_runs
+
+    runs = list_runs()
+    if json_out:
+        sys.stdout.write(json.dumps([r.describe() for r in runs], indent=2) + "\n")
+        return
+    if not runs:
+        con.plain("no runs")
+        return
+    con.table(
+        ["run", "state", "scenario", "namespaces", "started"],
+        [
+            [r.run_id, r.liveness(), r.scenario, str(len(r.namespaces)), r.started_text()]
+            for r in runs
+        ],
+    )
+
+
+@app.command()
+def clean(
+    all_runs: Annotated[
+        bool, typer.Option("--all", help="Also tear down detached runs made by `testbed up`.")
+    ] = False,
+) -> None:
+    """Remove what dead runs left: namespaces, links, qdiscs, TUN devices, processes, cgroups.
+
+    Only this project's resources are touched (names prefixed 'el-' and runs in its state dir).
+    """
+    from testbed.topology import clean as clean_runs
+
+    try:
+        report = clean_runs(include_detached=all_runs)
+    except TestbedError as err:
+        raise _fail(err) from None
+    con.ok(report)
+
+
+@app.command()
+def check(json_out: JsonFlag = False) -> None:
+    """Preflight: try every kernel feature, ROS and torch; say which link backend `auto` picks.
+
+    Exits 3 when something a run needs is missing.
+    """
+    from testbed.check import run_checks
+
+    result = run_checks()
+    if json_out:
+        sys.stdout.write(json.dumps(result.to_dict(), indent=2) + "\n")
+    else:
+        con.table(
+            ["capability", "ok", "detail"],
+            [[c.name, "yes" if c.ok else "NO", c.detail] for c in result.checks],
+        )
+        con.plain(f"link backend for 'auto': {result.auto_backend}")
+    if not result.runnable:
+        raise typer.Exit(EXIT_HOST)
+
+
+def main() -> None:
+    try:
+        app()
+    except KeyboardInterrupt:
+        con.error("interrupted")
+        sys.exit(EXIT_INTERRUPTED)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,238 @@
+"""Typed scenario (schema v1): what the loader produces and everything else consumes.
+
+A scenario names its nodes (vehicles, gNBs, cores), says which links join them and what each
+link direction does (`LinkProfile`), lists timeline events, and sets the workload, recording
+and report knobs. All values are in SI units (seconds, bit/s, fractions); the loader turns the
+strings people write (`20mbit`, `8ms`, `0.5%`) into these.
+
+Link names are `<lower>-<upper>` of their end nodes: `av1-gnb1` for an air link,
+`gnb1-core1` for a backhaul. "uplink" is the direction towards the core.
+"""
+
+from __future__ import annotations
+
+import ipaddress
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Literal
+
+from netem.profile import LinkProfile
+
+SCHEMA_VERSION = 1
+
+Role = Literal["vehicle", "gnb", "core"]
+Direction = Literal["uplink", "downlink"]
+Backend = Literal["auto", "tc", "userspace"]
+LinkKind = Literal["air", "backhaul"]
+
+
+@dataclass(frozen=True)
+class Vehicle:
+    name: str
+    gnb: str  # the gNB this vehicle attaches to
+    cpu: float | None = None  # CPU cores allowed (cgroup quota); None = unlimited
+
+
+@dataclass(frozen=True)
+class Cell:
+    """A gNB and the core/edge server behind it."""
+
+    gnb: str
+    core: str
+    core_cpu: float | None = None  # CPU cores of the edge server; None = unlimited
+
+
+@dataclass(frozen=True)
+class Topology:
+    vehicles: tuple[Vehicle, ...]
+    cells: tuple[Cell, ...]
+    address_pool: ipaddress.IPv4Network | None = None  # None: pick a free private /16
+
+    def node_names(self) -> list[str]:
+        names = [v.name for v in self.vehicles]
+        for c in self.cells:
+            names += [c.gnb, c.core]
+        return names
+
+    def role_of(self, name: str) -> Role:
+        if any(v.name == name for v in self.vehicles):
+            return "vehicle"
+        if any(c.gnb == name for c in self.cells):
+            return "gnb"
+        if any(c.core == name for c in self.cells):
+            return "core"
+        raise KeyError(name)
+
+    def cell_of_gnb(self, gnb: str) -> Cell:
+        return next(c for c in self.cells if c.gnb == gnb)
+
+
+@dataclass(frozen=True)
+class LinkSpec:
+    """A link between two nodes; `lower` is the vehicle side (air) or the gNB (backhaul)."""
+
+    name: str
+    kind: LinkKind
+    lower: str
+    upper: str
+    uplink: LinkProfile  # lower -> upper
+    downlink: LinkProfile  # upper -> lower
+
+    def profile(self, direction: Direction) -> LinkProfile:
+        return self.uplink if direction == "uplink" else self.downlink
+
+
+@dataclass(frozen=True)
+class Links:
+    backend: Backend
+    links: tuple[LinkSpec, ...]
+
+    def get(self, name: str) -> LinkSpec:
+        for link in self.links:
+            if link.name == name:
+                return link
+        raise KeyError(name)
+
+    def names(self) -> list[str]:
+        return [link.name for link in self.links]
+
+
+# ---- timeline -------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class SetEvent:
+    """Change profile fields of one link direction (or both) in place."""
+
+    at_s: float
+    link: str
+    direction: Literal["uplink", "downlink", "both"]
+    changes: dict[str, object]  # LinkProfile field -> value in SI units
+    line: int = 0
+
+
+@dataclass(frozen=True)
+class ShapeEvent:
+    """Wondershaper-style: cap a node's uplink (egress) and/or downlink (ingress) rate."""
+
+    at_s: float
+    node: str
+    uplink_bps: float | None
+    downlink_bps: float | None
+    line: int = 0
+
+
+@dataclass(frozen=True)
+class ClearEvent:
+    """Remove what `shape` put on a node, and only that."""
+
+    at_s: float
+    node: str
+    line: int = 0
+
+
+@dataclass(frozen=True)
+class OutageEvent:
+    """Drop everything on a link (both directions) for `duration_s`."""
+
+    at_s: float
+    link: str
+    duration_s: float
+    line: int = 0
+
+
+@dataclass(frozen=True)
+class TraceEvent:
+    """Replay a bandwidth trace on one direction of a link, starting at `at_s`.
+
+    `format` is `mahimahi` (one ms timestamp per 1500-byte delivery opportunity per line) or
+    `csv` (`time_s,mbit` rows). `path` is resolved relative to the scenario file.
+    """
+
+    at_s: float
+    link: str
+    direction: Direction
+    path: Path
+    format: Literal["mahimahi", "csv"]
+    loop: bool = False
+    line: int = 0
+
+
+Event = SetEvent | ShapeEvent | ClearEvent | OutageEvent | TraceEvent
+
+
+# ---- workload, record, report ---------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class Learner:
+    """Split-point learner (SW-UCB1-normal) and its change detector (paper §5)."""
+
+    window: int = 50  # W: plays kept by the sliding window
+    cost: Literal["latency", "error"] = "latency"
+    fixed_split: str | None = None  # play only this split (a baseline)
+    detector: bool = True
+    kl_threshold: float = 1.0
+    consecutive: int = 3  # C: consecutive exceedances that trigger a reset
+    detector_window: int = 10  # samples per Gaussian fit
+
+
+@dataclass(frozen=True)
+class Fusion:
+    """Latency-aware fusion weight Λ = 1 / (1 + exp(-k_s (Δt - Δt0)))."""
+
+    k_s: float = 20.0  # 1/s
+    dt0_s: float = 0.25
+
+
+@dataclass(frozen=True)
+class Kalman:
+    """Kalman-filter baseline noise (per-axis variances, m² and rad²)."""
+
+    q_pos: float = 0.01
+    q_yaw: float = 0.0005
+    r_pos: float = 4.0
+    r_yaw: float = 0.01
+
+
+@dataclass(frozen=True)
+class Workload:
+    rate_hz: float = 20.0  # real-time thread (VO + fused pose) rate
+    dataset: Literal["synthetic"] | Path = "synthetic"  # or a folder of recorded data
+    codec: Literal["fp16-zlib", "int8-zlib"] = "fp16-zlib"
+    weights: Path | None = None  # None: the repo's trained model
+    splits: tuple[str, ...] | None = None  # None: every split point of the model
+    corruption: float = 0.0  # experiment knob, off by default; named in reports when on
+    learner: Learner = field(default_factory=Learner)
+    fusion: Fusion = field(default_factory=Fusion)
+    kalman: Kalman = field(default_factory=Kalman)
+
+
+@dataclass(frozen=True)
+class Record:
+    enabled: bool = True
+    compression: Literal["zstd", "lz4", "none"] = "zstd"
+    images: bool = False  # camera frames are large; off unless asked
+
+
+@dataclass(frozen=True)
+class Report:
+    enabled: bool = True
+    formats: tuple[Literal["html", "md", "json"], ...] = ("html", "md", "json")
+    plots: bool = True
+    link_test: bool = True  # short link self-test before the workload
+
+
+@dataclass(frozen=True)
+class Scenario:
+    name: str
+    seed: int
+    duration_s: float
+    topology: Topology
+    links: Links
+    timeline: tuple[Event, ...] = ()
+    workload: Workload = field(default_factory=Workload)
+    record: Record = field(default_factory=Record)
+    report: Report = field(default_factory=Report)
+    source: Path | None = None  # the file it was loaded from
+    version: int = SCHEMA_VERSION
