@@ -46,7 +46,7 @@ test: setup
 	$(BIN)/python -m pytest -q
 
 bench: setup
-	$(BIN)/python tests/bench/run.py
+	$(BIN)/python tests/bench/run.py $(BENCH)
 
 lint: setup
 	$(BIN)/ruff check testbed netem nodes reports tests

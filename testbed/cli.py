@@ -45,7 +45,8 @@ JsonFlag = Annotated[bool, typer.Option("--json", help="Print machine-readable J
 
 
 def _fail(err: TestbedError) -> typer.Exit:
-    con.error(str(err))
+    for line in str(err).splitlines():
+        con.error(line)
     return typer.Exit(err.exit_code)
 
 
@@ -65,7 +66,8 @@ def validate(
             scenario = load(path)
         except ScenarioError as err:
             bad += 1
-            con.error(str(err))
+            for line in str(err).splitlines():
+                con.error(line)
             continue
         con.ok(
             f"{path}: valid ({len(scenario.topology.vehicles)} vehicle(s), "
@@ -114,8 +116,44 @@ def up(
         return
     con.ok(f"run {net.run_id} is up: {len(net.nodes)} namespaces, {len(net.links)} links")
     for node in net.nodes.values():
-        con.plain(f"  {node.name:<10} {node.role:<8} ip netns exec {node.netns} ...  {node.addresses()}")
+        con.plain(f"  {node.name:<10} {node.role:<8} {node.netns:<18} {node.addresses()}")
     con.plain(f"tear down with: testbed down {net.run_id}")
+
+
+@app.command()
+def run(
+    file: ScenarioFile,
+    runs_dir: Annotated[
+        Path, typer.Option("--runs-dir", help="Where run folders go.", file_okay=False)
+    ] = Path("runs"),
+) -> None:
+    """Run a scenario: build its network, check every vehicle reaches its edge server with real
+    packets, tear down, and leave runs/<run-id>/ (run.json, connectivity.json, scenario.yaml).
+
+    Example: testbed run scenarios/default.yaml
+    """
+    from testbed.run import run_scenario
+    from testbed.scenario import ScenarioError, load
+
+    try:
+        scenario = load(file)
+    except ScenarioError as err:
+        raise _fail(err) from None
+    try:
+        result = run_scenario(scenario, runs_dir, progress=con.plain)
+    except TestbedError as err:
+        raise _fail(err) from None
+    if not result.ok:
+        con.error(
+            f"run {result.run_id}: a vehicle could not reach its edge server "
+            f"(see {result.folder / 'connectivity.json'})"
+        )
+        raise typer.Exit(EXIT_FAILED)
+    t = result.timings_s
+    con.ok(
+        f"run {result.run_id} ok: every vehicle reached its edge server; "
+        f"up {t['up'] * 1000:.0f} ms, down {t['down'] * 1000:.0f} ms; results in {result.folder}/"
+    )
 
 
 @app.command()
@@ -187,11 +225,17 @@ def check(json_out: JsonFlag = False) -> None:
         sys.stdout.write(json.dumps(result.to_dict(), indent=2) + "\n")
     else:
         con.table(
-            ["capability", "ok", "detail"],
-            [[c.name, "yes" if c.ok else "NO", c.detail] for c in result.checks],
+            ["capability", "needed", "ok", "detail"],
+            [
+                [c.name, "yes" if c.required else "", "yes" if c.ok else "NO", c.detail]
+                for c in result.checks
+            ],
         )
         con.plain(f"link backend for 'auto': {result.auto_backend}")
+        if result.runnable:
+            con.ok("this host can run the testbed")
     if not result.runnable:
+        con.error("cannot run: missing " + ", ".join(result.missing))
         raise typer.Exit(EXIT_HOST)
 
 

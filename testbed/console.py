@@ -10,7 +10,9 @@ from rich.table import Table
 
 _plain = bool(os.environ.get("CI")) or not sys.stdout.isatty()
 out = Console(no_color=_plain, highlight=False, soft_wrap=True)
-err = Console(stderr=True, no_color=_plain or not sys.stderr.isatty(), highlight=False, soft_wrap=True)
+err = Console(
+    stderr=True, no_color=_plain or not sys.stderr.isatty(), highlight=False, soft_wrap=True
+)
 
 
 def plain(text: str) -> None:
@@ -31,8 +33,10 @@ def error(text: str) -> None:
 
 def table(headers: list[str], rows: list[list[str]]) -> None:
     if _plain:
-        widths = [max(len(h), *(len(r[i]) for r in rows)) if rows else len(h)
-                  for i, h in enumerate(headers)]
+        widths = [
+            max(len(h), *(len(r[i]) for r in rows)) if rows else len(h)
+            for i, h in enumerate(headers)
+        ]
         plain("  ".join(h.ljust(w) for h, w in zip(headers, widths, strict=True)).rstrip())
         for row in rows:
             plain("  ".join(c.ljust(w) for c, w in zip(row, widths, strict=True)).rstrip())

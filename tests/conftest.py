@@ -4,8 +4,14 @@ from __future__ import annotations
 
 import importlib.util
 import os
+from collections.abc import Iterator
+from pathlib import Path
 
 import pytest
+
+from testbed import state as st
+from testbed.net import delete_netns, list_netns
+from testbed.topology import _remove_run
 
 
 def _root_reason() -> str | None:
@@ -29,3 +35,23 @@ def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item
             item.add_marker(pytest.mark.skip(reason=root))
         if ros and "ros" in item.keywords:
             item.add_marker(pytest.mark.skip(reason=ros))
+
+
+@pytest.fixture
+def state_dir(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Iterator[Path]:
+    """A private state dir; afterwards remove every namespace of every run it knew about."""
+    d = tmp_path / "state"
+    monkeypatch.setenv(st.STATE_DIR_ENV, str(d))
+    seen: set[str] = set()
+
+    def remember() -> None:  # run ids from state files, before teardown deletes them
+        if d.is_dir():
+            seen.update(p.stem for p in d.glob("*.json") if st.RUN_ID_RE.match(p.stem))
+
+    yield d
+    remember()
+    for run in st.list_runs():
+        _remove_run(run)
+    for name in list_netns():
+        if any(name.startswith(f"el-{run_id}-") for run_id in seen):
+            delete_netns(name)

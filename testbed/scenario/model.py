@@ -174,7 +174,7 @@ class Learner:
     detector: bool = True
     kl_threshold: float = 1.0
     consecutive: int = 3  # C: consecutive exceedances that trigger a reset
-    detector_window: int = 10  # samples per Gaussian fit
+    detector_window: int = 20  # samples per Gaussian fit (10 gave ~6 false alarms/1000 plays)
 
 
 @dataclass(frozen=True)

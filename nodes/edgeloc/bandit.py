@@ -1,0 +1,243 @@
+"""Split-point learner: sliding-window UCB1-normal (paper §5.1, Auer et al. 2002, Fig. 4).
+
+The learner's arms are the DNN split points; a play is one inference request and its cost is
+what the caller measured for it (end-to-end latency by default, or the localization error in
+experiments). The learner minimises cost, so where the paper maximises a reward we use
+reward = -cost, which flips the sign of the mean and keeps the variance.
+
+The index, exactly as Auer et al. (2002) print UCB1-Normal, in reward form::
+
+    x̄_j + sqrt(16 · (q_j − n_j x̄_j²) / (n_j − 1) · ln(t − 1) / n_j)
+
+with x̄_j the mean reward of arm j, q_j the sum of its squared rewards and n_j its plays. In cost
+form the learner plays ``argmin_j  mean_j − sqrt(16 · var_j · ln(t − 1) / (n_j − 1))``, which is
+SPEC §4's written form, and it is the same number as the textbook's: with the *population*
+variance var_j = q_j/n_j − x̄_j² (the paper's appendix defines σ̂² this way),
+var_j / (n_j − 1) = (q_j − n_j x̄_j²) / (n_j (n_j − 1)), i.e. the textbook's extra ``/n`` is
+folded into the variance. (Reading var_j as the unbiased n/(n−1)-corrected variance would widen
+the bonus by sqrt(n/(n−1)); we do not.)
+
+What ``t`` is: Auer's loop numbers the *current* play ``n = 1, 2, …``, so ``ln(n − 1)`` is the log
+of the plays already made; the paper's ``I_t`` uses statistics "up to time t−1" in the same way.
+With a sliding window the plays already made are the ones the window still holds, so here
+``t − 1 = len(window)`` = min(plays since the last reset, W), and ``t`` is the index of the play
+being chosen (Garivier & Moulines' SW-UCB likewise uses log min(t, W)). n_j, mean_j and var_j
+come from the same window.
+
+Exploration: an arm with fewer than 2 samples in the window has no variance, so it is played
+first (fewest samples first) — the paper's rule. Because samples leave the window, every arm is
+re-played whenever it drops below 2 samples, so in steady state each non-best arm costs at least
+2 plays per W: the best arm can get at most 1 − 2(K−1)/W of the plays. Auer's extra rule (play
+any arm with n_j < ⌈8 ln t⌉) is available as ``forced_exploration=True`` but is off by default
+because the paper does not use it and, inside a window, it degenerates into round-robin as soon
+as K·⌈8 ln W⌉ > W (K ≥ 2 for W = 50).
+"""
+
+from __future__ import annotations
+
+import math
+from collections import deque
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from nodes.edgeloc.detector import ChangeEvent, KLChangeDetector
+
+MIN_SAMPLES = 2  # UCB1-normal needs a variance, hence two samples per arm
+
+
+@dataclass(frozen=True)
+class ArmStats:
+    """One arm's view for the decision topic: window samples, mean, variance and index.
+
+    `var` is the population variance (ddof = 0) used in the index. `mean` and `var` are NaN with
+    no samples; `index` is -inf while the arm still must be explored (n < 2, or below Auer's
+    forced-exploration count when that rule is on), so "lowest index is played" stays true.
+    """
+
+    arm: str
+    n: int
+    mean: float
+    var: float
+    index: float
+
+
+class SlidingWindowUCB1Normal:
+    """Chooses a split point per request from the costs of the last `window` plays.
+
+    `window=None` keeps every play since the last reset (plain UCB1-normal, memory grows with
+    the plays: for reference runs). Exact ties of the index are broken by a generator seeded
+    with `rng_seed` (reproducible for a given seed), or by the order of `arms` when `rng_seed`
+    is None.
+    """
+
+    def __init__(
+        self,
+        arms: Sequence[str],
+        window: int | None = 50,
+        rng_seed: int | None = 0,
+        forced_exploration: bool = False,
+    ) -> None:
+        arms = list(arms)
+        if not arms:
+            raise ValueError("the learner needs at least one arm (split point)")
+        if any(not isinstance(a, str) or not a for a in arms):
+            raise ValueError(f"arms must be non-empty strings, got {arms!r}")
+        if len(set(arms)) != len(arms):
+            dupes = sorted({a for a in arms if arms.count(a) > 1})
+            raise ValueError(f"arm names must be unique, repeated: {', '.join(dupes)}")
+        if window is not None:
+            if isinstance(window, bool) or not isinstance(window, int):
+                raise ValueError(f"window must be an integer number of plays, got {window!r}")
+            if window < MIN_SAMPLES * len(arms):
+                raise ValueError(
+                    f"window={window} cannot hold {MIN_SAMPLES} samples of each of the "
+                    f"{len(arms)} arms: use window >= {MIN_SAMPLES * len(arms)}"
+                )
+        self.arms: tuple[str, ...] = tuple(arms)
+        self.window = window
+        self.forced_exploration = forced_exploration
+        self._slot = {a: i for i, a in enumerate(self.arms)}
+        self._rng = np.random.default_rng(rng_seed) if rng_seed is not None else None
+        # The window keeps which arm each remembered play went to; each arm keeps its own
+        # costs in play order, so evicting the window's oldest play pops that arm's oldest cost.
+        self._plays: deque[int] = deque()
+        self._costs: list[deque[float]] = [deque() for _ in self.arms]
+        self.total_plays = 0  # every update since construction, resets included
+
+    # ---- learning ---------------------------------------------------------------------------
+
+    @property
+    def t(self) -> int:
+        """Index of the play about to be chosen: plays the window holds, plus one."""
+        return len(self._plays) + 1
+
+    def select(self) -> str:
+        """The split point to play next (does not change the statistics)."""
+        stats = self._arm_stats()
+        idx = np.array([s.index for s in stats])
+        if np.isneginf(idx).any():
+            # Exploration first: among arms that must be played, the least-sampled ones.
+            need = [i for i, s in enumerate(stats) if np.isneginf(s.index)]
+            fewest = min(stats[i].n for i in need)
+            return self.arms[self._pick([i for i in need if stats[i].n == fewest])]
+        best = float(idx.min())
+        return self.arms[self._pick([i for i in range(len(idx)) if idx[i] == best])]
+
+    def update(self, arm: str, cost: float) -> None:
+        """Record the cost measured for one play of `arm`."""
+        slot = self._slot_of(arm)
+        try:
+            cost = float(cost)
+        except (TypeError, ValueError):
+            raise ValueError(f"cost of arm {arm!r} must be a number, got {cost!r}") from None
+        if not math.isfinite(cost):
+            raise ValueError(f"cost of arm {arm!r} must be a finite number, got {cost!r}")
+        self._plays.append(slot)
+        self._costs[slot].append(cost)
+        if self.window is not None and len(self._plays) > self.window:
+            self._costs[self._plays.popleft()].popleft()
+        self.total_plays += 1
+
+    def reset(self) -> None:
+        """Forget every play ("retrain" after a change was detected)."""
+        self._plays.clear()
+        for costs in self._costs:
+            costs.clear()
+
+    def stats(self) -> list[ArmStats]:
+        """Per-arm n, mean, var and index as `select` sees them now, in `arms` order."""
+        return self._arm_stats()
+
+    # ---- internals --------------------------------------------------------------------------
+
+    def _slot_of(self, arm: str) -> int:
+        try:
+            return self._slot[arm]
+        except (KeyError, TypeError):
+            raise ValueError(
+                f"unknown arm {arm!r}; the learner's arms are: {', '.join(self.arms)}"
+            ) from None
+
+    def _must_explore(self, n: int, t: int) -> bool:
+        if n < MIN_SAMPLES:
+            return True
+        return self.forced_exploration and n < math.ceil(8.0 * math.log(t))
+
+    def _arm_stats(self) -> list[ArmStats]:
+        t = self.t
+        log_term = math.log(t - 1) if t > 1 else 0.0
+        out = []
+        for arm, costs in zip(self.arms, self._costs, strict=True):
+            n = len(costs)
+            if n == 0:
+                out.append(ArmStats(arm, 0, math.nan, math.nan, -math.inf))
+                continue
+            x = np.fromiter(costs, dtype=np.float64, count=n)
+            mean = float(x.mean())
+            var = float(np.mean((x - mean) ** 2))  # two-pass population variance
+            if self._must_explore(n, t):
+                index = -math.inf
+            else:
+                index = mean - math.sqrt(16.0 * var * log_term / (n - 1))
+            out.append(ArmStats(arm, n, mean, var, index))
+        return out
+
+    def _pick(self, candidates: list[int]) -> int:
+        if len(candidates) == 1 or self._rng is None:
+            return candidates[0]
+        return candidates[int(self._rng.integers(len(candidates)))]
+
+
+class AdaptiveSplitLearner:
+    """The learner the vehicle runs: SW-UCB1-normal plus the KL change detector (paper §5).
+
+    Each update feeds both; when the detector fires, the bandit forgets everything and the
+    event is returned so the caller can record it. `detector=None` runs the bandit alone.
+    """
+
+    def __init__(
+        self,
+        arms: Sequence[str],
+        window: int | None = 50,
+        detector: KLChangeDetector | None = None,
+        rng_seed: int | None = 0,
+    ) -> None:
+        self.bandit = SlidingWindowUCB1Normal(arms, window=window, rng_seed=rng_seed)
+        self.detector = detector
+        self.events: list[ChangeEvent] = []
+
+    @classmethod
+    def from_settings(
+        cls,
+        arms: Sequence[str],
+        window: int = 50,
+        detector: bool = True,
+        kl_threshold: float = 1.0,
+        consecutive: int = 3,
+        detector_window: int = 10,
+        rng_seed: int | None = 0,
+    ) -> AdaptiveSplitLearner:
+        """Build from the plain numbers a scenario's `Learner` settings hold."""
+        det = None
+        if detector:
+            det = KLChangeDetector(detector_window, kl_threshold, consecutive)
+        return cls(arms, window=window, detector=det, rng_seed=rng_seed)
+
+    def select(self) -> str:
+        return self.bandit.select()
+
+    def update(self, arm: str, cost: float) -> ChangeEvent | None:
+        """Record a play; returns the change event when this play triggered a reset."""
+        self.bandit.update(arm, cost)
+        if self.detector is None:
+            return None
+        event = self.detector.update(arm, cost)
+        if event is not None:
+            self.bandit.reset()
+            self.events.append(event)
+        return event
+
+    def stats(self) -> list[ArmStats]:
+        return self.bandit.stats()

@@ -1,0 +1,219 @@
+"""Latency-aware pose fusion with time-zone revision (paper §3–§4), and the DNN-hold baseline.
+
+Thread 1 (real time) calls `on_vo` with each visual-odometry pose L_beta(t) and gets the fused
+pose L_r(t), dead-reckoned with the VO motion since the previous frame. Thread 2 (non-real time)
+calls `on_dnn` when a DNN answer L_alpha(t0) for a frame captured at t0 arrives at t_now: the
+answer is moved to the time of the latest VO frame with the VO motion since t0 (time-zone
+revision) and blended into L_r with the weight u = 1 − Λ(t_now − t0).
+
+Every pose is an SE(2) numpy array [x, y, yaw] (see `geometry`). All times are seconds on the
+vehicle's clock.
+"""
+
+from __future__ import annotations
+
+import bisect
+import math
+import threading
+from dataclasses import dataclass
+
+import numpy as np
+
+from nodes.edgeloc import geometry
+from nodes.edgeloc.geometry import Pose
+
+
+def as_pose(value: object, name: str = "pose") -> Pose:
+    """`value` as a float64 [x, y, yaw] array, or a ValueError naming `name`."""
+    try:
+        p = np.asarray(value, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise ValueError(f"{name} must be [x, y, yaw] numbers, got {value!r}") from None
+    if p.shape != (3,) or not np.isfinite(p).all():
+        raise ValueError(f"{name} must be 3 finite numbers [x, y, yaw], got {value!r}")
+    return p
+
+
+def time_zone_revision(l_alpha_t0: Pose, l_beta_t0: Pose, l_beta_t: Pose) -> Pose:
+    """L_alpha'(t) = L_alpha(t0) ⊕ (L_beta(t0)^-1 ⊕ L_beta(t)): the DNN pose moved from t0 to t."""
+    return geometry.compose(l_alpha_t0, geometry.between(l_beta_t0, l_beta_t))
+
+
+def latency_weight(dt: float, k_s: float, dt0: float) -> float:
+    """u = 1 − Λ with Λ = 1 / (1 + exp(−k_s (Δt − Δt0))): the DNN pose's weight after Δt s.
+
+    Computed as the logistic of −k_s (Δt − Δt0) in the branch that cannot overflow.
+    """
+    z = -k_s * (dt - dt0)
+    if z >= 0:
+        return 1.0 / (1.0 + math.exp(-z))
+    e = math.exp(z)
+    return e / (1.0 + e)
+
+
+class VoHistory:
+    """The VO poses of the last `span_s` seconds, so a late DNN answer can find L_beta(t0).
+
+    Between two stamps the pose is interpolated (position linearly, yaw on the shorter arc);
+    after the newest stamp it is the newest pose (the frame at t0 has not been odometered yet);
+    before the oldest kept stamp it is unknown (None).
+    """
+
+    def __init__(self, span_s: float = 10.0) -> None:
+        if not (span_s > 0 and math.isfinite(span_s)):
+            raise ValueError(f"VO history span must be a positive number of seconds: {span_s!r}")
+        self.span_s = float(span_s)
+        self._stamps: list[float] = []
+        self._poses: list[Pose] = []
+
+    def __len__(self) -> int:
+        return len(self._stamps)
+
+    def add(self, t: float, pose: Pose) -> None:
+        if not math.isfinite(t):
+            raise ValueError(f"VO stamp must be a finite number of seconds, got {t!r}")
+        if self._stamps and t <= self._stamps[-1]:
+            raise ValueError(f"VO stamps must increase: got t={t!r} after t={self._stamps[-1]!r}")
+        self._stamps.append(float(t))
+        self._poses.append(pose)
+        # Keep one pose older than the span so that t - span_s can still be interpolated.
+        cut = bisect.bisect_left(self._stamps, t - self.span_s) - 1
+        if cut > 0:
+            del self._stamps[:cut]
+            del self._poses[:cut]
+
+    def latest(self) -> tuple[float, Pose] | None:
+        return (self._stamps[-1], self._poses[-1]) if self._stamps else None
+
+    def at(self, t: float) -> Pose | None:
+        if not self._stamps or t < self._stamps[0]:
+            return None
+        if t >= self._stamps[-1]:
+            return self._poses[-1]
+        j = bisect.bisect_right(self._stamps, t)  # stamps[j-1] <= t < stamps[j]
+        t_a, t_b = self._stamps[j - 1], self._stamps[j]
+        return geometry.interpolate(self._poses[j - 1], self._poses[j], (t - t_a) / (t_b - t_a))
+
+
+@dataclass(frozen=True)
+class FusionUpdate:
+    """What one DNN answer did: the revised DNN pose, its weight u, its latency and the result."""
+
+    revised: Pose
+    weight: float
+    latency_s: float
+    fused: Pose
+
+
+def _check_times(t0: float, t_now: float) -> tuple[float, float]:
+    t0, t_now = float(t0), float(t_now)
+    if not (math.isfinite(t0) and math.isfinite(t_now)):
+        raise ValueError(f"DNN times must be finite, got t0={t0!r}, t_now={t_now!r}")
+    if t_now < t0:
+        raise ValueError(f"DNN answer arrived before its frame: t_now={t_now!r} < t0={t0!r}")
+    return t0, t_now
+
+
+class EdgeLocFuser:
+    """Holds the fused pose L_r; VO frames dead-reckon it, DNN answers pull it back (§4.2).
+
+    L_r starts at `initial`, or at the first VO pose when `initial` is None (the VO frame is then
+    taken as the world frame). A DNN answer is dropped (None) when no VO pose is known at its
+    capture time t0 (before the first VO frame or older than `history_s`). Both entry points
+    take a lock: the ROS node calls them from its real-time and its inference threads.
+    """
+
+    def __init__(
+        self, k_s: float, dt0_s: float, history_s: float = 10.0, initial: Pose | None = None
+    ) -> None:
+        if not (math.isfinite(k_s) and k_s > 0):
+            raise ValueError(f"fusion k_s must be a positive number (1/s), got {k_s!r}")
+        if not math.isfinite(dt0_s):
+            raise ValueError(f"fusion dt0 must be a finite number of seconds, got {dt0_s!r}")
+        self.k_s = float(k_s)
+        self.dt0_s = float(dt0_s)
+        self._vo = VoHistory(history_s)
+        self._pose: Pose | None = None if initial is None else as_pose(initial, "initial pose")
+        self._lock = threading.Lock()
+        self.dropped = 0  # DNN answers that could not be revised
+        self.last_update: FusionUpdate | None = None
+
+    @property
+    def pose(self) -> Pose | None:
+        with self._lock:
+            return None if self._pose is None else self._pose.copy()
+
+    def on_vo(self, l_beta_t: Pose, t: float) -> Pose:
+        """Thread 1: L_r(t) = L_r(t−1) ⊕ (L_beta(t−1)^-1 ⊕ L_beta(t)); returns L_r(t)."""
+        l_beta_t = as_pose(l_beta_t, "VO pose")
+        with self._lock:
+            prev = self._vo.latest()
+            self._vo.add(float(t), l_beta_t)
+            if self._pose is None:
+                self._pose = l_beta_t.copy()
+            elif prev is not None:
+                self._pose = geometry.compose(self._pose, geometry.between(prev[1], l_beta_t))
+            return self._pose.copy()
+
+    def on_dnn(self, l_alpha_t0: Pose, t0: float, t_now: float) -> Pose | None:
+        """Thread 2: revise L_alpha(t0) to the latest VO frame and fuse with u(t_now − t0)."""
+        l_alpha_t0 = as_pose(l_alpha_t0, "DNN pose")
+        t0, t_now = _check_times(t0, t_now)
+        with self._lock:
+            l_beta_t0 = self._vo.at(t0)
+            latest = self._vo.latest()
+            if l_beta_t0 is None or latest is None or self._pose is None:
+                self.dropped += 1
+                return None
+            revised = time_zone_revision(l_alpha_t0, l_beta_t0, latest[1])
+            u = latency_weight(t_now - t0, self.k_s, self.dt0_s)
+            # L_r = u·L_alpha' + (1 − u)·L_r, yaw on the circle.
+            self._pose = geometry.interpolate(self._pose, revised, u)
+            self.last_update = FusionUpdate(revised, u, t_now - t0, self._pose.copy())
+            return self._pose.copy()
+
+
+class DnnHold:
+    """Baseline "DNN alone": the latest DNN pose, held until the next one arrives.
+
+    This is what the paper compares against (no VO at all). With `revise=True` the held pose is
+    instead moved to each VO frame by time-zone revision (EdgeLoc with u = 1), an ablation.
+    Before the first DNN answer the pose is None.
+    """
+
+    def __init__(self, revise: bool = False, history_s: float = 10.0) -> None:
+        self.revise = revise
+        self._vo = VoHistory(history_s)
+        self._held: tuple[Pose, Pose] | None = None  # (L_alpha(t0), L_beta(t0))
+        self._pose: Pose | None = None
+        self._lock = threading.Lock()
+        self.dropped = 0
+
+    @property
+    def pose(self) -> Pose | None:
+        with self._lock:
+            return None if self._pose is None else self._pose.copy()
+
+    def on_vo(self, l_beta_t: Pose, t: float) -> Pose | None:
+        l_beta_t = as_pose(l_beta_t, "VO pose")
+        with self._lock:
+            if self.revise:
+                self._vo.add(float(t), l_beta_t)
+                if self._held is not None:
+                    self._pose = time_zone_revision(self._held[0], self._held[1], l_beta_t)
+            return None if self._pose is None else self._pose.copy()
+
+    def on_dnn(self, l_alpha_t0: Pose, t0: float, t_now: float) -> Pose | None:
+        l_alpha_t0 = as_pose(l_alpha_t0, "DNN pose")
+        t0, t_now = _check_times(t0, t_now)
+        with self._lock:
+            if not self.revise:
+                self._pose = l_alpha_t0.copy()
+                return self._pose.copy()
+            l_beta_t0, latest = self._vo.at(t0), self._vo.latest()
+            if l_beta_t0 is None or latest is None:
+                self.dropped += 1
+                return None
+            self._held = (l_alpha_t0, l_beta_t0)
+            self._pose = time_zone_revision(l_alpha_t0, l_beta_t0, latest[1])
+            return self._pose.copy()

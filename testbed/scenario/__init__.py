@@ -1,0 +1,14 @@
+"""Scenarios: the YAML format (schema v1), its loader and its JSON Schema.
+
+    from testbed.scenario import load, ScenarioError
+    scenario = load("scenarios/default.yaml")   # a typed model.Scenario, SI units
+
+`ScenarioError` (a `BadInput`, exit code 2) lists every problem of a file as
+`file:line:column: field.path: expected ..., found ...`; `.issues` holds them as `Issue`s.
+"""
+
+from testbed.scenario.issues import Issue, ScenarioError
+from testbed.scenario.loader import load, loads, profile_changes
+from testbed.scenario.spec import json_schema
+
+__all__ = ["Issue", "ScenarioError", "json_schema", "load", "loads", "profile_changes"]

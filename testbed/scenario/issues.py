@@ -1,0 +1,45 @@
+"""What is wrong with a scenario file: one `Issue` per problem, all of them in a `ScenarioError`."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from testbed.errors import BadInput
+
+ROOT_PATH = "(top level)"
+
+
+@dataclass(frozen=True)
+class Issue:
+    """One problem, located in a file (line and column are 1-based; None when unknown).
+
+    `path` names the field the way an author reads the YAML (`topology.vehicles[1].gnb`);
+    `expected` and `found` are phrases ("a rate like 20mbit", "'20mbps'"); `hint` is an
+    optional suggestion ("did you mean 'jitter'?").
+    """
+
+    file: str
+    line: int | None
+    column: int | None
+    path: str
+    expected: str
+    found: str
+    hint: str | None = None
+
+    def location(self) -> str:
+        if self.line is None:
+            return self.file
+        return f"{self.file}:{self.line}:{self.column or 1}"
+
+    def __str__(self) -> str:
+        where = f"{self.location()}: {self.path}:" if self.path else f"{self.location()}:"
+        text = f"{where} expected {self.expected}, found {self.found}"
+        return f"{text}; {self.hint}" if self.hint else text
+
+
+class ScenarioError(BadInput):
+    """A scenario file is wrong. `str()` lists every issue, one per line; exit code 2."""
+
+    def __init__(self, issues: list[Issue]) -> None:
+        self.issues: tuple[Issue, ...] = tuple(issues)
+        super().__init__("\n".join(str(issue) for issue in self.issues))

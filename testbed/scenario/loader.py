@@ -1,0 +1,551 @@
+"""Scenario files -> `Scenario`: parse YAML keeping positions, check it, convert to SI units.
+
+Three passes, each reporting `Issue`s with file:line:column and the field path:
+1. YAML syntax (PyYAML's composer keeps every node's position; nothing is constructed that
+   is not a plain scalar, so loading never runs anything);
+2. the declarations of `spec.py` (types, units, ranges, allowed values, unknown and
+   duplicate keys);
+3. the rules that join fields (`_Builder`): names defined once and referred to correctly,
+   times inside the run, trace files that exist and parse, paths relative to the file.
+All issues of a file are collected; a rule that depends on a broken part is skipped rather
+than piling up errors that only repeat the first one.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import difflib
+import re
+from pathlib import Path
+from typing import Any
+
+import yaml
+from yaml.nodes import Node
+
+from netem.profile import GilbertElliott, LinkProfile
+from testbed import units
+from testbed.scenario import model, spec
+from testbed.scenario.issues import ROOT_PATH, Issue, ScenarioError
+from testbed.scenario.spec import Context, Items, Section
+from testbed.scenario.traces import TraceProblem, default_format, parse_csv, parse_mahimahi
+
+__all__ = ["load", "loads", "profile_changes"]
+
+
+def load(path: str | Path) -> model.Scenario:
+    """Read and check a scenario file; raise `ScenarioError` listing everything wrong."""
+    path = Path(path)
+    shown = str(path)
+    try:
+        text = path.read_text(encoding="utf-8")
+    except FileNotFoundError:
+        raise _file_error(shown, "an existing scenario file", "no such file") from None
+    except IsADirectoryError:
+        raise _file_error(shown, "a scenario file", "a directory") from None
+    except UnicodeDecodeError as err:
+        raise _file_error(
+            shown, "a UTF-8 text file", f"a byte it cannot decode ({err.reason})"
+        ) from None
+    except OSError as err:
+        raise _file_error(shown, "a readable scenario file", err.strerror or str(err)) from None
+    return _load(text, shown, path.parent, path.parent, path)
+
+
+def loads(
+    text: str, source: str = "<string>", base_dir: str | Path | None = None
+) -> model.Scenario:
+    """Check scenario YAML given as text. `source` names it in messages; relative paths in it
+    (traces, dataset, weights) are resolved against `base_dir` (default: the current folder)."""
+    base = Path(base_dir) if base_dir is not None else Path.cwd()
+    display = Path(base_dir) if base_dir is not None else Path()
+    return _load(text, source, base, display, None)
+
+
+def _file_error(file: str, expected: str, found: str) -> ScenarioError:
+    return ScenarioError([Issue(file, None, None, "", expected, found)])
+
+
+def _load(
+    text: str, source: str, base_dir: Path, display_dir: Path, path: Path | None
+) -> model.Scenario:
+    ctx = Context(source)
+    root = _compose(text, ctx)
+    section: Section | None = None
+    if root is not None:
+        try:
+            section = spec.SCENARIO.check(root, ctx, "")
+        except spec.Invalid as err:
+            ctx.add(root, ROOT_PATH, err.expected, err.found, err.hint)
+    elif not ctx.issues:
+        ctx.issues.append(
+            Issue(source, 1, 1, ROOT_PATH, spec.SCENARIO.expected, "an empty document")
+        )
+    scenario = None
+    if section is not None:
+        scenario = _Builder(ctx, section, base_dir, display_dir, path).build()
+    if ctx.issues or scenario is None:
+        issues = sorted(
+            ctx.issues, key=lambda i: (i.file != source, i.file, i.line or 0, i.column or 0)
+        )
+        raise ScenarioError(issues)
+    return scenario
+
+
+def _compose(text: str, ctx: Context) -> Node | None:
+    """The YAML node tree, or None (with an issue) when the text is not YAML."""
+    try:
+        return yaml.compose(text, Loader=yaml.SafeLoader)
+    except yaml.MarkedYAMLError as err:
+        mark = err.problem_mark or err.context_mark
+        problem = err.problem or "a syntax error"
+        context = (
+            f"{err.context} (line {err.context_mark.line + 1})"
+            if err.context and err.context_mark
+            else err.context
+        )
+        ctx.issues.append(
+            Issue(
+                ctx.file,
+                mark.line + 1 if mark else None,
+                mark.column + 1 if mark else None,
+                "",
+                "valid YAML",
+                f"a syntax error: {problem}",
+                context,
+            )
+        )
+    except yaml.reader.ReaderError as err:
+        before = text[: err.position]
+        line = before.count("\n") + 1
+        column = err.position - (before.rfind("\n") + 1) + 1
+        ctx.issues.append(
+            Issue(ctx.file, line, column, "", "printable text", f"character {err.character!r}")
+        )
+    except yaml.YAMLError as err:  # pragma: no cover - every PyYAML error above carries a mark
+        ctx.issues.append(Issue(ctx.file, None, None, "", "valid YAML", str(err)))
+    return None
+
+
+# ---- profiles -------------------------------------------------------------------------------
+
+
+def profile_changes(section: Section) -> dict[str, object]:
+    """`LinkProfile` fields (SI) set by the profile keys written in `section`.
+
+    Keys that set one of two alternatives also clear the other (a loss percentage removes a
+    Gilbert-Elliott model, a packet queue limit removes a time limit), so merging and `set`
+    events never leave both in place.
+    """
+    v = section.values
+    changes: dict[str, object] = {}
+    if "rate" in v:
+        changes["rate_bps"] = v["rate"]
+    if "delay" in v:
+        changes["delay_s"] = v["delay"]
+    if "jitter" in v:
+        changes["jitter_s"] = v["jitter"]
+    if "jitter_distribution" in v:
+        changes["jitter_distribution"] = v["jitter_distribution"]
+    if "loss" in v:
+        loss = v["loss"]
+        if isinstance(loss, Section):
+            if loss.clean:  # a broken model was reported; there is nothing to build
+                ge: GilbertElliott = loss.obj.build(loss)
+                changes.update(loss=0.0, gilbert_elliott=ge)
+        else:
+            changes.update(loss=loss, gilbert_elliott=None)
+    if "queue" in v:
+        queue = v["queue"]
+        if isinstance(queue, int):
+            changes.update(queue_packets=queue, queue_time_s=None)
+        else:
+            changes.update(queue_packets=None, queue_time_s=queue)
+    if "reorder" in v:
+        changes["reorder"] = v["reorder"]
+    return changes
+
+
+def _emulator_problems(text: str, fmt: str) -> list[TraceProblem]:
+    """What the link emulator's own trace reader refuses, so `validate` never passes a trace
+    that a run would then reject (it stops at the first wrong line)."""
+    from netem import traces as emulator_traces
+
+    try:
+        if fmt == "csv":
+            emulator_traces.parse_csv(text, source="")
+        else:
+            emulator_traces.parse_mahimahi(text, source="")
+    except ValueError as err:
+        m = re.match(r"^ ?line (\d+): (.*)$", str(err))
+        if m:
+            return [TraceProblem(int(m[1]), "a line the link emulator accepts", m[2])]
+        return [TraceProblem(1, "a trace the link emulator accepts", str(err).lstrip(": "))]
+    return []
+
+
+def _listing(names: list[str], limit: int = 8) -> str:
+    shown = names[:limit] + (["..."] if len(names) > limit else [])
+    return ", ".join(shown) if shown else "none"
+
+
+def _close(word: str, names: list[str]) -> str | None:
+    close = difflib.get_close_matches(word, names, n=1, cutoff=0.5)
+    return f"did you mean {close[0]!r}?" if close else None
+
+
+# ---- rules that join fields -----------------------------------------------------------------
+
+
+class _Builder:
+    """Checks the rules between fields and builds the `Scenario` when nothing is wrong."""
+
+    def __init__(
+        self, ctx: Context, root: Section, base_dir: Path, display_dir: Path, path: Path | None
+    ) -> None:
+        self.ctx, self.root = ctx, root
+        self.base_dir, self.display_dir, self.path = base_dir, display_dir, path
+        self.duration: float | None = root.get("duration")
+        self.roles: dict[str, str] = {}  # node name -> vehicle | gnb | core
+        self.topology_ok = False  # every node known: references to unknown names are errors
+        self.link_kinds: dict[str, str] = {}  # link name -> air | backhaul
+
+    def build(self) -> model.Scenario | None:
+        topology = self._topology()
+        links = self._links()
+        timeline = self._timeline()
+        workload = self._workload()
+        if self.ctx.issues or topology is None or links is None:
+            return None
+        record = self.root.get("record")
+        report = self.root.get("report")
+        return model.Scenario(
+            name=self.root["name"],
+            seed=self.root["seed"],
+            duration_s=self.root["duration"],
+            topology=topology,
+            links=links,
+            timeline=tuple(sorted(timeline, key=lambda e: e.at_s)),
+            workload=workload,
+            record=record.obj.build(record) if record else model.Record(),
+            report=report.obj.build(report) if report else model.Report(),
+            source=self.path,
+            version=self.root["version"],
+        )
+
+    # -- topology --
+
+    def _topology(self) -> model.Topology | None:
+        topo: Section | None = self.root.get("topology")
+        if topo is None:
+            return None
+        cells: Items | None = topo.get("cells")
+        vehicles: Items | None = topo.get("vehicles")
+        first: dict[str, tuple[str, Node]] = {}  # name -> (path, node) where first defined
+
+        def define(section: Section, key: str, role: str) -> None:
+            name = section.get(key)
+            if name is None:
+                return
+            if name in first:
+                where, node = first[name]
+                self.ctx.add(
+                    section.at(key),
+                    section.path_of(key),
+                    "a name not used by another node (names are unique across vehicles, "
+                    "gNBs and cores)",
+                    f"{name!r}, already used at {where} (line {node.start_mark.line + 1})",
+                    "names become namespace and interface names, so each must be unique",
+                )
+                return
+            first[name] = (section.path_of(key), section.at(key))
+            self.roles[name] = role
+
+        for _, cell, _ in cells.good() if cells else ():
+            define(cell, "gnb", "gnb")
+            define(cell, "core", "core")
+        for _, vehicle, _ in vehicles.good() if vehicles else ():
+            define(vehicle, "name", "vehicle")
+        gnbs = [n for n, r in self.roles.items() if r == "gnb"]
+        if cells is not None:
+            for _, vehicle, _ in vehicles.good() if vehicles else ():
+                gnb = vehicle.get("gnb")
+                if gnb is None or gnb in gnbs:
+                    continue
+                role = self.roles.get(gnb)
+                hint = f"{gnb!r} is a {role}, not a gNB" if role else _close(gnb, gnbs)
+                self.ctx.add(
+                    vehicle.at("gnb"),
+                    vehicle.path_of("gnb"),
+                    f"the name of a gNB defined in topology.cells ({_listing(gnbs)})",
+                    repr(gnb),
+                    hint,
+                )
+        self.topology_ok = topo.clean and not self.ctx.issues
+        # Link names come from the parts that checked out, so later references can be checked.
+        for _, vehicle, _ in vehicles.good() if vehicles else ():
+            if vehicle.get("name") and vehicle.get("gnb") in gnbs:
+                self.link_kinds[f"{vehicle['name']}-{vehicle['gnb']}"] = "air"
+        for _, cell, _ in cells.good() if cells else ():
+            if cell.get("gnb") and cell.get("core"):
+                self.link_kinds[f"{cell['gnb']}-{cell['core']}"] = "backhaul"
+        pool = topo.get("address_pool")
+        if pool is not None and cells is not None and vehicles is not None:
+            needed = len(cells) + len(vehicles)
+            room = 2 ** max(0, 30 - pool.prefixlen) if pool.prefixlen <= 30 else 0
+            if room < needed:
+                prefix = 30 - max(0, (needed - 1).bit_length())
+                self.ctx.add(
+                    topo.at("address_pool"),
+                    topo.path_of("address_pool"),
+                    f"a network with room for one /30 per link ({needed} links need a "
+                    f"/{prefix} or larger)",
+                    f"'{pool}' (room for {room})",
+                )
+        if not self.topology_ok:
+            return None
+        assert cells is not None and vehicles is not None
+        return model.Topology(
+            vehicles=tuple(spec.VEHICLE.build(v) for _, v, _ in vehicles.good()),
+            cells=tuple(spec.CELL.build(c) for _, c, _ in cells.good()),
+            address_pool=pool,
+        )
+
+    def _check_link(self, section: Section, key: str) -> bool:
+        """Whether `section[key]` names a link of the topology (reported when it does not)."""
+        name = section.get(key)
+        if name is None:
+            return False
+        if name in self.link_kinds:
+            return True
+        if self.topology_ok:
+            lower, _, upper = name.partition("-")
+            reversed_name = f"{upper}-{lower}"
+            hint = (
+                f"links are named lower-upper (vehicle-gnb, gnb-core): {reversed_name}"
+                if reversed_name in self.link_kinds
+                else _close(name, list(self.link_kinds))
+            )
+            self.ctx.add(
+                section.at(key),
+                section.path_of(key),
+                f"the name of a link of this topology ({_listing(list(self.link_kinds))})",
+                repr(name),
+                hint,
+            )
+        return False
+
+    def _check_node(self, section: Section, key: str) -> None:
+        name = section.get(key)
+        if name is None or name in self.roles or not self.topology_ok:
+            return
+        self.ctx.add(
+            section.at(key),
+            section.path_of(key),
+            f"the name of a node of this topology ({_listing(list(self.roles))})",
+            repr(name),
+            _close(name, list(self.roles)),
+        )
+
+    # -- links --
+
+    def _links(self) -> model.Links | None:
+        links: Section | None = self.root.get("links")
+        defaults: dict[str, dict[str, dict[str, object]]] = {
+            kind: {"uplink": {}, "downlink": {}} for kind in ("air", "backhaul")
+        }
+        merged: dict[str, dict[str, dict[str, object]]] = {}
+        if links is not None:
+            for kind in ("air", "backhaul"):
+                pair: Section | None = links.get(kind)
+                for direction in ("uplink", "downlink"):
+                    profile = pair.get(direction) if pair else None
+                    defaults[kind][direction] = profile_changes(profile) if profile else {}
+            overrides: Items | None = links.get("overrides")
+            seen: dict[str, str] = {}
+            for _, override, _ in overrides.good() if overrides else ():
+                if not self._check_link(override, "link"):
+                    continue
+                name = override["link"]
+                if name in seen:
+                    self.ctx.add(
+                        override.at("link"),
+                        override.path_of("link"),
+                        "one override per link (put all its fields in one entry)",
+                        f"{name!r} again (also at {seen[name]})",
+                    )
+                    continue
+                seen[name] = override.path
+                merged[name] = {
+                    d: profile_changes(override[d]) if d in override else {}
+                    for d in ("uplink", "downlink")
+                }
+        if not self.topology_ok or self.ctx.issues:
+            return None
+        specs = []
+        for name, kind in self.link_kinds.items():
+            lower, upper = name.split("-")
+            profiles = {
+                d: LinkProfile(**{**defaults[kind][d], **merged.get(name, {}).get(d, {})})
+                for d in ("uplink", "downlink")
+            }
+            specs.append(
+                model.LinkSpec(name, kind, lower, upper, profiles["uplink"], profiles["downlink"])  # type: ignore[arg-type]
+            )
+        backend = links.get("backend", "auto") if links is not None else "auto"
+        return model.Links(backend=backend, links=tuple(specs))
+
+    # -- timeline --
+
+    def _timeline(self) -> list[model.Event]:
+        events: Items | None = self.root.get("timeline")
+        out: list[model.Event] = []
+        for _, event, node in events.good() if events else ():
+            if event.tag is None:
+                continue
+            built = self._event(event, node.start_mark.line + 1)
+            if built is not None:
+                out.append(built)
+        return out
+
+    def _check_time(self, event: Section) -> None:
+        at = event.get("at")
+        if at is None or self.duration is None or at <= self.duration:
+            return
+        self.ctx.add(
+            event.at("at"),
+            event.path_of("at"),
+            f"a time within the run (0s to duration {units.format_duration(self.duration)})",
+            repr(event.at("at").value),
+        )
+
+    def _event(self, event: Section, line: int) -> model.Event | None:
+        self._check_time(event)
+        at = event.get("at")
+        if event.tag == "set":
+            self._check_link(event, "set")
+            if not event.clean:
+                return None
+            return model.SetEvent(
+                at, event["set"], event["direction"], profile_changes(event), line=line
+            )
+        if event.tag == "shape":
+            self._check_node(event, "shape")
+            if not event.clean:
+                return None
+            return model.ShapeEvent(
+                at, event["shape"], event.get("uplink"), event.get("downlink"), line=line
+            )
+        if event.tag == "clear":
+            self._check_node(event, "clear")
+            return model.ClearEvent(at, event["clear"], line=line) if event.clean else None
+        if event.tag == "outage":
+            self._check_link(event, "outage")
+            length = event.get("for")
+            known = at is not None and length is not None and self.duration is not None
+            if known and at <= self.duration < at + length:
+                self.ctx.add(
+                    event.at("for"),
+                    event.path_of("for"),
+                    "an outage that ends by the end of the run "
+                    f"({units.format_duration(self.duration)})",
+                    f"{event.at('for').value!r} (ending at {units.format_duration(at + length)})",
+                )
+            return (
+                model.OutageEvent(at, event["outage"], length, line=line) if event.clean else None
+            )
+        return self._trace(event, line)
+
+    def _trace(self, event: Section, line: int) -> model.TraceEvent | None:
+        self._check_link(event, "trace")
+        file = event.get("file")
+        if file is None:
+            return None
+        path = self.base_dir / file
+        shown = str(self.display_dir / file)
+        fmt = event.get("format") or default_format(file)
+        expected = f"an existing {fmt} trace file (relative to the scenario file)"
+        if not path.is_file():
+            why = "a directory" if path.is_dir() else "no such file"
+            self.ctx.add(event.at("file"), event.path_of("file"), expected, f"{file!r} ({why})")
+            return None
+        try:
+            text = path.read_text(encoding="utf-8", errors="replace")
+        except OSError as err:
+            self.ctx.add(
+                event.at("file"), event.path_of("file"), expected, f"{file!r} ({err.strerror})"
+            )
+            return None
+        _, problems = parse_csv(text) if fmt == "csv" else parse_mahimahi(text)
+        where = event.at("file").start_mark
+        if not problems:
+            problems = _emulator_problems(text, fmt)
+        for problem in problems:
+            self.ctx.add(
+                None,
+                event.path_of("file"),
+                f"{problem.expected} ({fmt} trace)",
+                problem.found,
+                f"trace named at {self.ctx.file}:{where.line + 1}:{where.column + 1}",
+                file=shown,
+                line=problem.line,
+            )
+        if problems or not event.clean:
+            return None
+        return model.TraceEvent(
+            event["at"],
+            event["trace"],
+            event["direction"],
+            path.resolve(),
+            fmt,
+            loop=event["loop"],
+            line=line,
+        )
+
+    # -- workload --
+
+    def _workload(self) -> model.Workload:
+        workload: Section | None = self.root.get("workload")
+        if workload is None:
+            return model.Workload()
+        changes: dict[str, Any] = {}
+        dataset = workload.get("dataset")
+        if workload.written("dataset") and dataset != "synthetic" and dataset is not None:
+            folder = self.base_dir / dataset
+            if folder.is_dir():
+                changes["dataset"] = folder.resolve()
+            else:
+                self.ctx.add(
+                    workload.at("dataset"),
+                    workload.path_of("dataset"),
+                    "'synthetic' or an existing folder of recorded data (relative to the "
+                    "scenario file)",
+                    f"{dataset!r} ({'a file' if folder.exists() else 'no such folder'})",
+                )
+        weights = workload.get("weights")
+        if weights is not None:
+            file = self.base_dir / weights
+            if file.is_file():
+                changes["weights"] = file.resolve()
+            else:
+                self.ctx.add(
+                    workload.at("weights"),
+                    workload.path_of("weights"),
+                    "null or an existing weights file (relative to the scenario file)",
+                    f"{weights!r} (no such file)",
+                )
+        learner: Section | None = workload.get("learner")
+        splits = workload.get("splits")
+        fixed = learner.get("fixed_split") if learner is not None else None
+        if fixed is not None and splits is not None and fixed not in splits:
+            assert learner is not None
+            self.ctx.add(
+                learner.at("fixed_split"),
+                learner.path_of("fixed_split"),
+                f"one of the splits listed in workload.splits ({_listing(list(splits))})",
+                repr(fixed),
+                _close(fixed, list(splits)),
+            )
+        if not workload.clean or self.ctx.issues:
+            return model.Workload()
+        built: model.Workload = spec.WORKLOAD.build(workload)
+        return dataclasses.replace(built, **changes)

@@ -1,0 +1,149 @@
+"""The CLI as a user runs it: `testbed up`, `down`, `run`, and `clean` after a SIGKILL.
+
+Each test runs the real `testbed` executable in a subprocess with a private state directory
+(EDGELOC_STATE_DIR), so it only ever sees and removes runs it made itself.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import re
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from testbed import state as st
+from testbed.net import Netns, list_netns
+
+pytestmark = pytest.mark.root
+
+REPO = Path(__file__).resolve().parents[1]
+TESTBED = [sys.executable, "-m", "testbed.cli"]
+
+
+def _testbed(*args: str, timeout: float = 60) -> subprocess.CompletedProcess[str]:
+    return subprocess.run(
+        [*TESTBED, *args],
+        capture_output=True,
+        text=True,
+        timeout=timeout,
+        cwd=REPO,
+        env={**os.environ, "CI": "1"},
+    )
+
+
+def _ours(run_id: str) -> list[str]:
+    return [n for n in list_netns() if n.startswith(f"el-{run_id}-")]
+
+
+def _big_scenario(path: Path, vehicles: int, cells: int) -> Path:
+    cell_lines = "".join(f"    - {{gnb: gnb{c}, core: core{c}}}\n" for c in range(cells))
+    veh_lines = "".join(f"    - {{name: av{v}, gnb: gnb{v % cells}}}\n" for v in range(vehicles))
+    path.write_text(
+        "name: big\nseed: 1\nduration: 10s\ntopology:\n  cells:\n"
+        + cell_lines
+        + "  vehicles:\n"
+        + veh_lines
+        + "links:\n  air:\n    uplink: {rate: 50mbit}\n    downlink: {rate: 100mbit}\n"
+        "  backhaul:\n    uplink: {rate: 1gbit}\n    downlink: {rate: 1gbit}\n"
+    )
+    return path
+
+
+def test_up_carries_packets_and_down_leaves_nothing(state_dir: Path) -> None:
+    links_before = os.listdir("/sys/class/net")
+    up = _testbed("up", "scenarios/smoke.yaml")
+    assert up.returncode == 0, up.stderr
+    run_id = re.search(r"run ([0-9a-f]{6}) is up", up.stdout).group(1)
+    names = _ours(run_id)
+    assert len(names) == 3
+    # A datagram from the vehicle's namespace reaches the core's through the gNB.
+    run = st.load_run(run_id)
+    assert run is not None and run.liveness() == "detached"
+    av1 = next(n for n in names if n.endswith("-av1"))
+    core1 = next(n for n in names if n.endswith("-core1"))
+    with Netns.open(core1) as core, Netns.open(av1) as vehicle:
+        core_ip = core.ipr.get_addr(label="gnb1")[0].get_attr("IFA_ADDRESS")
+        srv = core.socket()
+        cli = vehicle.socket()
+        try:
+            srv.bind((core_ip, 0))
+            srv.settimeout(2)
+            cli.sendto(b"through the gnb", (core_ip, srv.getsockname()[1]))
+            assert srv.recvfrom(64)[0] == b"through the gnb"
+        finally:
+            srv.close()
+            cli.close()
+    assert os.listdir("/sys/class/net") == links_before  # nothing in the host namespace
+
+    down = _testbed("down", run_id)
+    assert down.returncode == 0, down.stderr
+    assert _ours(run_id) == []
+    assert st.list_runs() == []
+    assert os.listdir("/sys/class/net") == links_before
+    status = _testbed("status")
+    assert status.stdout.strip() == "no runs"
+
+
+def test_sigkill_of_up_midway_then_clean_leaves_nothing(state_dir: Path, tmp_path: Path) -> None:
+    scenario = _big_scenario(tmp_path / "big.yaml", vehicles=20, cells=4)
+    proc = subprocess.Popen(
+        [*TESTBED, "up", str(scenario)],
+        cwd=REPO,
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+    )
+    run_id = None
+    deadline = time.monotonic() + 30
+    try:
+        # Kill it once some, but not all, of its 28 namespaces exist.
+        while time.monotonic() < deadline and proc.poll() is None:
+            runs = st.list_runs()
+            if runs:
+                run_id = runs[0].run_id
+                if 0 < len(_ours(run_id)) < 28:
+                    break
+            time.sleep(0.001)
+    finally:
+        proc.send_signal(signal.SIGKILL)
+        proc.wait()
+    assert run_id is not None, "testbed up never wrote its state file"
+    assert st.load_run(run_id).liveness() in ("dead", "detached")
+    cleaned = _testbed("clean", "--all")
+    assert cleaned.returncode == 0, cleaned.stderr
+    assert _ours(run_id) == []
+    assert st.list_runs() == []
+
+
+def test_run_leaves_a_run_folder_and_no_namespaces(state_dir: Path, tmp_path: Path) -> None:
+    runs = tmp_path / "runs"
+    result = _testbed("run", "scenarios/smoke.yaml", "--runs-dir", str(runs))
+    assert result.returncode == 0, result.stdout + result.stderr
+    (folder,) = runs.iterdir()
+    run = json.loads((folder / "run.json").read_text())
+    assert run["ok"] is True and run["run_id"] == folder.name
+    echoes = json.loads((folder / "connectivity.json").read_text())
+    assert [(e["src"], e["dst"], e["received"]) for e in echoes] == [("av1", "core1", 5)]
+    assert (folder / "scenario.yaml").read_text() == (REPO / "scenarios/smoke.yaml").read_text()
+    assert _ours(folder.name) == []
+    assert st.list_runs() == []
+
+
+def test_bad_scenario_exits_2_and_creates_nothing(state_dir: Path, tmp_path: Path) -> None:
+    bad = tmp_path / "bad.yaml"
+    bad.write_text(
+        (REPO / "scenarios/smoke.yaml")
+        .read_text()
+        .replace("{name: av1, gnb: gnb1}", "{name: av1, gnb: gnb9}")
+    )
+    before = [n for n in list_netns() if n.startswith("el-")]
+    result = _testbed("up", str(bad))
+    assert result.returncode == 2
+    assert "bad.yaml:" in result.stderr and "gnb9" in result.stderr
+    assert [n for n in list_netns() if n.startswith("el-")] == before
+    assert st.list_runs() == []

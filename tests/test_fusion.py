@@ -1,0 +1,173 @@
+"""Time-zone revision, the latency weight, the EdgeLoc fuser and the DNN-hold baseline."""
+
+from __future__ import annotations
+
+import math
+import threading
+
+import numpy as np
+import pytest
+
+from nodes.edgeloc import geometry
+from nodes.edgeloc.fusion import (
+    DnnHold,
+    EdgeLocFuser,
+    VoHistory,
+    latency_weight,
+    time_zone_revision,
+)
+
+
+def _drive(n: int, seed: int = 0) -> np.ndarray:
+    """A ground-truth SE(2) trajectory of n frames with random turns."""
+    rng = np.random.default_rng(seed)
+    poses = [geometry.pose(2.0, -1.0, 0.3)]
+    for _ in range(n - 1):
+        step = np.array([rng.uniform(0.5, 1.5), rng.normal(0, 0.05), rng.normal(0, 0.1)])
+        poses.append(geometry.compose(poses[-1], step))
+    return np.array(poses)
+
+
+def test_revision_of_an_exact_dnn_pose_is_the_true_current_pose() -> None:
+    gt = _drive(30)
+    offset = geometry.pose(-7.0, 4.0, 2.5)  # VO lives in its own frame
+    vo = geometry.compose(np.broadcast_to(offset, gt.shape), gt)
+    for t0, t in [(3, 10), (0, 29), (12, 12), (20, 27)]:
+        revised = time_zone_revision(gt[t0], vo[t0], vo[t])
+        np.testing.assert_allclose(revised[:2], gt[t][:2], atol=1e-9)
+        assert abs(geometry.wrap(revised[2] - gt[t][2])) < 1e-9
+
+
+def test_latency_weight_is_the_papers_sigmoid_and_never_overflows() -> None:
+    k, dt0 = 20.0, 0.25
+    for dt in (0.0, 0.1, 0.25, 0.4, 1.0):
+        assert latency_weight(dt, k, dt0) == pytest.approx(1 - 1 / (1 + math.exp(-k * (dt - dt0))))
+    assert latency_weight(dt0, k, dt0) == 0.5
+    assert latency_weight(1e6, k, dt0) == 0.0
+    assert latency_weight(-1e6, k, dt0) == 1.0
+    us = [latency_weight(dt, k, dt0) for dt in np.linspace(0, 1, 50)]
+    assert (np.diff(us) < 0).all()  # later answers weigh less
+
+
+def test_vo_only_dead_reckoning_follows_vo_motion_from_the_initial_pose() -> None:
+    gt = _drive(40, seed=1)
+    vo = geometry.compose(np.broadcast_to(geometry.pose(5, 5, 1.0), gt.shape), gt)
+    fuser = EdgeLocFuser(k_s=20.0, dt0_s=0.25, initial=gt[0])
+    out = np.array([fuser.on_vo(p, 0.05 * i) for i, p in enumerate(vo)])
+    np.testing.assert_allclose(out[:, :2], gt[:, :2], atol=1e-9)
+    np.testing.assert_allclose(geometry.wrap(out[:, 2] - gt[:, 2]), 0.0, atol=1e-9)
+    no_initial = EdgeLocFuser(k_s=20.0, dt0_s=0.25)
+    assert np.allclose(no_initial.on_vo(vo[0], 0.0), vo[0])  # VO frame taken as world frame
+
+
+def test_dnn_answer_pulls_the_fused_pose_by_u_after_revision() -> None:
+    gt = _drive(20, seed=2)
+    drift = geometry.pose(0.5, -0.3, 0.02)  # VO has drifted from the start
+    vo = geometry.compose(np.broadcast_to(drift, gt.shape), gt)
+    k, dt0 = 20.0, 0.25
+    fuser = EdgeLocFuser(k_s=k, dt0_s=dt0, initial=vo[0])
+    for i in range(20):
+        fuser.on_vo(vo[i], 0.05 * i)
+    before = fuser.pose
+    t0, t_now = 0.05 * 12, 0.05 * 19 + 0.01
+    fused = fuser.on_dnn(gt[12], t0, t_now)  # an exact DNN answer for frame 12
+    u = latency_weight(t_now - t0, k, dt0)
+    upd = fuser.last_update
+    assert upd is not None and upd.weight == pytest.approx(u)
+    np.testing.assert_allclose(upd.revised[:2], gt[19][:2], atol=1e-9)
+    np.testing.assert_allclose(fused, geometry.interpolate(before, gt[19], u), atol=1e-12)
+    # The fused pose moved towards the truth by the fraction u.
+    err_before = np.hypot(*(before[:2] - gt[19][:2]))
+    err_after = np.hypot(*(fused[:2] - gt[19][:2]))
+    assert err_after == pytest.approx((1 - u) * err_before, rel=1e-9)
+
+
+def test_revision_interpolates_vo_between_stamps() -> None:
+    hist = VoHistory(span_s=10.0)
+    hist.add(1.0, geometry.pose(0, 0, 0.2))
+    hist.add(2.0, geometry.pose(10, 0, 0.4))
+    np.testing.assert_allclose(hist.at(1.25), [2.5, 0.0, 0.25])
+    np.testing.assert_allclose(hist.at(5.0), [10, 0, 0.4])  # after the newest: the newest
+    assert hist.at(0.5) is None
+
+
+def test_history_is_bounded_by_time() -> None:
+    hist = VoHistory(span_s=1.0)
+    for i in range(200):
+        hist.add(0.05 * i, geometry.pose(i, 0, 0))
+    assert len(hist) <= 22  # 1 s at 20 Hz plus the one pose older than the span
+    assert hist.at(0.05 * 199 - 1.0) is not None
+    assert hist.at(0.05 * 199 - 1.2) is None
+
+
+def test_unrevisable_dnn_answers_are_dropped_and_counted() -> None:
+    fuser = EdgeLocFuser(k_s=20.0, dt0_s=0.25, history_s=1.0)
+    assert fuser.on_dnn(geometry.pose(0, 0, 0), 0.0, 0.1) is None  # no VO yet
+    for i in range(100):
+        fuser.on_vo(geometry.pose(0.1 * i, 0, 0), 0.05 * i)
+    assert fuser.on_dnn(geometry.pose(0, 0, 0), 0.5, 5.0) is None  # t0 older than the history
+    assert fuser.dropped == 2
+
+
+def test_orientation_is_fused_on_the_circle() -> None:
+    fuser = EdgeLocFuser(k_s=1e-9, dt0_s=0.0, initial=geometry.pose(0, 0, 3.1))  # u = 0.5
+    fuser.on_vo(geometry.pose(0, 0, 0), 0.0)
+    fused = fuser.on_dnn(geometry.pose(0, 0, -3.1), 0.0, 0.0)
+    assert fused is not None and abs(abs(fused[2]) - math.pi) < 1e-6  # not 0
+
+
+def test_bad_inputs_are_named() -> None:
+    fuser = EdgeLocFuser(k_s=20.0, dt0_s=0.25)
+    fuser.on_vo([0, 0, 0], 1.0)
+    with pytest.raises(ValueError, match=r"VO pose must be 3 finite numbers"):
+        fuser.on_vo([0, 0], 2.0)
+    with pytest.raises(ValueError, match="VO stamps must increase"):
+        fuser.on_vo([0, 0, 0], 1.0)
+    with pytest.raises(ValueError, match="arrived before its frame"):
+        fuser.on_dnn([0, 0, 0], 2.0, 1.0)
+    with pytest.raises(ValueError, match="k_s must be a positive"):
+        EdgeLocFuser(k_s=0.0, dt0_s=0.25)
+
+
+def test_two_threads_can_feed_the_fuser() -> None:
+    fuser = EdgeLocFuser(k_s=20.0, dt0_s=0.25)
+    errors: list[BaseException] = []
+    fuser.on_vo(geometry.pose(0, 0, 0), 0.0)
+
+    def vo_thread() -> None:
+        try:
+            for i in range(1, 2000):
+                fuser.on_vo(geometry.pose(0.01 * i, 0, 0.001 * i), 0.001 * i)
+        except BaseException as exc:  # reported below, not swallowed
+            errors.append(exc)
+
+    def dnn_thread() -> None:
+        try:
+            for i in range(500):
+                fuser.on_dnn(geometry.pose(0.04 * i, 0.1, 0.004 * i), 0.004 * i, 0.004 * i + 0.02)
+        except BaseException as exc:
+            errors.append(exc)
+
+    threads = [threading.Thread(target=vo_thread), threading.Thread(target=dnn_thread)]
+    for th in threads:
+        th.start()
+    for th in threads:
+        th.join()
+    assert not errors
+    assert np.isfinite(fuser.pose).all()
+
+
+def test_dnn_hold_holds_the_latest_answer_or_revises_it() -> None:
+    gt = _drive(10, seed=3)
+    held = DnnHold()
+    revised = DnnHold(revise=True)
+    for i in range(10):
+        assert held.on_vo(gt[i], 0.1 * i) is None  # nothing to hold before a DNN answer
+        revised.on_vo(gt[i], 0.1 * i)
+    held.on_dnn(gt[2], 0.2, 0.95)
+    revised.on_dnn(gt[2], 0.2, 0.95)
+    np.testing.assert_allclose(held.pose, gt[2])  # the paper's "DNN alone": held, not moved
+    np.testing.assert_allclose(revised.pose, gt[9], atol=1e-9)  # moved to the latest frame
+    extra = geometry.compose(gt[9], geometry.pose(1.0, 0.0, 0.1))
+    np.testing.assert_allclose(held.on_vo(extra, 1.0), gt[2])
+    np.testing.assert_allclose(revised.on_vo(extra, 1.0), extra, atol=1e-9)

@@ -1,0 +1,218 @@
+"""Topology plan and addressing: names, /30s, routes, forwarding, pool choice, dry run.
+
+None of these need root: they check the plan that `build` realises, and that a dry run prints
+it without creating anything.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+from ipaddress import IPv4Interface, IPv4Network
+from pathlib import Path
+
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as hs
+
+from testbed import state as st
+from testbed.addressing import CANDIDATE_POOLS, assign, choose_pool
+from testbed.errors import BadInput, HostError
+from testbed.net import list_netns
+from testbed.scenario.model import Cell, Topology, Vehicle
+from testbed.topology import Net, build, clean, example_scenario, plan, teardown_run
+
+POOL = IPv4Network("10.200.0.0/16")
+
+
+@pytest.fixture(autouse=True)
+def state_dir(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Path:
+    d = tmp_path / "state"
+    monkeypatch.setenv(st.STATE_DIR_ENV, str(d))
+    return d
+
+
+def _plan(vehicles: int = 1, cells: int = 1) -> Net:
+    return plan(example_scenario(vehicles, cells), "abc123", POOL)
+
+
+def test_one_cell_plan_names_and_addresses() -> None:
+    net = _plan()
+    assert {n: (x.role, x.netns) for n, x in net.nodes.items()} == {
+        "av1": ("vehicle", "el-abc123-av1"),
+        "gnb1": ("gnb", "el-abc123-gnb1"),
+        "core1": ("core", "el-abc123-core1"),
+    }
+    # backhaul first, then air; one /30 each; interfaces named after the peer node
+    assert list(net.links) == ["gnb1-core1", "av1-gnb1"]
+    assert net["gnb1"].interfaces == {
+        "core1": IPv4Interface("10.200.0.1/30"),
+        "av1": IPv4Interface("10.200.0.6/30"),
+    }
+    assert net["core1"].interfaces == {"gnb1": IPv4Interface("10.200.0.2/30")}
+    assert net["av1"].interfaces == {"gnb1": IPv4Interface("10.200.0.5/30")}
+    assert net["av1"].addresses() == "gnb1 10.200.0.5/30"
+
+
+def test_routes_and_forwarding() -> None:
+    net = _plan()
+    (av_route,) = net["av1"].routes
+    assert (av_route.dst, str(av_route.via), av_route.dev) == ("default", "10.200.0.6", "gnb1")
+    (core_route,) = net["core1"].routes
+    assert (core_route.dst, str(core_route.via), core_route.dev) == (
+        "10.200.0.0/16",
+        "10.200.0.1",
+        "gnb1",
+    )
+    assert net["gnb1"].routes == []
+    assert {n: x.forwarding for n, x in net.nodes.items()} == {
+        "av1": False,
+        "gnb1": True,
+        "core1": False,
+    }
+
+
+def test_link_ends_sit_in_the_right_namespaces() -> None:
+    link = _plan().links["av1-gnb1"]
+    assert link.kind == "air" and link.spec is not None and link.spec.name == "av1-gnb1"
+    ends = link.ends
+    assert (ends.lower_netns, ends.lower_ifname) == ("el-abc123-av1", "gnb1")
+    assert (ends.upper_netns, ends.upper_ifname) == ("el-abc123-gnb1", "av1")
+
+
+def test_commands_are_the_equivalent_ip_calls() -> None:
+    cmds = _plan().commands()
+    assert cmds[:3] == [f"ip netns add el-abc123-{n}" for n in ("av1", "gnb1", "core1")]
+    assert (
+        "ip -n el-abc123-gnb1 link add core1 type veth peer name gnb1 netns el-abc123-core1"
+    ) in cmds
+    assert "ip -n el-abc123-av1 link add gnb1 type veth peer name av1 netns el-abc123-gnb1" in cmds
+    assert "ip -n el-abc123-av1 addr add 10.200.0.5/30 dev gnb1" in cmds
+    assert "ip -n el-abc123-av1 route add default via 10.200.0.6 dev gnb1" in cmds
+    assert "ip -n el-abc123-core1 route add 10.200.0.0/16 via 10.200.0.1 dev gnb1" in cmds
+    assert cmds[-1] == "ip netns exec el-abc123-gnb1 sysctl -w net.ipv4.ip_forward=1"
+    # namespaces exist before anything is put into them; links exist before addresses
+    first_link = min(i for i, c in enumerate(cmds) if "type veth" in c)
+    assert all("netns add" in c for c in cmds[:3])
+    assert all("addr add" not in c for c in cmds[:first_link])
+    assert not any(c.startswith("ip link") or c.startswith("ip addr") for c in cmds), (
+        "nothing may be configured in the host namespace"
+    )
+
+
+@settings(max_examples=40, deadline=None)
+@given(vehicles=hs.integers(1, 40), cells=hs.integers(1, 8))
+def test_any_size_gets_disjoint_subnets_and_reachable_gateways(vehicles: int, cells: int) -> None:
+    net = _plan(vehicles, cells)
+    subnets = [link.addresses.subnet for link in net.links.values()]
+    assert len(subnets) == vehicles + cells
+    assert all(s.subnet_of(POOL) for s in subnets)
+    assert len(set(subnets)) == len(subnets)
+    for link in net.links.values():
+        a = link.addresses
+        assert a.lower.ip in a.subnet and a.upper.ip in a.subnet and a.lower != a.upper
+    for node in net.nodes.values():
+        for route in node.routes:
+            # every gateway is on a connected /30 of the interface the route names
+            assert route.via in node.interfaces[route.dev].network
+            peer = net.nodes[route.dev]
+            assert peer.role == "gnb" and route.via in [i.ip for i in peer.interfaces.values()]
+    assert len(net.nodes) == vehicles + 2 * cells
+    assert len({n.netns for n in net.nodes.values()}) == len(net.nodes)
+
+
+def test_vehicles_spread_over_cells() -> None:
+    net = _plan(20, 4)
+    assert len(net.nodes) == 28 and len(net.links) == 24
+    assert sorted(net["gnb3"].interfaces) == ["av11", "av15", "av19", "av3", "av7", "core3"]
+
+
+# ---- pool choice ---------------------------------------------------------------------------
+
+
+def test_default_pool_is_the_first_free_candidate() -> None:
+    host = [IPv4Network("192.168.1.0/24"), IPv4Network("10.200.3.0/24")]
+    others = {"aaaaaa": IPv4Network("10.201.0.0/16")}
+    assert choose_pool(None, 24, host, others) == IPv4Network("10.202.0.0/16")
+    assert choose_pool(None, 24, [], {}) == CANDIDATE_POOLS[0]
+
+
+def test_requested_pool_overlapping_host_is_bad_input() -> None:
+    with pytest.raises(BadInput, match=r"overlaps the host network 10\.77\.3\.0/24"):
+        choose_pool(IPv4Network("10.77.0.0/16"), 2, [IPv4Network("10.77.3.0/24")], {})
+
+
+def test_requested_pool_overlapping_live_run_is_bad_input() -> None:
+    with pytest.raises(BadInput, match="live run beef01"):
+        choose_pool(IPv4Network("10.77.0.0/16"), 2, [], {"beef01": IPv4Network("10.77.8.0/22")})
+
+
+def test_requested_pool_too_small_says_how_big() -> None:
+    with pytest.raises(BadInput, match=r"too small: 24 links .* /25 or larger"):
+        choose_pool(IPv4Network("10.77.0.0/26"), 24, [], {})
+    assert choose_pool(IPv4Network("10.77.0.0/25"), 24, [], {}) == IPv4Network("10.77.0.0/25")
+
+
+def test_public_pool_is_bad_input() -> None:
+    with pytest.raises(BadInput, match="not a private network"):
+        choose_pool(IPv4Network("8.8.0.0/16"), 2, [], {})
+
+
+def test_no_free_candidate_is_bad_input() -> None:
+    everything = [IPv4Network("10.0.0.0/8"), IPv4Network("172.16.0.0/12")]
+    with pytest.raises(BadInput, match="no free address pool"):
+        choose_pool(None, 2, everything, {})
+
+
+def test_assign_refuses_a_full_pool() -> None:
+    with pytest.raises(BadInput, match="no room"):
+        assign(IPv4Network("10.77.0.0/30"), ["a-b", "b-c"])
+
+
+# ---- bad topologies ------------------------------------------------------------------------
+
+
+def _with_topology(topo: Topology) -> object:
+    return dataclasses.replace(example_scenario(), topology=topo)
+
+
+@pytest.mark.parametrize(
+    ("topo", "message"),
+    [
+        (Topology((Vehicle("Av1", "gnb1"),), (Cell("gnb1", "core1"),)), "must match"),
+        (Topology((Vehicle("av1", "gnb1"),), (Cell("gnb1", "av1"),)), "repeated: av1"),
+        (Topology((Vehicle("av1", "gnb9"),), (Cell("gnb1", "core1"),)), "unknown gNB 'gnb9'"),
+        (Topology((Vehicle("averyverylongname", "gnb1"),), (Cell("gnb1", "core1"),)), "must"),
+    ],
+)
+def test_bad_names_are_bad_input(topo: Topology, message: str) -> None:
+    with pytest.raises(BadInput, match=message):
+        plan(_with_topology(topo), "abc123", POOL)  # type: ignore[arg-type]
+
+
+def test_bad_run_id_is_bad_input() -> None:
+    with pytest.raises(BadInput, match="6 lowercase hex"):
+        build(example_scenario(), dry_run=True, run_id="XYZ")
+
+
+# ---- dry run -------------------------------------------------------------------------------
+
+
+def test_dry_run_prints_the_commands_and_creates_nothing(state_dir: Path) -> None:
+    before = list_netns()
+    lines: list[str] = []
+    net = build(example_scenario(2, 1), dry_run=True, echo=lines.append, run_id="d0d0d0")
+    assert lines == net.commands()
+    assert "ip netns add el-d0d0d0-av2" in lines
+    assert list_netns() == before
+    assert not state_dir.exists(), "a dry run must not write state"
+    assert all(n.ns is None for n in net.nodes.values())
+    assert net.teardown().summary().startswith("0 namespace(s)")
+
+
+def test_without_root_building_and_removing_say_so(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setattr(os, "geteuid", lambda: 1000)
+    for call in (lambda: build(example_scenario()), lambda: teardown_run(None), clean):
+        with pytest.raises(HostError, match="needs root"):
+            call()
+    assert build(example_scenario(), dry_run=True).commands(), "a dry run needs no root"
