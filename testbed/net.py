@@ -262,6 +262,12 @@ class LinkEnds(Protocol):
         ...
 
 
+#: One MTU-sized frame per segment: with the default 64 KiB GSO a single super-packet takes
+#: 0.26 s to leave an HTB class at 2 Mbit/s, which skews low shaped rates by 4-8 % and adds
+#: head-of-line delay for small messages.
+GSO_MAX_SIZE = 1514
+
+
 class VethEnds:
     """The kernel veth pair, created inside the lower namespace with its peer placed straight
     into the upper namespace (IFLA_NET_NS_FD), so nothing ever appears in the host namespace."""
@@ -271,7 +277,9 @@ class VethEnds:
     def commands(self, ends: EndNames) -> list[str]:
         return [
             f"ip -n {ends.lower_netns} link add {ends.lower_ifname} type veth"
-            f" peer name {ends.upper_ifname} netns {ends.upper_netns}"
+            f" peer name {ends.upper_ifname} netns {ends.upper_netns}",
+            f"ip -n {ends.lower_netns} link set {ends.lower_ifname} gso_max_size {GSO_MAX_SIZE}",
+            f"ip -n {ends.upper_netns} link set {ends.upper_ifname} gso_max_size {GSO_MAX_SIZE}",
         ]
 
     def create(self, link: Link, net: Net) -> None:
@@ -287,3 +295,5 @@ class VethEnds:
             )
         finally:
             os.close(fd)
+        for ns, ifname in ((lower, link.ends.lower_ifname), (upper, link.ends.upper_ifname)):
+            ns.ipr.link("set", index=ns.ifindex(ifname), gso_max_size=GSO_MAX_SIZE)

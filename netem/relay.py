@@ -1,0 +1,490 @@
+"""The relay process of a userspace link: two TUN ends, two pipelines, one event loop.
+
+    python -m netem.relay --netns-a NS_A --dev-a tunA --netns-b NS_B --dev-b tunB \\
+        --control /run/x.sock [--addr-a 10.0.0.1/30 --addr-b 10.0.0.2/30 --mtu 1500]
+        [--uplink '{"delay_s": 0.01}' --downlink '{...}' --seed 1 --die-with-parent]
+
+Packets read from end A (namespace A) go through the *uplink* pipeline and are written to end
+B; packets from B go through the *downlink* pipeline to A. One thread, one selector: it sleeps
+until a packet arrives, a control request comes, or the next packet is due.
+
+Timing: `select` oversleeps by ~0.1 ms in this VM (more with the default 50 µs timer slack,
+which the relay sets to 1 ns). So the loop wakes a little before a packet is due (by the
+oversleep it has measured lately, at most 0.3 ms) and polls the last stretch; farther
+deadlines are pure sleeps, so an idle link costs no CPU. Polling has a CPU budget (10% of a
+core); past it, on a busy link, a packet due within the oversleep leaves that much early
+instead, so the error stays centred on zero.
+
+Control: a unix stream socket; one JSON object per line in, one JSON reply per line out:
+    {"op": "ping"}                                             -> {"ok": true, "pid": ...}
+    {"op": "set", "direction": "uplink"|"downlink"|"both", "profile": {field: value, ...}}
+    {"op": "outage", "seconds": 2.0, "direction": "both"}
+    {"op": "trace", "direction": "uplink", "path": "x.csv"|null, "format": "csv", "loop": true}
+    {"op": "counters"}                          -> {"ok": true, "uplink": {...}, "downlink": ...}
+Errors come back as {"ok": false, "error": "..."}; the relay keeps running. `set` changes only
+the fields given (the others keep their value) and applies in place: queued packets stay.
+
+On start it prints one line `{"event": "ready", ...}` to stdout once both TUNs are up and the
+control socket listens. SIGTERM or SIGINT -> clean exit (the TUN devices vanish with it).
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import ctypes
+import json
+import os
+import select
+import signal
+import socket
+import sys
+import time
+from collections import deque
+from collections.abc import Callable
+from typing import Any
+
+from netem.profile import PROFILE_FIELDS, LinkProfile
+from netem.stages import Pipeline, validate_profile
+from netem.traces import TRACE_FORMATS, load_trace
+from netem.tun import MAX_MTU, TunConfig, TunError, open_tun_in
+
+#: Packets read from one TUN per wake-up before the loop looks at deadlines again.
+READ_BATCH = 64
+#: Bounds of the early wake-up, which tracks the measured timer oversleep. The loop polls
+#: (spins) only for a packet due within the early wake-up, so never for more than the maximum.
+EARLY_MIN_S, EARLY_MAX_S = 0.00002, 0.0003
+#: Share of a core the loop may spend polling, and the most it may save up (seconds).
+SPIN_SHARE, SPIN_BURST_S = 0.1, 0.005
+DIRECTIONS = ("uplink", "downlink")
+
+PR_SET_TIMERSLACK = 29
+PR_SET_PDEATHSIG = 1
+
+
+class ControlError(ValueError):
+    """A control request that cannot be carried out; its message goes back to the client."""
+
+
+class WakeTimer:
+    """Decides how long the loop may sleep, learning how late this host's timers fire.
+
+    A packet due within the expected oversleep is waited for by polling (spinning), which
+    makes it leave on time. Spinning is paid from a budget that refills at `spin_share` of
+    a core: on a busy link, where deadlines come every few tens of µs, polling would take a
+    whole core, so once the budget is spent such packets leave up to `early_s` ahead of time
+    instead (`ahead_s`), which centres the timing error on zero at no CPU cost.
+    """
+
+    def __init__(self, spin_share: float = SPIN_SHARE) -> None:
+        self.early_s = 0.0001  # the VM's median oversleep, refined as we go
+        self.spin_share = spin_share
+        self.spin_budget_s = SPIN_BURST_S
+        self.ahead_s = 0.0  # how early a packet may leave after this plan
+        self.sleeps = 0
+        self.spins = 0
+        self.early_releases = 0
+        self._last: float | None = None
+        self._spinning = False
+
+    def timeout(self, soft: float | None, hard: float | None, now: float) -> float | None:
+        """Seconds to block in select (None: until an event; 0: poll).
+
+        `hard` is when a packet leaves the link (it must be on time); `soft` is a hand-off
+        between stages (exact whenever it is handled), so it never causes a spin.
+        """
+        if self._last is not None:
+            elapsed = now - self._last
+            if self._spinning:
+                self.spin_budget_s -= elapsed
+            self.spin_budget_s = min(SPIN_BURST_S, self.spin_budget_s + elapsed * self.spin_share)
+        self._last = now
+        self._spinning = False
+        self.ahead_s = 0.0
+        timeout: float | None = None
+        if soft is not None:
+            timeout = max(0.0, soft - now)
+        if hard is not None:
+            wait = hard - now
+            if wait <= 0:
+                return 0.0
+            if wait <= self.early_s:
+                # Due within the oversleep (always < 0.3 ms): a sleep would be late.
+                if self.spin_budget_s > 0:
+                    self._spinning = True
+                    self.spins += 1
+                else:
+                    self.ahead_s = self.early_s
+                    self.early_releases += 1
+                return 0.0
+            if timeout is None or wait - self.early_s < timeout:
+                timeout = wait - self.early_s
+        return timeout
+
+    def observe(self, asked: float, slept: float) -> None:
+        """Feed back a sleep that ended by timeout, to track the oversleep (EWMA)."""
+        if asked <= 0:
+            return
+        self.sleeps += 1
+        over = min(max(slept - asked, 0.0), 0.002)
+        early = 0.95 * self.early_s + 0.05 * over
+        self.early_s = min(max(early, EARLY_MIN_S), EARLY_MAX_S)
+
+
+class Relay:
+    """Moves packets between two TUN fds through an uplink and a downlink `Pipeline`."""
+
+    def __init__(
+        self,
+        fd_a: int,
+        fd_b: int,
+        uplink: Pipeline,
+        downlink: Pipeline,
+        control_path: str | None = None,
+        mtu: int = 1500,
+        clock: Callable[[], float] = time.monotonic,
+    ) -> None:
+        self.fd_a, self.fd_b = fd_a, fd_b
+        self.pipelines = {"uplink": uplink, "downlink": downlink}
+        self.clock = clock
+        self.read_size = max(mtu, 1500) + 64
+        self.timer = WakeTimer()
+        self.lateness: deque[float] = deque(maxlen=20000)  # recent exit lateness samples
+        self.stats = {"wakeups": 0, "read_batches": 0, "write_errors": 0, "control_requests": 0}
+        self._running = True
+        # select(2) directly: µs timeouts (epoll's are whole ms) and the least work per call
+        # on a handful of fds. fd -> (kind, argument).
+        self._handlers: dict[int, tuple[str, Any]] = {}
+        self._conns: dict[socket.socket, bytearray] = {}
+        self._listener: socket.socket | None = None
+        self._control_path = control_path
+        self._wake_r, self._wake_w = socket.socketpair()
+        self._wake_r.setblocking(False)
+        self._wake_w.setblocking(False)
+        self._handlers[fd_a] = ("tun", "uplink")
+        self._handlers[fd_b] = ("tun", "downlink")
+        self._handlers[self._wake_r.fileno()] = ("wake", None)
+        if control_path is not None:
+            self._listen(control_path)
+
+    # -- control ----------------------------------------------------------------------------
+
+    def _listen(self, path: str) -> None:
+        with contextlib.suppress(FileNotFoundError):
+            os.unlink(path)
+        sock = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+        sock.bind(path)
+        os.chmod(path, 0o600)
+        sock.listen(8)
+        sock.setblocking(False)
+        self._listener = sock
+        self._handlers[sock.fileno()] = ("listen", None)
+
+    def _accept(self) -> None:
+        assert self._listener is not None
+        try:
+            conn, _ = self._listener.accept()
+        except BlockingIOError:
+            return
+        conn.settimeout(1.0)  # replies are small; never let a stuck client stall the link
+        self._conns[conn] = bytearray()
+        self._handlers[conn.fileno()] = ("conn", conn)
+
+    def _drop_conn(self, conn: socket.socket) -> None:
+        self._handlers.pop(conn.fileno(), None)
+        self._conns.pop(conn, None)
+        conn.close()
+
+    def _serve(self, conn: socket.socket) -> None:
+        try:
+            data = conn.recv(65536)
+        except OSError:
+            data = b""
+        if not data:
+            self._drop_conn(conn)
+            return
+        buf = self._conns[conn]
+        buf += data
+        if len(buf) > 1 << 20:
+            self._drop_conn(conn)
+            return
+        while b"\n" in buf:
+            line, _, rest = bytes(buf).partition(b"\n")
+            buf[:] = rest
+            if not line.strip():
+                continue
+            reply = self.handle_line(line)
+            try:
+                conn.sendall((json.dumps(reply) + "\n").encode())
+            except OSError:
+                self._drop_conn(conn)
+                return
+
+    def handle_line(self, line: bytes) -> dict[str, Any]:
+        """Answer one control request (a JSON line); never raises."""
+        self.stats["control_requests"] += 1
+        try:
+            request = json.loads(line)
+            if not isinstance(request, dict):
+                raise ControlError("a request must be a JSON object")
+            return {"ok": True, **self.handle(request)}
+        except json.JSONDecodeError as exc:
+            return {"ok": False, "error": f"request is not JSON: {exc}"}
+        except (ControlError, ValueError, TypeError) as exc:
+            return {"ok": False, "error": str(exc)}
+
+    def _directions(self, request: dict[str, Any], default: str | None = None) -> list[str]:
+        direction = request.get("direction", default)
+        if direction == "both":
+            return list(DIRECTIONS)
+        if direction not in DIRECTIONS:
+            raise ControlError(
+                f"direction must be uplink, downlink or both, got {direction!r}"
+                if direction is not None
+                else "direction is missing (uplink, downlink or both)"
+            )
+        return [direction]
+
+    def handle(self, request: dict[str, Any]) -> dict[str, Any]:
+        """Carry out one control request and return the reply's fields."""
+        op = request.get("op")
+        if op == "ping":
+            return {"pid": os.getpid()}
+        if op == "counters":
+            return self.counters()
+        if op == "set":
+            changes = request.get("profile")
+            if not isinstance(changes, dict):
+                raise ControlError("set needs `profile`: an object of LinkProfile fields")
+            unknown = sorted(set(changes) - set(PROFILE_FIELDS))
+            if unknown:
+                raise ControlError(
+                    f"unknown profile field(s) {unknown}; allowed: {', '.join(PROFILE_FIELDS)}"
+                )
+            targets = self._directions(request)
+            new = {}
+            for d in targets:
+                merged = {**self.pipelines[d].profile.to_dict(), **changes}
+                profile = LinkProfile.from_dict(merged)
+                validate_profile(profile)
+                new[d] = profile
+            for d, profile in new.items():  # all validated first: both or neither change
+                self.pipelines[d].apply(profile)
+            return {"profiles": {d: p.to_dict() for d, p in new.items()}}
+        if op == "outage":
+            seconds = request.get("seconds")
+            if not isinstance(seconds, int | float) or not seconds >= 0:
+                raise ControlError(f"outage needs `seconds` >= 0, got {seconds!r}")
+            now = self.clock()
+            for d in self._directions(request, default="both"):
+                self.pipelines[d].outage(now, float(seconds))
+            return {}
+        if op == "trace":
+            targets = self._directions(request)
+            path = request.get("path")
+            fmt = request.get("format")
+            if fmt is not None and fmt not in TRACE_FORMATS:
+                raise ControlError(f"trace format must be mahimahi or csv, got {fmt!r}")
+            trace = None if path is None else load_trace(str(path), fmt)
+            now = self.clock()
+            for d in targets:
+                self.pipelines[d].play_trace(trace, now, loop=bool(request.get("loop", False)))
+            return {"mean_rate_bps": None if trace is None else trace.mean_rate_bps()}
+        raise ControlError(f"unknown op {op!r}; allowed: ping, set, outage, trace, counters")
+
+    def counters(self) -> dict[str, Any]:
+        times = os.times()
+        late = sorted(self.lateness)
+        lateness = {
+            f"p{q}": late[min(len(late) - 1, int(q / 100 * len(late)))] if late else None
+            for q in (50, 90, 99)
+        }
+        return {
+            "uplink": self.pipelines["uplink"].snapshot(),
+            "downlink": self.pipelines["downlink"].snapshot(),
+            "relay": {
+                **self.stats,
+                "cpu_s": times.user + times.system,
+                "early_wake_s": self.timer.early_s,
+                "timed_sleeps": self.timer.sleeps,
+                "spins": self.timer.spins,
+                "early_releases": self.timer.early_releases,
+                "exit_lateness_s": lateness,
+            },
+        }
+
+    # -- packets ----------------------------------------------------------------------------
+
+    def _read(self, fd: int, pipeline: Pipeline) -> None:
+        self.stats["read_batches"] += 1
+        clock, push, size = self.clock, pipeline.push, self.read_size
+        for _ in range(READ_BATCH):
+            try:
+                packet = os.read(fd, size)
+            except BlockingIOError:
+                return
+            push(packet, clock())
+
+    def _deliver(self, now: float) -> None:
+        for direction, fd in (("uplink", self.fd_b), ("downlink", self.fd_a)):
+            pipeline = self.pipelines[direction]
+            exit_ = pipeline.next_exit()
+            if exit_ is not None and exit_ <= now:
+                # How late the first packet of this batch leaves (after the clock read).
+                self.lateness.append(self.clock() - exit_)
+            for packet in pipeline.pop_ready(now):
+                try:
+                    os.write(fd, packet)
+                except OSError:
+                    # The far end is down or its queue is full: the packet is lost, as on
+                    # a wire; count it so a report can tell.
+                    self.stats["write_errors"] += 1
+
+    def _deadlines(self) -> tuple[float | None, float | None]:
+        """(earliest hand-off or exit, earliest exit) over both directions."""
+        soft: float | None = None
+        hard: float | None = None
+        for pipeline in self.pipelines.values():
+            due, exit_ = pipeline.next_due(), pipeline.next_exit()
+            if due is not None and (soft is None or due < soft):
+                soft = due
+            if exit_ is not None and (hard is None or exit_ < hard):
+                hard = exit_
+        return soft, hard
+
+    def stop(self) -> None:
+        """Ask the loop to end (safe from a signal handler)."""
+        self._running = False
+        with contextlib.suppress(OSError):
+            self._wake_w.send(b"x")
+
+    def run(self) -> None:
+        """Relay until `stop()`."""
+        clock, timer, handlers = self.clock, self.timer, self._handlers
+        stats = self.stats
+        while self._running:
+            now = clock()
+            timeout = timer.timeout(*self._deadlines(), now)
+            try:
+                ready = select.select(list(handlers), [], [], timeout)[0]
+            except InterruptedError:  # pragma: no cover - PEP 475 retries; kept for safety
+                ready = []
+            stats["wakeups"] += 1
+            if not ready and timeout:
+                timer.observe(timeout, clock() - now)
+            for fd in ready:
+                kind, arg = handlers.get(fd, ("gone", None))
+                if kind == "tun":
+                    self._read(fd, self.pipelines[arg])
+                elif kind == "listen":
+                    self._accept()
+                elif kind == "conn":
+                    self._serve(arg)
+                elif kind == "wake":
+                    with contextlib.suppress(OSError):
+                        self._wake_r.recv(4096)
+            self._deliver(clock() + timer.ahead_s)
+
+    def close(self) -> None:
+        for conn in list(self._conns):
+            self._drop_conn(conn)
+        if self._listener is not None:
+            self._handlers.pop(self._listener.fileno(), None)
+            self._listener.close()
+            self._listener = None
+            if self._control_path:
+                with contextlib.suppress(OSError):
+                    os.unlink(self._control_path)
+        self._wake_r.close()
+        self._wake_w.close()
+
+
+def _profile_arg(text: str) -> LinkProfile:
+    try:
+        data = json.loads(text)
+        if not isinstance(data, dict):
+            raise ValueError("expected a JSON object of LinkProfile fields")
+        unknown = sorted(set(data) - set(PROFILE_FIELDS))
+        if unknown:
+            raise ValueError(f"unknown field(s) {unknown}; allowed: {', '.join(PROFILE_FIELDS)}")
+        profile = LinkProfile.from_dict(data)
+        validate_profile(profile)
+    except (ValueError, TypeError) as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
+    return profile
+
+
+def _parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="python -m netem.relay", description=__doc__.split("\n")[0])
+    p.add_argument("--netns-a", required=True, help="namespace of end A (name or path)")
+    p.add_argument("--netns-b", required=True, help="namespace of end B (name or path)")
+    p.add_argument("--dev-a", required=True, help="TUN device name of end A")
+    p.add_argument("--dev-b", required=True, help="TUN device name of end B")
+    p.add_argument("--addr-a", help="address of end A, e.g. 10.0.0.1/30")
+    p.add_argument("--addr-b", help="address of end B, e.g. 10.0.0.2/30")
+    p.add_argument("--mtu", type=int, default=1500, help=f"MTU of both ends (68..{MAX_MTU})")
+    p.add_argument("--control", help="path of the control unix socket")
+    p.add_argument("--uplink", type=_profile_arg, default=LinkProfile(), help="A->B profile JSON")
+    p.add_argument("--downlink", type=_profile_arg, default=LinkProfile(), help="B->A profile")
+    p.add_argument("--seed", default="0", help="seed of loss and jitter draws")
+    p.add_argument(
+        "--nice",
+        type=int,
+        default=0,
+        help="scheduling priority change (negative = sooner; an emulated link should not wait"
+        " behind the workload it carries)",
+    )
+    p.add_argument(
+        "--die-with-parent", action="store_true", help="exit when the starting process dies"
+    )
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = _parser().parse_args(argv)
+    libc = ctypes.CDLL(None, use_errno=True)
+    libc.prctl(PR_SET_TIMERSLACK, 1, 0, 0, 0)  # 1 ns slack: timers fire as asked
+    if args.nice:
+        try:
+            os.nice(args.nice)
+        except OSError as exc:
+            print(f"relay: warning: cannot change priority by {args.nice}: {exc}", file=sys.stderr)
+    if args.die_with_parent:
+        parent = os.getppid()
+        libc.prctl(PR_SET_PDEATHSIG, signal.SIGTERM, 0, 0, 0)
+        if os.getppid() != parent:
+            return 1
+    try:
+        end_a = TunConfig(args.dev_a, args.mtu, args.addr_a)
+        end_b = TunConfig(args.dev_b, args.mtu, args.addr_b)
+    except ValueError as exc:
+        print(f"relay: error: {exc}", file=sys.stderr)
+        return 2
+    fds: list[int] = []
+    relay: Relay | None = None
+    try:
+        fds.append(open_tun_in(args.netns_a, end_a))
+        fds.append(open_tun_in(args.netns_b, end_b))
+        uplink = Pipeline.from_profile(args.uplink, seed=f"{args.seed}:uplink")
+        downlink = Pipeline.from_profile(args.downlink, seed=f"{args.seed}:downlink")
+        relay = Relay(fds[0], fds[1], uplink, downlink, args.control, mtu=args.mtu)
+    except (TunError, OSError, ValueError) as exc:
+        print(f"relay: error: {exc}", file=sys.stderr)
+        for fd in fds:
+            os.close(fd)
+        return 1
+    signal.signal(signal.SIGTERM, lambda *_: relay.stop())
+    signal.signal(signal.SIGINT, lambda *_: relay.stop())
+    ready = {"event": "ready", "pid": os.getpid(), "dev_a": args.dev_a, "dev_b": args.dev_b}
+    print(json.dumps(ready), flush=True)
+    try:
+        relay.run()
+    finally:
+        relay.close()
+        for fd in fds:
+            os.close(fd)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,711 @@
+"""Packet stages of the userspace link: small queues that each do one impairment.
+
+This is Mahimahi's design (`delay_queue`, `link_queue`, `loss_queue`): every impairment is a
+`Stage` with one interface,
+
+    push(packet, now)      a packet enters the stage at time `now` (seconds, any clock)
+    pop_ready(now)         the packets that have left the stage by `now`, in order
+    next_due()             when the next packet will leave (None: nothing will on its own)
+
+and a `Pipeline` chains stages into one direction of a link. The pipeline is itself a stage,
+so a relay only ever sees push/pop_ready/next_due. Stages never read a clock: the caller
+passes `now`, which makes them exact and testable with a fake clock.
+
+A packet moves from one stage to the next at the instant it left (its due time), not when the
+relay happened to wake up, so timer lateness is paid once, at the link's exit, never per stage.
+
+Stages built for a `LinkProfile` (in this order): `Outage` gate, `RandomLoss`,
+`GilbertElliottLoss`, `Rate` (serialisation + drop-tail queue), `TraceLink` (delivery
+opportunities from a bandwidth trace; idle unless a trace plays) and `Delay` (+ jitter).
+`Pipeline.apply(profile)` reconfigures the same stages in place, so queued packets stay queued.
+"""
+
+from __future__ import annotations
+
+import heapq
+import math
+import random
+from collections import deque
+from collections.abc import Callable, Iterator, Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+from netem.profile import JITTER_DISTRIBUTIONS, LinkProfile
+from netem.traces import OPPORTUNITY_BYTES, Trace
+
+# Pareto jitter: shape 3 has a finite variance; samples are shifted and scaled to mean 0 and
+# standard deviation 1, so `jitter_s` is the standard deviation for pareto as for normal.
+_PARETO_SHAPE = 3.0
+_PARETO_MEAN = _PARETO_SHAPE / (_PARETO_SHAPE - 1.0)
+_PARETO_SD = math.sqrt(_PARETO_SHAPE / ((_PARETO_SHAPE - 1.0) ** 2 * (_PARETO_SHAPE - 2.0)))
+
+
+def jitter_sd(profile: LinkProfile) -> float:
+    """Standard deviation of the per-packet delay that `profile`'s jitter gives.
+
+    Same meaning as netem: for `normal` and `pareto` the jitter is the standard deviation;
+    for `uniform` the delay is spread evenly over `delay ± jitter` (sd = jitter / √3).
+    """
+    if profile.jitter_distribution == "uniform":
+        return profile.jitter_s / math.sqrt(3.0)
+    return profile.jitter_s
+
+
+def validate_profile(profile: LinkProfile) -> None:
+    """Raise `ValueError` naming the field if `profile` holds a value no stage can apply."""
+
+    def bad(name: str, value: object, allowed: str) -> ValueError:
+        return ValueError(f"link profile field {name}={value!r} is invalid: {allowed}")
+
+    def fraction(name: str, value: object) -> None:
+        if not isinstance(value, int | float) or not 0.0 <= value <= 1.0:
+            raise bad(name, value, "must be a fraction in [0, 1]")
+
+    def non_negative(name: str, value: object) -> None:
+        if not isinstance(value, int | float) or not math.isfinite(value) or value < 0:
+            raise bad(name, value, "must be a finite number >= 0")
+
+    if profile.rate_bps is not None:
+        non_negative("rate_bps", profile.rate_bps)
+    non_negative("delay_s", profile.delay_s)
+    non_negative("jitter_s", profile.jitter_s)
+    if profile.jitter_distribution not in JITTER_DISTRIBUTIONS:
+        raise bad(
+            "jitter_distribution",
+            profile.jitter_distribution,
+            f"allowed: {', '.join(JITTER_DISTRIBUTIONS)}",
+        )
+    fraction("loss", profile.loss)
+    ge = profile.gilbert_elliott
+    if ge is not None:
+        for name in ("p", "r", "good_loss", "bad_loss"):
+            fraction(f"gilbert_elliott.{name}", getattr(ge, name))
+    if profile.queue_packets is not None and (
+        not isinstance(profile.queue_packets, int) or profile.queue_packets < 1
+    ):
+        raise bad("queue_packets", profile.queue_packets, "must be an integer >= 1 or null")
+    if profile.queue_time_s is not None and (
+        not isinstance(profile.queue_time_s, int | float) or not profile.queue_time_s > 0
+    ):
+        raise bad("queue_time_s", profile.queue_time_s, "must be a number > 0 or null")
+    if not isinstance(profile.reorder, bool):
+        raise bad("reorder", profile.reorder, "must be true or false")
+
+
+@dataclass
+class StageCounters:
+    """What one stage saw: packets and bytes in, out, and dropped by reason."""
+
+    packets_in: int = 0
+    bytes_in: int = 0
+    packets_out: int = 0
+    bytes_out: int = 0
+    dropped_packets: dict[str, int] = field(default_factory=dict)
+    dropped_bytes: dict[str, int] = field(default_factory=dict)
+
+    def drop(self, reason: str, size: int) -> None:
+        self.dropped_packets[reason] = self.dropped_packets.get(reason, 0) + 1
+        self.dropped_bytes[reason] = self.dropped_bytes.get(reason, 0) + size
+
+    @property
+    def dropped(self) -> int:
+        return sum(self.dropped_packets.values())
+
+    def to_dict(self) -> dict[str, Any]:
+        return {
+            "packets_in": self.packets_in,
+            "bytes_in": self.bytes_in,
+            "packets_out": self.packets_out,
+            "bytes_out": self.bytes_out,
+            "dropped_packets": dict(self.dropped_packets),
+            "dropped_bytes": dict(self.dropped_bytes),
+        }
+
+
+class Stage:
+    """One impairment: packets go in with `push`, come out with `pop_ready`.
+
+    Subclasses keep packets in their own queue; `configure(profile)` takes the fields of a
+    `LinkProfile` the stage cares about, in place (queued packets are kept).
+    """
+
+    name = "stage"
+
+    def __init__(self) -> None:
+        self.counters = StageCounters()
+
+    def push(self, packet: bytes, now: float) -> None:
+        raise NotImplementedError
+
+    def pop_ready(self, now: float) -> list[bytes]:
+        raise NotImplementedError
+
+    def next_due(self) -> float | None:
+        raise NotImplementedError
+
+    def queued(self) -> int:
+        """Packets inside the stage now."""
+        raise NotImplementedError
+
+    def configure(self, profile: LinkProfile) -> None:
+        """Take the settings of `profile` that concern this stage (default: none)."""
+
+
+class Gate(Stage):
+    """A zero-time stage that lets each packet through or drops it when it arrives."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self._passed: deque[tuple[float, bytes]] = deque()
+
+    def verdict(self, packet: bytes, now: float) -> str | None:
+        """The drop reason for `packet`, or None to let it through."""
+        raise NotImplementedError
+
+    def push(self, packet: bytes, now: float) -> None:
+        c = self.counters
+        c.packets_in += 1
+        c.bytes_in += len(packet)
+        reason = self.verdict(packet, now)
+        if reason is None:
+            self._passed.append((now, packet))
+        else:
+            c.drop(reason, len(packet))
+
+    def pop_ready(self, now: float) -> list[bytes]:
+        return _pop_timed(self._passed, now, self.counters)
+
+    def next_due(self) -> float | None:
+        return self._passed[0][0] if self._passed else None
+
+    def queued(self) -> int:
+        return len(self._passed)
+
+
+def _pop_timed(queue: deque[tuple[float, bytes]], now: float, c: StageCounters) -> list[bytes]:
+    """Pop every `(due, packet)` at the head of `queue` with due <= now, counting them."""
+    out: list[bytes] = []
+    while queue and queue[0][0] <= now:
+        packet = queue.popleft()[1]
+        out.append(packet)
+        c.bytes_out += len(packet)
+    c.packets_out += len(out)
+    return out
+
+
+class Outage(Gate):
+    """Drops every packet while an outage is on (a handover gap, a dead radio)."""
+
+    name = "outage"
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.since = self.until = -math.inf
+
+    def start(self, now: float, seconds: float) -> None:
+        """Drop everything from `now` for `seconds` (math.inf: until `stop`)."""
+        self.since, self.until = now, now + seconds
+
+    def stop(self) -> None:
+        self.since = self.until = -math.inf
+
+    def active(self, now: float) -> bool:
+        return self.since <= now < self.until
+
+    def verdict(self, packet: bytes, now: float) -> str | None:
+        return "outage" if self.since <= now < self.until else None
+
+
+class RandomLoss(Gate):
+    """Drops each packet independently with probability `loss`."""
+
+    name = "loss"
+
+    def __init__(self, loss: float = 0.0, seed: int | str = 0) -> None:
+        super().__init__()
+        self.loss = loss
+        self._rng = random.Random(f"{seed}:{self.name}")
+
+    def configure(self, profile: LinkProfile) -> None:
+        # A Gilbert-Elliott model replaces the independent loss (netem's `loss gemodel`).
+        self.loss = 0.0 if profile.gilbert_elliott is not None else profile.loss
+
+    def verdict(self, packet: bytes, now: float) -> str | None:
+        if self.loss > 0.0 and self._rng.random() < self.loss:
+            return "loss"
+        return None
+
+
+class GilbertElliottLoss(Gate):
+    """Bursty loss: a good/bad Markov chain stepped once per packet (netem's gemodel)."""
+
+    name = "burst_loss"
+
+    def __init__(self, model: Any = None, seed: int | str = 0) -> None:
+        super().__init__()
+        self.model = model
+        self.bad = False
+        self._rng = random.Random(f"{seed}:{self.name}")
+
+    def configure(self, profile: LinkProfile) -> None:
+        self.model = profile.gilbert_elliott
+        if self.model is None:
+            self.bad = False
+
+    def verdict(self, packet: bytes, now: float) -> str | None:
+        m = self.model
+        if m is None:
+            return None
+        rng = self._rng
+        lost = rng.random() < (m.bad_loss if self.bad else m.good_loss)
+        # Step the chain after deciding, so the first packet sees the good state.
+        if self.bad:
+            if rng.random() < m.r:
+                self.bad = False
+        elif rng.random() < m.p:
+            self.bad = True
+        return "loss" if lost else None
+
+
+class Rate(Stage):
+    """A link of `rate_bps` with a drop-tail queue: each packet leaves after its serialisation.
+
+    The packet at the head is "on the wire" for `8 * len / rate_bps` seconds after the
+    previous one left (or after it arrived, if the link was idle). A new packet is dropped
+    when `queue_packets` packets are already inside, or when it would wait longer than
+    `queue_time_s` before its turn. `rate_bps=None` means no limit (a packet leaves at once).
+    Bytes are IP packet bytes, what a TUN device carries.
+    """
+
+    name = "rate"
+
+    def __init__(
+        self,
+        rate_bps: float | None = None,
+        queue_packets: int | None = None,
+        queue_time_s: float | None = None,
+    ) -> None:
+        super().__init__()
+        self.profile_rate_bps = rate_bps
+        self.suspended = False  # True while a trace sets the rate instead
+        self.queue_packets = queue_packets
+        self.queue_time_s = queue_time_s
+        self._queue: deque[bytes] = deque()  # waiting + the head on the wire
+        self._queued_bytes = 0
+        self._head_start = 0.0
+        self._head_finish = math.inf
+        self._last_finish = -math.inf  # when the previous packet left the wire
+        self._left: deque[tuple[float, bytes]] = deque()  # (time it left, packet)
+
+    @property
+    def rate_bps(self) -> float | None:
+        """The rate in force (None: unlimited, also while a trace is playing)."""
+        return None if self.suspended else self.profile_rate_bps
+
+    def _serialise(self, size: int) -> float:
+        rate = self.rate_bps
+        if rate is None:
+            return 0.0
+        if rate <= 0:
+            return math.inf
+        return size * 8.0 / rate
+
+    def configure(self, profile: LinkProfile) -> None:
+        self.queue_packets = profile.queue_packets
+        self.queue_time_s = profile.queue_time_s
+        self.set_rate(profile.rate_bps)
+
+    def set_rate(self, rate_bps: float | None, suspended: bool | None = None) -> None:
+        """Change the rate in place; the head packet's wire time is recomputed from its start."""
+        self.profile_rate_bps = rate_bps
+        if suspended is not None:
+            self.suspended = suspended
+        if self._queue:
+            self._head_finish = self._head_start + self._serialise(len(self._queue[0]))
+
+    def backlog_s(self, now: float) -> float:
+        """How long a packet arriving at `now` would wait before its turn on the wire."""
+        if not self._queue:
+            return 0.0
+        rest = self._queued_bytes - len(self._queue[0])
+        return max(0.0, self._head_finish - now) + self._serialise(rest)
+
+    def _advance(self, now: float) -> None:
+        q = self._queue
+        while q and self._head_finish <= now:
+            packet = q.popleft()
+            self._queued_bytes -= len(packet)
+            finish = self._head_finish
+            self._left.append((finish, packet))
+            self._last_finish = finish
+            if q:
+                self._head_start = finish
+                self._head_finish = finish + self._serialise(len(q[0]))
+            else:
+                self._head_finish = math.inf
+
+    def push(self, packet: bytes, now: float) -> None:
+        c = self.counters
+        size = len(packet)
+        c.packets_in += 1
+        c.bytes_in += size
+        self._advance(now)
+        if self.rate_bps is not None:
+            if self.queue_packets is not None and len(self._queue) >= self.queue_packets:
+                c.drop("queue_full", size)
+                return
+            if self.queue_time_s is not None and self.backlog_s(now) > self.queue_time_s:
+                c.drop("queue_time", size)
+                return
+        self._queue.append(packet)
+        self._queued_bytes += size
+        if len(self._queue) == 1:
+            # The wire is free from `now`, or from when the last packet left if a caller ran
+            # the stage a little ahead of time.
+            self._head_start = max(now, self._last_finish)
+            self._head_finish = self._head_start + self._serialise(size)
+
+    def pop_ready(self, now: float) -> list[bytes]:
+        self._advance(now)
+        return _pop_timed(self._left, now, self.counters)
+
+    def next_due(self) -> float | None:
+        if self._left:
+            return self._left[0][0]
+        if self._queue and self._head_finish < math.inf:
+            return self._head_finish
+        return None
+
+    def queued(self) -> int:
+        return len(self._queue) + len(self._left)
+
+
+class TraceLink(Stage):
+    """Delivers packets only at a trace's delivery opportunities (Mahimahi's link_queue).
+
+    Each opportunity carries up to 1500 bytes: several small packets, or part of a large one
+    (a 9000-byte packet needs six). Opportunities that find the queue empty are lost. With no
+    trace playing the stage is transparent. A trace that does not loop ends after its last
+    period; `on_end` is then called (the pipeline gives the rate back to the profile) and any
+    queued packets leave at once. The drop-tail limits: `queue_packets`, and `queue_time_s`
+    as the longest time the head packet may have waited when a new one arrives.
+    """
+
+    name = "trace"
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.trace: Trace | None = None
+        self.loop = False
+        self.queue_packets: int | None = None
+        self.queue_time_s: float | None = None
+        self.on_end: Callable[[], None] | None = None
+        self._times: Iterator[float] = iter(())
+        self._next: float | None = None
+        self._end = math.inf
+        self._queue: deque[tuple[float, bytes]] = deque()  # (arrival, packet)
+        self._head_left = 0  # bytes of the head packet still to deliver
+        self._left: deque[tuple[float, bytes]] = deque()
+
+    def configure(self, profile: LinkProfile) -> None:
+        self.queue_packets = profile.queue_packets
+        self.queue_time_s = profile.queue_time_s
+
+    def play(self, trace: Trace, now: float, loop: bool) -> None:
+        """Start replaying `trace` at `now` (a trace already playing is replaced)."""
+        self._advance(now)
+        self.trace, self.loop = trace, loop
+        self._times = trace.opportunities(now, loop)
+        self._next = next(self._times, None)
+        self._end = math.inf if loop else now + trace.duration_s
+
+    def stop(self, now: float) -> None:
+        """Stop the trace; queued packets leave at `now`."""
+        self._advance(now)
+        self._finish(now)
+
+    def _finish(self, at: float) -> None:
+        self.trace, self._next, self._end = None, None, math.inf
+        self._times = iter(())
+        while self._queue:
+            self._left.append((at, self._queue.popleft()[1]))
+        self._head_left = 0
+        if self.on_end is not None:
+            self.on_end()
+
+    def _advance(self, now: float) -> None:
+        if self.trace is None:
+            return
+        q = self._queue
+        while self._next is not None and self._next <= now:
+            opportunity = self._next
+            budget = OPPORTUNITY_BYTES
+            while q and budget > 0:
+                if self._head_left <= budget:
+                    budget -= self._head_left
+                    self._left.append((opportunity, q.popleft()[1]))
+                    self._head_left = len(q[0][1]) if q else 0
+                else:
+                    self._head_left -= budget
+                    budget = 0
+            self._next = next(self._times, None)
+        if self._next is None and self._end <= now:
+            self._finish(self._end)
+
+    def push(self, packet: bytes, now: float) -> None:
+        c = self.counters
+        size = len(packet)
+        c.packets_in += 1
+        c.bytes_in += size
+        self._advance(now)
+        if self.trace is None:
+            self._left.append((now, packet))
+            return
+        q = self._queue
+        if self.queue_packets is not None and len(q) >= self.queue_packets:
+            c.drop("queue_full", size)
+            return
+        if self.queue_time_s is not None and q and now - q[0][0] > self.queue_time_s:
+            c.drop("queue_time", size)
+            return
+        q.append((now, packet))
+        if len(q) == 1:
+            self._head_left = size
+
+    def pop_ready(self, now: float) -> list[bytes]:
+        self._advance(now)
+        return _pop_timed(self._left, now, self.counters)
+
+    def next_due(self) -> float | None:
+        if self._left:
+            return self._left[0][0]
+        if self._queue:
+            return self._next if self._next is not None else self._end
+        return None
+
+    def queued(self) -> int:
+        return len(self._queue) + len(self._left)
+
+
+class Delay(Stage):
+    """Holds each packet for `delay_s` plus a random jitter (propagation delay).
+
+    Jitter follows `distribution` (see `jitter_sd`); a negative total is clamped to 0. Unless
+    `reorder` is set, a packet never leaves before its predecessor (it waits for it), as on a
+    real path that does not reorder; with `reorder` each packet leaves at its own time.
+    """
+
+    name = "delay"
+
+    def __init__(
+        self,
+        delay_s: float = 0.0,
+        jitter_s: float = 0.0,
+        distribution: str = "normal",
+        reorder: bool = False,
+        seed: int | str = 0,
+    ) -> None:
+        super().__init__()
+        self.delay_s = delay_s
+        self.jitter_s = jitter_s
+        self.distribution = distribution
+        self.reorder = reorder
+        self._rng = random.Random(f"{seed}:{self.name}")
+        self._fifo: deque[tuple[float, bytes]] = deque()
+        self._heap: list[tuple[float, int, bytes]] = []
+        self._seq = 0
+        self._last_due = -math.inf
+
+    def configure(self, profile: LinkProfile) -> None:
+        self.delay_s = profile.delay_s
+        self.jitter_s = profile.jitter_s
+        self.distribution = profile.jitter_distribution
+        if profile.reorder != self.reorder:
+            self._switch_order(profile.reorder)
+
+    def _switch_order(self, reorder: bool) -> None:
+        if reorder:
+            for due, packet in self._fifo:
+                heapq.heappush(self._heap, (due, self._seq, packet))
+                self._seq += 1
+            self._fifo.clear()
+        else:
+            for due, _, packet in sorted(self._heap):
+                self._fifo.append((due, packet))
+                self._last_due = max(self._last_due, due)
+            self._heap.clear()
+        self.reorder = reorder
+
+    def sample(self) -> float:
+        """One packet's delay in seconds (delay + jitter, never negative)."""
+        if self.jitter_s <= 0.0:
+            return self.delay_s
+        rng = self._rng
+        if self.distribution == "uniform":
+            z = rng.uniform(-1.0, 1.0)
+        elif self.distribution == "pareto":
+            z = (rng.paretovariate(_PARETO_SHAPE) - _PARETO_MEAN) / _PARETO_SD
+        else:
+            z = rng.gauss(0.0, 1.0)
+        return max(0.0, self.delay_s + self.jitter_s * z)
+
+    def push(self, packet: bytes, now: float) -> None:
+        c = self.counters
+        c.packets_in += 1
+        c.bytes_in += len(packet)
+        due = now + self.sample()
+        if self.reorder:
+            heapq.heappush(self._heap, (due, self._seq, packet))
+            self._seq += 1
+        else:
+            if due < self._last_due:
+                due = self._last_due
+            self._last_due = due
+            self._fifo.append((due, packet))
+
+    def pop_ready(self, now: float) -> list[bytes]:
+        if not self.reorder:
+            return _pop_timed(self._fifo, now, self.counters)
+        out: list[bytes] = []
+        heap = self._heap
+        while heap and heap[0][0] <= now:
+            packet = heapq.heappop(heap)[2]
+            out.append(packet)
+            self.counters.bytes_out += len(packet)
+        self.counters.packets_out += len(out)
+        # Packets still in the FIFO from before a switch to `reorder` leave too.
+        return out + _pop_timed(self._fifo, now, self.counters) if self._fifo else out
+
+    def next_due(self) -> float | None:
+        if self._heap:
+            return self._heap[0][0]
+        return self._fifo[0][0] if self._fifo else None
+
+    def queued(self) -> int:
+        return len(self._fifo) + len(self._heap)
+
+
+class Pipeline(Stage):
+    """One direction of a link: stages chained in order, itself usable as a stage.
+
+    A packet that leaves stage i at time t enters stage i+1 at time t (not at the caller's
+    `now`), so the chain is exact however late `pop_ready` is called.
+    """
+
+    name = "pipeline"
+
+    def __init__(self, stages: Sequence[Stage], profile: LinkProfile | None = None) -> None:
+        super().__init__()
+        if not stages:
+            raise ValueError("a pipeline needs at least one stage")
+        self.stages: list[Stage] = list(stages)
+        self.profile = profile if profile is not None else LinkProfile()
+
+    @classmethod
+    def from_profile(cls, profile: LinkProfile, seed: int | str = 0) -> Pipeline:
+        """The standard chain for a `LinkProfile`; `seed` makes loss and jitter reproducible."""
+        validate_profile(profile)
+        rate = Rate()
+        trace = TraceLink()
+        pipeline = cls(
+            [
+                Outage(),
+                RandomLoss(seed=seed),
+                GilbertElliottLoss(seed=seed),
+                rate,
+                trace,
+                Delay(seed=seed),
+            ],
+            profile,
+        )
+        for stage in pipeline.stages:
+            stage.configure(profile)
+        # When a trace ends on its own, the profile's rate applies again.
+        trace.on_end = lambda: rate.set_rate(rate.profile_rate_bps, suspended=False)
+        return pipeline
+
+    def stage(self, name: str) -> Stage:
+        for s in self.stages:
+            if s.name == name:
+                return s
+        raise KeyError(f"no stage named {name!r} (stages: {[s.name for s in self.stages]})")
+
+    def apply(self, profile: LinkProfile) -> None:
+        """Switch to `profile` in place: queued packets stay, nothing is flushed or paused."""
+        validate_profile(profile)
+        for s in self.stages:
+            s.configure(profile)
+        self.profile = profile
+
+    def outage(self, now: float, seconds: float) -> None:
+        """Drop every packet entering this direction for `seconds` from `now`."""
+        gate = self.stage("outage")
+        assert isinstance(gate, Outage)
+        gate.start(now, seconds)
+
+    def play_trace(self, trace: Trace | None, now: float, loop: bool = False) -> None:
+        """Let `trace` set the rate from `now` (None: stop it; the profile's rate returns)."""
+        rate, link = self.stage("rate"), self.stage("trace")
+        assert isinstance(rate, Rate) and isinstance(link, TraceLink)
+        # Packets already in the rate queue keep their place: with the rate suspended they move
+        # on to the trace queue at once.
+        if trace is None:
+            link.stop(now)
+            rate.set_rate(rate.profile_rate_bps, suspended=False)
+        else:
+            rate.set_rate(rate.profile_rate_bps, suspended=True)
+            link.play(trace, now, loop)
+
+    def push(self, packet: bytes, now: float) -> None:
+        self.counters.packets_in += 1
+        self.counters.bytes_in += len(packet)
+        self.stages[0].push(packet, now)
+
+    def pop_ready(self, now: float) -> list[bytes]:
+        stages = self.stages
+        for i in range(len(stages) - 1):
+            stage, following = stages[i], stages[i + 1]
+            due = stage.next_due()
+            while due is not None and due <= now:
+                for packet in stage.pop_ready(due):
+                    following.push(packet, due)
+                due = stage.next_due()
+        out = stages[-1].pop_ready(now)
+        c = self.counters
+        c.packets_out += len(out)
+        for packet in out:
+            c.bytes_out += len(packet)
+        return out
+
+    def next_due(self) -> float | None:
+        best: float | None = None
+        for s in self.stages:
+            due = s.next_due()
+            if due is not None and (best is None or due < best):
+                best = due
+        return best
+
+    def next_exit(self) -> float | None:
+        """When the next packet leaves the pipeline, as far as known now.
+
+        `next_due` also counts hand-offs between stages; those are exact even if handled
+        late, so a caller may wake for them lazily and precisely only for `next_exit`.
+        """
+        return self.stages[-1].next_due()
+
+    def queued(self) -> int:
+        return sum(s.queued() for s in self.stages)
+
+    def snapshot(self) -> dict[str, Any]:
+        """Counters of the whole direction and of each stage, plus what is queued now."""
+        total = self.counters.to_dict()
+        for s in self.stages:
+            for key in ("dropped_packets", "dropped_bytes"):
+                for reason, n in getattr(s.counters, key).items():
+                    total[key][reason] = total[key].get(reason, 0) + n
+        return {
+            "total": total,
+            "queued": self.queued(),
+            "stages": {s.name: s.counters.to_dict() for s in self.stages},
+            "profile": self.profile.to_dict(),
+        }

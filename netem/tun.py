@@ -1,0 +1,163 @@
+"""TUN devices inside network namespaces: the two ends of a userspace link.
+
+A TUN device belongs to the namespace its creator was in when it called TUNSETIFF; the file
+descriptor keeps working from any namespace afterwards. So the relay enters namespace A, opens
+and configures end A (MTU, address, up, through pyroute2), enters namespace B for end B, and
+returns home. `setns` changes only the calling thread's namespace, so a thread (or a process)
+must do its own entering; `in_netns` is the context manager for that.
+"""
+
+from __future__ import annotations
+
+import ctypes
+import errno
+import fcntl
+import ipaddress
+import os
+import struct
+from collections.abc import Iterator
+from contextlib import contextmanager
+from dataclasses import dataclass
+
+from pyroute2 import IPRoute
+
+TUNSETIFF = 0x400454CA
+IFF_TUN = 0x0001
+IFF_NO_PI = 0x1000
+CLONE_NEWNET = 0x40000000
+NETNS_RUN_DIR = "/var/run/netns"
+IFNAMSIZ = 16
+#: Largest IP packet a TUN device can carry (the MTU may be at most this).
+MAX_MTU = 65535
+
+_libc = ctypes.CDLL(None, use_errno=True)
+
+
+class TunError(OSError):
+    """Opening or configuring a TUN end failed; the message says which device and why."""
+
+
+def netns_path(netns: str) -> str:
+    """The bind-mount path of a named namespace (`ip netns` convention), or `netns` if a path."""
+    return netns if "/" in netns else os.path.join(NETNS_RUN_DIR, netns)
+
+
+def setns(fd: int) -> None:
+    """Move the calling thread into the network namespace open at `fd`."""
+    if _libc.setns(fd, CLONE_NEWNET) != 0:
+        err = ctypes.get_errno()
+        raise TunError(err, f"setns failed: {os.strerror(err)}")
+
+
+@contextmanager
+def in_netns(netns: str) -> Iterator[None]:
+    """Run the body inside network namespace `netns` (a name or a path), then come back.
+
+    Sockets and devices created in the body stay in `netns` after it ends.
+    """
+    try:
+        target = os.open(netns_path(netns), os.O_RDONLY | os.O_CLOEXEC)
+    except OSError as exc:
+        raise TunError(
+            exc.errno, f"network namespace {netns!r} not found ({exc.strerror})"
+        ) from None
+    home = os.open("/proc/thread-self/ns/net", os.O_RDONLY | os.O_CLOEXEC)
+    try:
+        setns(target)
+        try:
+            yield
+        finally:
+            setns(home)
+    finally:
+        os.close(target)
+        os.close(home)
+
+
+@dataclass(frozen=True)
+class TunConfig:
+    """How one TUN end looks: its name, MTU, and optional address (`10.0.0.1/30`)."""
+
+    name: str
+    mtu: int = 1500
+    address: str | None = None
+    txqueuelen: int = 1000
+    # No IPv6 on the link unless asked: its autoconfiguration chatter (router solicitations,
+    # MLD reports) would cross the emulated link and show up in its counters.
+    ipv6: bool = False
+
+    def __post_init__(self) -> None:
+        if not self.name or len(self.name.encode()) >= IFNAMSIZ or "/" in self.name:
+            raise ValueError(f"TUN name {self.name!r} must be 1-15 characters without '/'")
+        if not 68 <= self.mtu <= MAX_MTU:
+            raise ValueError(f"TUN {self.name}: MTU {self.mtu} must be within 68..{MAX_MTU}")
+        if self.address is not None:
+            try:
+                ipaddress.ip_interface(self.address)
+            except ValueError:
+                raise ValueError(
+                    f"TUN {self.name}: address {self.address!r} is not like 10.0.0.1/30"
+                ) from None
+
+
+def open_tun(config: TunConfig) -> int:
+    """Create the TUN device in the current namespace and return its non-blocking fd.
+
+    The device exists as long as the fd is open (it is not persistent), so a relay that dies
+    leaves nothing behind.
+    """
+    fd = os.open("/dev/net/tun", os.O_RDWR | os.O_NONBLOCK | os.O_CLOEXEC)
+    try:
+        ifr = struct.pack("16sH22x", config.name.encode(), IFF_TUN | IFF_NO_PI)
+        fcntl.ioctl(fd, TUNSETIFF, ifr)
+    except OSError as exc:
+        os.close(fd)
+        hint = " (a device of that name exists already)" if exc.errno == errno.EBUSY else ""
+        raise TunError(
+            exc.errno, f"cannot create TUN {config.name}: {exc.strerror}{hint}"
+        ) from None
+    try:
+        configure_link(config)
+    except BaseException:
+        os.close(fd)
+        raise
+    return fd
+
+
+def configure_link(config: TunConfig) -> None:
+    """Set MTU, queue length and address of the device `config.name`, and bring it up."""
+    try:
+        with IPRoute() as ipr:
+            index = ipr.link_lookup(ifname=config.name)
+            if not index:
+                raise TunError(errno.ENODEV, f"TUN {config.name} vanished before configuration")
+            ipr.link("set", index=index[0], mtu=config.mtu, txqlen=config.txqueuelen)
+            if not config.ipv6:
+                _disable_ipv6(config.name)
+            if config.address is not None:
+                iface = ipaddress.ip_interface(config.address)
+                ipr.addr(
+                    "add",
+                    index=index[0],
+                    address=str(iface.ip),
+                    prefixlen=iface.network.prefixlen,
+                )
+            ipr.link("set", index=index[0], state="up")
+    except TunError:
+        raise
+    except Exception as exc:  # pyroute2 raises NetlinkError and friends
+        raise TunError(errno.EIO, f"cannot configure TUN {config.name}: {exc}") from None
+
+
+def _disable_ipv6(name: str) -> None:
+    # /proc/sys/net shows the namespace of the calling thread, so this is the device in the
+    # namespace we are in now. A kernel without IPv6 has no such file: nothing to disable.
+    path = f"/proc/sys/net/ipv6/conf/{name}/disable_ipv6"
+    if os.path.exists(path):
+        with open(path, "w") as f:
+            f.write("1")
+
+
+def open_tun_in(netns: str, config: TunConfig) -> int:
+    """Create and configure a TUN end inside `netns`; the fd is usable from anywhere."""
+    with in_netns(netns):
+        return open_tun(config)

@@ -1,0 +1,273 @@
+"""The userspace link for real: two namespaces, TUN ends, the relay, UDP and TCP traffic.
+
+Each test creates its own namespaces (`elq-<hex>-a`, `elq-<hex>-b`) and deletes them, and every
+relay is stopped by its `UserspaceLink` context manager, also when a test fails.
+"""
+
+from __future__ import annotations
+
+import os
+import secrets
+import signal
+import socket
+import statistics
+import threading
+import time
+from collections.abc import Iterator
+
+import pytest
+
+from netem.profile import LinkProfile
+from netem.tun import in_netns
+from netem.userspace import RelayError, UserspaceLink
+
+pytestmark = pytest.mark.root
+
+ADDR_A, ADDR_B = "10.213.0.1", "10.213.0.2"
+PORT = 9000
+
+
+@pytest.fixture
+def pair() -> Iterator[tuple[str, str]]:
+    from pyroute2 import netns
+
+    tag = secrets.token_hex(4)
+    names = (f"elq-{tag}-a", f"elq-{tag}-b")
+    try:
+        for name in names:
+            netns.create(name)
+        yield names
+    finally:
+        for name in names:
+            if name in netns.listnetns():
+                netns.remove(name)
+
+
+def link_for(pair: tuple[str, str], **kwargs) -> UserspaceLink:
+    return UserspaceLink(
+        pair[0],
+        pair[1],
+        dev_a="ul0",
+        dev_b="ul0",
+        addr_a=f"{ADDR_A}/30",
+        addr_b=f"{ADDR_B}/30",
+        **kwargs,
+    )
+
+
+def udp_socket(ns: str, bind: tuple[str, int] | None = None) -> socket.socket:
+    with in_netns(ns):
+        s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        s.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4 << 20)
+        if bind:
+            s.bind(bind)
+    return s
+
+
+class Echo:
+    """A UDP echo server on end B, run by a thread."""
+
+    def __init__(self, ns: str) -> None:
+        self.sock = udp_socket(ns, (ADDR_B, PORT))
+        self.sock.settimeout(0.2)
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, daemon=True)
+        self._thread.start()
+
+    def _run(self) -> None:
+        while not self._stop.is_set():
+            try:
+                data, peer = self.sock.recvfrom(65535)
+            except TimeoutError:
+                continue
+            self.sock.sendto(data, peer)
+
+    def close(self) -> None:
+        self._stop.set()
+        self._thread.join(2)
+        self.sock.close()
+
+
+@pytest.fixture
+def echo(pair: tuple[str, str]) -> Iterator[Echo]:
+    server = Echo(pair[1])
+    try:
+        yield server
+    finally:
+        server.close()
+
+
+def rtts(
+    ns: str, count: int = 30, gap_s: float = 0.01, size: int = 64, timeout_s: float = 0.5
+) -> list[float]:
+    """Round-trip times of `count` UDP echoes from end A (lost ones are left out)."""
+    sock = udp_socket(ns)
+    sock.settimeout(timeout_s)
+    out = []
+    try:
+        for i in range(count):
+            payload = i.to_bytes(4, "big") + bytes(size - 4)
+            t0 = time.monotonic()
+            sock.sendto(payload, (ADDR_B, PORT))
+            try:
+                while sock.recv(65535)[:4] != payload[:4]:
+                    pass
+                out.append(time.monotonic() - t0)
+            except TimeoutError:
+                pass
+            time.sleep(gap_s)
+    finally:
+        sock.close()
+    return out
+
+
+def test_udp_rtt_is_twice_the_delay(pair, echo) -> None:
+    profile = LinkProfile(delay_s=0.010)
+    with link_for(pair, uplink=profile, downlink=profile):
+        got = rtts(pair[0])
+    assert len(got) == 30
+    assert statistics.median(got) == pytest.approx(0.020, abs=0.0015)
+    assert min(got) >= 0.020
+
+
+def test_live_set_changes_the_delay(pair, echo) -> None:
+    with link_for(pair, uplink=LinkProfile(delay_s=0.005)) as link:
+        before = statistics.median(rtts(pair[0], count=15))
+        link.set("uplink", {"delay_s": 0.030})
+        after = statistics.median(rtts(pair[0], count=15))
+        assert link.profiles["uplink"].delay_s == 0.030
+        counters = link.counters()
+    assert before == pytest.approx(0.005, abs=0.0015)
+    assert after == pytest.approx(0.030, abs=0.0015)
+    assert counters["uplink"]["total"]["packets_out"] >= 30
+
+
+def test_udp_goodput_matches_the_rate(pair) -> None:
+    rate, size = 20e6, 1400  # UDP payload; + 28 bytes of headers per IP packet
+    receiver = udp_socket(pair[1], (ADDR_B, PORT))
+    sender = udp_socket(pair[0])
+    got: list[tuple[float, int]] = []
+    done = threading.Event()
+
+    def receive() -> None:
+        receiver.settimeout(0.3)
+        while not done.is_set():
+            try:
+                got.append((time.monotonic(), len(receiver.recv(65535))))
+            except TimeoutError:
+                continue
+
+    with link_for(pair, uplink=LinkProfile(rate_bps=rate, queue_packets=100)) as link:
+        thread = threading.Thread(target=receive, daemon=True)
+        thread.start()
+        t0 = time.monotonic()
+        sent = 0
+        while time.monotonic() - t0 < 2.0:  # offer 1.5x the rate
+            while sent * size * 8 < 1.5 * rate * (time.monotonic() - t0):
+                sender.sendto(bytes(size), (ADDR_B, PORT))
+                sent += 1
+            time.sleep(0.001)
+        time.sleep(0.2)
+        done.set()
+        thread.join(2)
+        drops = link.counters()["uplink"]["stages"]["rate"]["dropped_packets"]
+    sender.close()
+    receiver.close()
+    window = [n for t, n in got if t0 + 0.5 <= t < t0 + 1.9]
+    goodput = sum(window) * 8 / 1.4
+    assert goodput == pytest.approx(rate * size / (size + 28), rel=0.03)
+    assert drops.get("queue_full", 0) > 0  # the excess was dropped at the queue
+
+
+def test_tcp_goodput_matches_the_rate(pair) -> None:
+    rate = 20e6
+    with in_netns(pair[1]):
+        server = socket.create_server((ADDR_B, PORT))
+    with link_for(pair, uplink=LinkProfile(rate_bps=rate, delay_s=0.002)):
+        with in_netns(pair[0]):
+            client = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
+        client.settimeout(5)
+        client.connect((ADDR_B, PORT))
+        conn, _ = server.accept()
+        conn.settimeout(1)
+        stop = threading.Event()
+
+        def send() -> None:
+            chunk = bytes(65536)
+            while not stop.is_set():
+                try:
+                    client.sendall(chunk)
+                except OSError:
+                    return
+
+        thread = threading.Thread(target=send, daemon=True)
+        thread.start()
+        marks = []
+        received = 0
+        t0 = time.monotonic()
+        while time.monotonic() - t0 < 2.5:
+            received += len(conn.recv(1 << 20))
+            marks.append((time.monotonic(), received))
+        stop.set()
+        client.close()
+        thread.join(2)
+        conn.close()
+    server.close()
+    start = next(m for m in marks if m[0] >= t0 + 0.8)
+    end = marks[-1]
+    goodput = (end[1] - start[1]) * 8 / (end[0] - start[0])
+    # 1448 payload bytes (MSS with timestamps) per 1500-byte IP packet.
+    assert goodput == pytest.approx(rate * 1448 / 1500, rel=0.03)
+
+
+def test_large_mtu_carries_big_datagrams_whole(pair, echo) -> None:
+    with link_for(pair, mtu=65000, uplink=LinkProfile(delay_s=0.001)) as link:
+        got = rtts(pair[0], count=5, size=60000)
+        stages = link.counters()["uplink"]["stages"]
+    assert len(got) == 5
+    # One IP packet per datagram: no fragments went through the relay.
+    assert stages["delay"]["packets_in"] == 5
+    assert stages["delay"]["bytes_in"] == 5 * 60028
+
+
+def test_outage_drops_then_recovers(pair, echo) -> None:
+    with link_for(pair) as link:
+        assert len(rtts(pair[0], count=5)) == 5
+        link.outage(0.6)
+        assert rtts(pair[0], count=5, gap_s=0.02, timeout_s=0.05) == []  # 0.35 s at most
+        time.sleep(0.6)
+        assert len(rtts(pair[0], count=5)) == 5
+        assert link.counters()["uplink"]["total"]["dropped_packets"]["outage"] == 5
+
+
+def test_relay_killed_is_detected(pair) -> None:
+    died = threading.Event()
+    with link_for(pair) as link:
+        link.watch(lambda exc: died.set(), interval_s=0.1)
+        assert link.alive()
+        os.kill(link.pid, signal.SIGKILL)
+        t0 = time.monotonic()
+        while link.alive() and time.monotonic() - t0 < 1.0:
+            time.sleep(0.01)
+        assert not link.alive()
+        assert died.wait(1.0)
+        with pytest.raises(RelayError, match="died"):
+            link.check()
+        with pytest.raises(RelayError):
+            link.set("uplink", {"delay_s": 0.01})
+    # The TUN ends went with the relay.
+    from pyroute2 import IPRoute
+
+    with in_netns(pair[0]), IPRoute() as ipr:
+        assert not ipr.link_lookup(ifname="ul0")
+
+
+def test_relay_start_errors_are_clear(pair) -> None:
+    with (
+        pytest.raises(RelayError, match=r"namespace 'elq-missing-x' not found"),
+        UserspaceLink(pair[0], "elq-missing-x", dev_a="ul0", dev_b="ul0"),
+    ):
+        pass
+    with link_for(pair), pytest.raises(RelayError, match="exists already"):  # noqa: SIM117
+        with link_for(pair):
+            pass
