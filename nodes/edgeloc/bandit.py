@@ -42,7 +42,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from nodes.edgeloc.detector import ChangeEvent, KLChangeDetector
+from nodes.edgeloc.detector import ChangeEvent, KLChangeDetector, finite_cost
 
 MIN_SAMPLES = 2  # UCB1-normal needs a variance, hence two samples per arm
 
@@ -128,12 +128,7 @@ class SlidingWindowUCB1Normal:
     def update(self, arm: str, cost: float) -> None:
         """Record the cost measured for one play of `arm`."""
         slot = self._slot_of(arm)
-        try:
-            cost = float(cost)
-        except (TypeError, ValueError):
-            raise ValueError(f"cost of arm {arm!r} must be a number, got {cost!r}") from None
-        if not math.isfinite(cost):
-            raise ValueError(f"cost of arm {arm!r} must be a finite number, got {cost!r}")
+        cost = finite_cost(arm, cost)
         self._plays.append(slot)
         self._costs[slot].append(cost)
         if self.window is not None and len(self._plays) > self.window:

@@ -31,6 +31,17 @@ def kl_gaussian(mu1: float, s1: float, mu2: float, s2: float) -> float:
     return math.log(s2 / s1) + (s1 * s1 + (mu1 - mu2) ** 2) / (2.0 * s2 * s2) - 0.5
 
 
+def finite_cost(arm: str, cost: object) -> float:
+    """`cost` as a float, or a ValueError naming the arm: a NaN would poison every statistic."""
+    try:
+        value = float(cost)  # type: ignore[arg-type]
+    except (TypeError, ValueError):
+        raise ValueError(f"cost of arm {arm!r} must be a number, got {cost!r}") from None
+    if not math.isfinite(value):
+        raise ValueError(f"cost of arm {arm!r} must be a finite number, got {cost!r}")
+    return value
+
+
 @dataclass(frozen=True)
 class ChangeEvent:
     """A detected change: which arm's costs moved, the KL that confirmed it, and when.
@@ -78,12 +89,7 @@ class KLChangeDetector:
 
     def update(self, arm: str, cost: float) -> ChangeEvent | None:
         """Add one cost of `arm`; returns the event when this update confirms a change."""
-        try:
-            cost = float(cost)
-        except (TypeError, ValueError):
-            raise ValueError(f"cost of arm {arm!r} must be a number, got {cost!r}") from None
-        if not math.isfinite(cost):
-            raise ValueError(f"cost of arm {arm!r} must be a finite number, got {cost!r}")
+        cost = finite_cost(arm, cost)
         self.plays += 1
         costs = self._costs.setdefault(arm, deque(maxlen=2 * self.window))
         costs.append(cost)
