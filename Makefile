@@ -12,13 +12,14 @@ ROS_WHEELS := ros-jazzy-rclpy[fastrtps] ros-jazzy-std-msgs ros-jazzy-geometry-ms
               ros-jazzy-nav-msgs ros-jazzy-sensor-msgs ros-jazzy-builtin-interfaces
 HAVE_APT_ROS := $(shell [ "$$ROS_DISTRO" = jazzy ] && $(PYTHON) -c 'import rclpy' 2>/dev/null && echo yes)
 
-.PHONY: setup scenario test smoke bench lint clean help
+.PHONY: setup scenario test smoke bench lint clean help model
 
 help:
 	@echo "make scenario   set up (first time) and run $(SCENARIO)"
 	@echo "make test       set up (first time) and run the tests (needs root for namespaces)"
 	@echo "make smoke      run the smoke scenario"
 	@echo "make bench      print benchmark figures"
+	@echo "make model      retrain the localization DNN (deterministic; weights are committed)"
 	@echo "make lint       ruff"
 	@echo "make clean      remove leftovers of crashed runs, caches"
 
@@ -47,6 +48,9 @@ test: setup
 
 bench: setup
 	$(BIN)/python tests/bench/run.py $(BENCH)
+
+model: setup
+	$(BIN)/python -m nodes.edgeloc.train --out nodes/edgeloc/weights
 
 lint: setup
 	$(BIN)/ruff check testbed netem nodes reports tests

@@ -1,0 +1,186 @@
+"""The localization DNN: a small PoseNet-style CNN that can be cut at named split points.
+
+The paper regresses the vehicle's absolute pose from one camera image with an end-to-end DNN
+(PoseNet) and splits it between the vehicle (layers [0:k]) and the RSU (layers [k:]). `LocNet`
+is that network sized for a 64x48 camera: a stack of stages, and a split point between every two
+stages. Each split point has a name and an activation of its own size:
+
+    split     runs on the vehicle            sends to the edge (64x48 input)
+    image     nothing                        the raw uint8 image (3x48x64 = 9216 values)
+    conv1     5x5/2 conv                     16x24x32 floats (12288: larger than the image)
+    conv2     + 3x3/2 conv                   32x12x16 (6144)
+    conv3     + 3x3/2 conv                   48x6x8   (2304)
+    conv4     + 3x3/2 conv                   64x3x4   (768)
+    fc        + fully connected              256
+    vehicle   everything                     the pose itself (4 values): nothing for the edge
+
+`head(k, x)` runs stages [0:k] and `tail(k, a)` runs [k:], so `tail(k, head(k, x))` is exactly
+`forward(x)`. The input is the camera image as uint8 (N, H, W, 3), so the `image` split sends
+what the camera gave. The output is (N, 4): x and y in metres and yaw as a unit (cos, sin).
+Position comes from place recognition over street anchors plus a regressed offset (`_PoseOut`).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import numpy as np
+import torch
+from torch import nn
+
+SPLITS: tuple[str, ...] = ("image", "conv1", "conv2", "conv3", "conv4", "fc", "vehicle")
+IMAGE_SHAPE = (48, 64, 3)  # H, W, C of the camera the committed weights expect
+DEFAULT_ROADS = tuple(-200.0 + 80.0 * i for i in range(6))  # road grid of the default town
+
+
+def split_index(split: int | str) -> int:
+    """The stage index of a split point given by name or index; a clear error otherwise."""
+    if isinstance(split, str):
+        if split not in SPLITS:
+            raise ValueError(f"unknown split point {split!r}; known: {', '.join(SPLITS)}")
+        return SPLITS.index(split)
+    if not 0 <= int(split) < len(SPLITS):
+        raise ValueError(f"split index {split} out of range 0..{len(SPLITS) - 1}")
+    return int(split)
+
+
+class _ToFloat(nn.Module):
+    """uint8 (N, H, W, 3) camera image -> float (N, 3, H, W) centred on zero."""
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return x.permute(0, 3, 1, 2).to(torch.float32) / 127.5 - 1.0
+
+
+class _PoseOut(nn.Module):
+    """Last layer: place recognition over anchors, then a metric offset and the heading.
+
+    Anchors are points every few metres along the town's streets. The layer scores each
+    anchor (softmax logits), takes the best one, refines it to the probability-weighted mean
+    of its neighbourhood plus a regressed offset (in units of `spacing`), and regresses yaw as
+    (cos, sin). Classifying places trains far faster than
+    regressing raw coordinates, and it fails like PoseNet does: on look-alike streets it picks
+    the wrong place with confidence, which is an outlier, not a small error.
+    """
+
+    def __init__(self, features: int, anchors: torch.Tensor, spacing: float) -> None:
+        super().__init__()
+        self.register_buffer("anchors", anchors.to(torch.float32).reshape(-1, 2))
+        self.register_buffer("spacing", torch.tensor(float(spacing)))
+        self.linear = nn.Linear(features, len(self.anchors) + 4)
+        # each anchor's neighbourhood (itself and the anchors next to it along the streets):
+        # the place is the probability-weighted mean of the best anchor's neighbourhood
+        d = torch.cdist(self.anchors, self.anchors)
+        k = min(5, len(self.anchors))
+        dist, idx = torch.topk(d, k, dim=1, largest=False)
+        self.register_buffer("neighbours", idx, persistent=False)
+        self.register_buffer("near", dist <= 1.5 * float(spacing), persistent=False)
+
+    def parts(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """Anchor logits (N, A), position (N, 2) in metres and unit (cos, sin) (N, 2)."""
+        z = self.linear(x)
+        a = len(self.anchors)
+        logits = z[:, :a]
+        best = logits.argmax(dim=1)
+        nb = self.neighbours[best]  # (N, k)
+        local = logits.gather(1, nb).masked_fill(~self.near[best], float("-inf"))
+        w = torch.softmax(local, dim=1)
+        xy = (w[..., None] * self.anchors[nb]).sum(dim=1) + z[:, a : a + 2] * self.spacing
+        cs = nn.functional.normalize(z[:, a + 2 :], dim=1, eps=1e-6)
+        return logits, xy, cs
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        _, xy, cs = self.parts(x)
+        return torch.cat([xy, cs], dim=1)
+
+
+def street_anchors(road_coords: Sequence[float], spacing: float, margin: float) -> torch.Tensor:
+    """(A, 2) points every `spacing` metres along every road centreline of a square grid."""
+    roads = np.asarray(road_coords, dtype=np.float64)
+    along = np.arange(roads[0] - margin, roads[-1] + margin + 1e-9, spacing)
+    on_x = np.stack(np.meshgrid(along, roads), -1).reshape(-1, 2)  # streets along x
+    on_y = np.stack(np.meshgrid(roads, along), -1).reshape(-1, 2)  # streets along y
+    pts = np.concatenate([on_x, on_y])
+    return torch.from_numpy(np.unique(np.round(pts, 3), axis=0))
+
+
+def _conv(cin: int, cout: int, k: int, stride: int = 1) -> list[nn.Module]:
+    return [nn.Conv2d(cin, cout, k, stride, k // 2, bias=False), nn.BatchNorm2d(cout), nn.ReLU()]
+
+
+class LocNet(nn.Module):
+    """PoseNet-style CNN whose stages end at the named split points in `SPLITS`."""
+
+    def __init__(
+        self,
+        image_shape: tuple[int, int, int] = IMAGE_SHAPE,
+        anchors: torch.Tensor | None = None,
+        spacing: float = 15.0,
+        seed: int = 0,
+    ) -> None:
+        super().__init__()
+        h, w, c = image_shape
+        if c != 3 or h % 16 or w % 16:
+            raise ValueError(f"image shape must be (H, W, 3) with H, W multiples of 16: {h, w, c}")
+        self.image_shape = (h, w, c)
+        if anchors is None:  # the default town's streets (the committed weights' anchors)
+            anchors = street_anchors(DEFAULT_ROADS, spacing, margin=spacing)
+        with torch.random.fork_rng(devices=[]):  # deterministic init, global RNG untouched
+            torch.manual_seed(seed)
+            self.stages = nn.ModuleList(
+                [
+                    nn.Sequential(_ToFloat(), *_conv(3, 16, 5, stride=2)),  # -> conv1
+                    nn.Sequential(*_conv(16, 32, 3, stride=2)),  # -> conv2
+                    nn.Sequential(*_conv(32, 48, 3, stride=2)),  # -> conv3
+                    nn.Sequential(*_conv(48, 64, 3, stride=2)),  # -> conv4
+                    nn.Sequential(
+                        nn.Flatten(), nn.Linear(64 * (h // 16) * (w // 16), 256), nn.ReLU()
+                    ),  # -> fc
+                    _PoseOut(256, anchors, spacing),  # -> vehicle (the pose)
+                ]
+            )
+        assert len(self.stages) == len(SPLITS) - 1
+
+    def _check_input(self, x: torch.Tensor) -> None:
+        if x.dtype != torch.uint8 or x.ndim != 4 or tuple(x.shape[1:]) != self.image_shape:
+            raise ValueError(
+                f"LocNet takes uint8 images (N, {', '.join(map(str, self.image_shape))}), "
+                f"got {x.dtype} {tuple(x.shape)}"
+            )
+
+    def head(self, split: int | str, x: torch.Tensor) -> torch.Tensor:
+        """Vehicle side: stages [0:k] on a uint8 image batch; the activation at split `k`."""
+        k = split_index(split)
+        self._check_input(x)
+        for stage in self.stages[:k]:
+            x = stage(x)
+        return x
+
+    def tail(self, split: int | str, a: torch.Tensor) -> torch.Tensor:
+        """Edge side: stages [k:] on the activation at split `k`; the (N, 4) pose output."""
+        k = split_index(split)
+        if k == 0:
+            self._check_input(a)
+        for stage in self.stages[k:]:
+            a = stage(a)
+        return a
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return self.tail(0, x)
+
+    @property
+    def pose_layer(self) -> _PoseOut:
+        return self.stages[-1]
+
+    def activation_shape(self, split: int | str) -> tuple[int, ...]:
+        """Shape of one frame's activation at `split` (no batch dimension)."""
+        with torch.no_grad():
+            was = self.training
+            self.eval()
+            a = self.head(split, torch.zeros((1, *self.image_shape), dtype=torch.uint8))
+            self.train(was)
+        return tuple(a.shape[1:])
+
+
+def to_pose(out: torch.Tensor) -> torch.Tensor:
+    """(N, 4) network output -> (N, 3) [x, y, yaw] poses."""
+    return torch.stack([out[:, 0], out[:, 1], torch.atan2(out[:, 3], out[:, 2])], dim=1)

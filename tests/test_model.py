@@ -1,0 +1,164 @@
+"""The split-able DNN, its codecs, and the committed trained weights."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from nodes.edgeloc import codec
+from nodes.edgeloc.dataset import SyntheticDataset
+from nodes.edgeloc.model import IMAGE_SHAPE, SPLITS, LocNet, split_index, to_pose
+from nodes.edgeloc.train import (
+    HELD_OUT_SEEDS,
+    METRICS_FILE,
+    WEIGHTS_DIR,
+    WEIGHTS_FILE,
+    WeightsMissing,
+    evaluate,
+    load_model,
+)
+
+
+@pytest.fixture(scope="module")
+def frames() -> np.ndarray:
+    ds = SyntheticDataset(seed=9, duration_s=2.0)
+    return np.stack([ds.image(i) for i in range(0, len(ds), 10)])
+
+
+@pytest.fixture(scope="module")
+def net() -> LocNet:
+    return LocNet(seed=1).eval()
+
+
+def test_split_points_are_named_and_sized(net: LocNet) -> None:
+    assert len(SPLITS) >= 5 and SPLITS[0] == "image" and SPLITS[-1] == "vehicle"
+    sizes = [int(np.prod(net.activation_shape(s))) for s in SPLITS]
+    image = int(np.prod(IMAGE_SHAPE))
+    assert sizes[0] == image and sizes[-1] == 4
+    assert any(s > image for s in sizes[1:-1])  # an early conv bigger than the image
+    assert any(s < image / 4 for s in sizes[1:-1])  # later ones much smaller
+    assert split_index("conv2") == 2 and split_index(3) == 3
+    with pytest.raises(ValueError, match="unknown split point 'conv9'"):
+        split_index("conv9")
+
+
+@pytest.mark.parametrize("split", SPLITS)
+def test_head_then_tail_equals_forward(net: LocNet, frames: np.ndarray, split: str) -> None:
+    x = torch.from_numpy(frames)
+    with torch.no_grad():
+        full = net(x)
+        parts = net.tail(split, net.head(split, x))
+    assert torch.equal(full, parts)
+    assert full.shape == (len(frames), 4)
+    assert torch.allclose(full[:, 2:].norm(dim=1), torch.ones(len(frames)), atol=1e-5)
+
+
+def test_init_is_deterministic(frames: np.ndarray) -> None:
+    a, b, c = LocNet(seed=1).eval(), LocNet(seed=1).eval(), LocNet(seed=2).eval()
+    x = torch.from_numpy(frames)
+    with torch.no_grad():
+        assert torch.equal(a(x), b(x)) and not torch.equal(a(x), c(x))
+
+
+def test_bad_input_is_refused(net: LocNet) -> None:
+    with pytest.raises(ValueError, match="uint8 images"):
+        net(torch.zeros((1, 3, 48, 64)))
+
+
+@pytest.mark.parametrize("name", codec.CODECS)
+@pytest.mark.parametrize("split", SPLITS)
+def test_codec_round_trip_within_bound(
+    net: LocNet, frames: np.ndarray, name: str, split: str
+) -> None:
+    with torch.no_grad():
+        a = net.head(split, torch.from_numpy(frames[:2]))
+    blob = codec.encode(a, name)
+    b = codec.decode(blob)
+    assert b.shape == a.shape
+    if a.dtype == torch.uint8 or a.numel() <= codec.SMALL:
+        assert torch.equal(b.to(a.dtype), a)  # images and poses travel exactly
+    else:
+        err = (b - a).abs().max().item()
+        assert err <= codec.error_bound(a, name)
+        assert err > 0 or name == "fp16-zlib"  # int8 really quantises
+    # smaller on the wire than raw float32 for every float activation
+    if a.dtype != torch.uint8 and a.numel() > codec.SMALL:
+        assert len(blob) < a.numel() * 4
+
+
+def test_int8_is_smaller_than_fp16(net: LocNet, frames: np.ndarray) -> None:
+    with torch.no_grad():
+        a = net.head("conv2", torch.from_numpy(frames[:1]))
+    assert len(codec.encode(a, "int8-zlib")) < len(codec.encode(a, "fp16-zlib"))
+
+
+def test_codec_errors_are_clear() -> None:
+    with pytest.raises(codec.CodecError, match="unknown codec 'gzip'"):
+        codec.encode(torch.zeros(3), "gzip")
+    with pytest.raises(codec.CodecError, match="not an activation blob"):
+        codec.decode(b"hello world!")
+    blob = codec.encode(torch.rand(100), "fp16-zlib")
+    with pytest.raises(codec.CodecError, match="corrupt"):
+        codec.decode(blob[:-5])
+
+
+def test_split_table_measures_every_split(net: LocNet, frames: np.ndarray) -> None:
+    table = codec.split_table(net, frames[:3])
+    assert list(table) == list(SPLITS)
+    for name in SPLITS:
+        for c in codec.CODECS:
+            assert 0 < table[name][c] <= table[name]["raw"] + 64
+
+
+# ---- the committed, trained weights ----------------------------------------------------------
+
+
+def test_committed_weights_exist_and_are_small() -> None:
+    path = WEIGHTS_DIR / WEIGHTS_FILE
+    assert path.is_file(), "run `make model` to train the DNN"
+    assert path.stat().st_size < 2_000_000
+
+
+def test_committed_metrics_record_quality() -> None:
+    metrics = json.loads((WEIGHTS_DIR / METRICS_FILE).read_text())
+    held = metrics["held_out"]
+    assert held["median_translation_m"] < 5.0 and held["median_rotation_deg"] < 5.0
+    assert list(metrics["split_bytes"]) == list(SPLITS)
+    for name in SPLITS:
+        for c in codec.CODECS:
+            assert codec.encoded_size(name, c) == metrics["split_bytes"][name][c]
+
+
+def test_committed_weights_localize_a_held_out_drive() -> None:
+    model = load_model()
+    ds = SyntheticDataset(seed=HELD_OUT_SEEDS[0], duration_s=30.0)
+    idx = list(range(0, len(ds), 4))
+    images = np.stack([ds.image(i) for i in idx])
+    errors = evaluate(model, images, ds.gt_poses[idx])
+    extent = np.ptp(ds.town.boxes[:, [0, 2]])
+    median = float(np.median(errors.translation_m))
+    outliers = float(np.mean(errors.translation_m > 10))
+    print(f"held-out drive: median {median:.2f} m, outliers {outliers:.1%}")
+    assert median < extent / 40  # ~10 m in a 400 m town: it knows where it is
+    assert np.median(errors.rotation_deg) < 10.0
+    # far better than guessing the town centre
+    guess = np.median(np.hypot(ds.gt_poses[idx, 0], ds.gt_poses[idx, 1]))
+    assert median < guess / 5
+
+
+def test_missing_weights_say_how_to_make_them(tmp_path: Path) -> None:
+    with pytest.raises(WeightsMissing, match="make model"):
+        load_model(tmp_path / "none.pt")
+    bad = tmp_path / "bad.pt"
+    bad.write_bytes(b"not a model")
+    with pytest.raises(WeightsMissing, match="make model"):
+        load_model(bad)
+
+
+def test_to_pose_gives_yaw() -> None:
+    out = torch.tensor([[1.0, 2.0, 0.0, 1.0]])
+    assert torch.allclose(to_pose(out), torch.tensor([[1.0, 2.0, np.pi / 2]]))
