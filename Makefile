@@ -23,7 +23,9 @@ help:
 	@echo "make lint       ruff"
 	@echo "make clean      remove leftovers of crashed runs, caches"
 
+# The interfaces build checks its own source hash, so it runs every time (0.1 s when current).
 setup: $(STAMP)
+	@$(BIN)/python -m nodes.ros_build --prefix $(VENV) -q
 
 $(STAMP): pyproject.toml Makefile
 	@test -x $(BIN)/python || $(PYTHON) -m venv $(if $(HAVE_APT_ROS),--system-site-packages) $(VENV)
