@@ -25,18 +25,14 @@ same plan. After sending, the tree is read back from the kernel and compared wit
 from __future__ import annotations
 
 import contextlib
-import os
-import secrets
 from typing import Literal
 
-from pyroute2 import IPRoute, netns
-from pyroute2.netlink.exceptions import NetlinkError as PyrouteNetlinkError
+from pyroute2 import IPRoute
 
 from netem.profile import LinkProfile
 from netem.tc_netlink import (
     NetlinkExecutor,
     TextExecutor,
-    build_message,
     dump_qdiscs,
     percent_u32,
     read_tree,
@@ -474,37 +470,11 @@ def render_commands(
         return backend.commands
 
 
-def netem_missing_reason(probe_netns: str | None = None) -> str | None:
-    """None when this kernel can add a netem qdisc; else why not (e.g. no sch_netem).
-
-    Tries for real in a throwaway namespace (on its loopback), which also loads the module
-    on kernels that build it as one, and deletes the namespace afterwards.
-    """
-    name = probe_netns or f"elprobe-{secrets.token_hex(4)}"
-    try:
-        netns.create(name)
-    except OSError as err:
-        return f"cannot create a network namespace to probe netem: {err}"
-    try:
-        with NetlinkExecutor(name) as nl:
-            op = QdiscOp("add", "lo", TC_H_ROOT, 0x10000, leaf_for(LinkProfile(delay_s=0.001)))
-            message = build_message(op, nl.ifindex("lo"))
-            try:
-                nl.ipr.nlm_request(message.msg, message.msg_type, message.flags)
-            except PyrouteNetlinkError as err:
-                said = err.args[1] if len(err.args) > 1 else ""
-                return f"kernel has no sch_netem (adding one: {os.strerror(err.code)}; {said})"
-        return None
-    finally:
-        netns.remove(name)
-
-
 __all__ = [
     "INGRESS_HANDLE",
     "IngressShaper",
     "ShapedInterface",
     "TcLinkBackend",
-    "netem_missing_reason",
     "render_commands",
     "shaping_end",
 ]

@@ -130,6 +130,11 @@ class NetemOptions(nla):
 class TcMessage(tcmsg):
     """pyroute2's tcmsg, with our netem options class in place of its plugin's."""
 
+    # pyroute2 compiles a class's NLA table once and stores it on the class; a subclass would
+    # inherit tcmsg's compiled table (bound to tcmsg.get_options) whenever any `ipr.tc(...)`
+    # ran first in this process, and silently encode netem with pyroute2's plugin instead.
+    _nlmsg_base__compiled_nla = False
+
     @staticmethod
     def get_options(self: tcmsg, *argv: Any, **kwarg: Any) -> Any:
         if self.get_attr("TCA_KIND") == "netem":

@@ -11,7 +11,9 @@ which the link may send up to `OPPORTUNITY_BYTES` (1500) bytes.
   time plus the interval before it (1 s for a single row), which is also the loop period.
   A rate is turned into evenly spaced opportunities (1500 bytes each).
 
-`load_trace(path)` parses and validates a file and raises `ValueError` naming the line.
+`load_trace(path)` parses and validates a file; a bad file raises `TraceError` (a `ValueError`)
+naming up to five wrong lines with their numbers. This is the only trace parser of the project:
+`testbed validate` reports the same problems through the scenario loader.
 """
 
 from __future__ import annotations
@@ -87,90 +89,165 @@ class Trace:
                 yield t + k * gap
 
 
-def _fail(where: str, line: int, message: str) -> ValueError:
-    return ValueError(f"{where} line {line}: {message}")
+#: Wrong lines reported per file; past this many, one more entry says how many more there were.
+MAX_PROBLEMS = 5
+
+
+@dataclass(frozen=True)
+class TraceProblem:
+    """One wrong line of a trace file (1-based `line`).
+
+    `said` is the sentence the emulator prints (`timestamp 4 is earlier than the previous one
+    (5)`); `expected`/`found` are the same fact as phrases, the way `testbed validate` reports
+    every scenario problem (`expected a whole number of milliseconds, found '2.5'`).
+    """
+
+    line: int
+    expected: str
+    found: str
+    said: str
+
+
+class TraceError(ValueError):
+    """A trace that cannot be used. `problems` lists up to `MAX_PROBLEMS` wrong lines (plus one
+    entry counting the rest); the message has one `<source> line <n>: <said>` line each."""
+
+    def __init__(self, source: str, problems: list[TraceProblem]) -> None:
+        self.source = source
+        self.problems = tuple(problems)
+        super().__init__("\n".join(f"{source} line {p.line}: {p.said}" for p in problems))
+
+
+def _capped(problems: list[TraceProblem]) -> list[TraceProblem]:
+    if len(problems) <= MAX_PROBLEMS:
+        return problems
+    extra = len(problems) - MAX_PROBLEMS
+    first = problems[MAX_PROBLEMS].line
+    more = f"{extra} more wrong line(s) from here on"
+    return [*problems[:MAX_PROBLEMS], TraceProblem(first, "a valid line", more, more)]
+
+
+def _content_lines(text: str) -> Iterator[tuple[int, str]]:
+    """Numbered lines with content: blank lines and `#` comments are skipped."""
+    for number, raw in enumerate(text.splitlines(), start=1):
+        line = raw.strip()
+        if line and not line.startswith("#"):
+            yield number, line
 
 
 def parse_mahimahi(text: str, source: str = "trace") -> Trace:
-    """Parse a Mahimahi trace: one non-negative integer ms timestamp per line, non-decreasing."""
-    times: list[float] = []
-    last = -1
-    for number, raw in enumerate(text.splitlines(), start=1):
-        line = raw.strip()
-        if not line or line.startswith("#"):
-            continue
+    """Parse a Mahimahi trace: one non-negative integer ms timestamp per line, non-decreasing.
+
+    Raises `TraceError` naming up to `MAX_PROBLEMS` wrong lines.
+    """
+    whole = "a whole number of milliseconds"
+    problems: list[TraceProblem] = []
+    stamps: list[int] = []
+    last_line = 0
+    for number, line in _content_lines(text):
+        last_line = number
         try:
             ms = int(line)
         except ValueError:
-            raise _fail(
-                source, number, f"expected an integer millisecond timestamp, got {line!r}"
-            ) from None
+            said = f"expected an integer millisecond timestamp, got {line[:40]!r}"
+            problems.append(TraceProblem(number, whole, repr(line[:40]), said))
+            continue
         if ms < 0:
-            raise _fail(source, number, f"timestamp {ms} is negative")
-        if ms < last:
-            raise _fail(source, number, f"timestamp {ms} is earlier than the previous one ({last})")
-        last = ms
-        times.append(ms / 1000.0)
-    if not times:
-        raise ValueError(f"{source}: the trace has no timestamps")
-    if times[-1] <= 0:
-        raise ValueError(f"{source}: the last timestamp must be > 0 ms (it is the loop period)")
-    return Trace(
-        format="mahimahi", duration_s=times[-1], opportunities_s=tuple(times), source=source
-    )
+            problems.append(TraceProblem(number, whole, line, f"timestamp {ms} is negative"))
+            continue
+        if stamps and ms < stamps[-1]:
+            said = f"timestamp {ms} is earlier than the previous one ({stamps[-1]})"
+            expected = f"a timestamp >= the previous one ({stamps[-1]})"
+            problems.append(TraceProblem(number, expected, str(ms), said))
+            continue
+        stamps.append(ms)
+    if not problems and not stamps:
+        problems.append(
+            TraceProblem(
+                1, "at least one timestamp", "an empty file", "the trace has no timestamps"
+            )
+        )
+    elif not problems and stamps[-1] == 0:
+        said = "the last timestamp must be > 0 ms (it is the loop period)"
+        expected = "a last timestamp > 0 (it is the trace's period)"
+        problems.append(TraceProblem(last_line, expected, "0", said))
+    if problems:
+        raise TraceError(source, _capped(problems))
+    times = tuple(ms / 1000.0 for ms in stamps)
+    return Trace(format="mahimahi", duration_s=times[-1], opportunities_s=times, source=source)
 
 
 def parse_csv(text: str, source: str = "trace") -> Trace:
-    """Parse a `time_s,mbit` trace: strictly increasing non-negative times, rates >= 0."""
+    """Parse a `time_s,mbit` trace: strictly increasing non-negative times, rates >= 0.
+
+    A first row with no number in it is a header and is skipped. Times must strictly increase:
+    two rows at one instant would leave the first one's rate no time to hold. Raises
+    `TraceError` naming up to `MAX_PROBLEMS` wrong lines.
+    """
+    row = "a row time_s,mbit (two numbers)"
+    problems: list[TraceProblem] = []
     steps: list[tuple[float, float]] = []
-    for number, raw in enumerate(text.splitlines(), start=1):
-        line = raw.strip()
-        if not line or line.startswith("#"):
-            continue
+    for index, (number, line) in enumerate(_content_lines(text)):
         cells = [c.strip() for c in line.split(",")]
+        if index == 0 and not any(_is_number(c) for c in cells):
+            continue  # a header row such as `time_s,mbit`
+        shown = repr(line[:40])
         if len(cells) != 2:
-            raise _fail(source, number, f"expected 2 columns `time_s,mbit`, got {line!r}")
-        try:
-            t, mbit = float(cells[0]), float(cells[1])
-        except ValueError:
-            if not steps and not any(_is_number(c) for c in cells):
-                continue  # a header row such as `time_s,mbit`
-            raise _fail(source, number, f"expected numbers `time_s,mbit`, got {line!r}") from None
-        if not (math.isfinite(t) and math.isfinite(mbit)):
-            raise _fail(source, number, f"values must be finite, got {line!r}")
+            said = f"expected 2 columns `time_s,mbit`, got {shown}"
+            problems.append(TraceProblem(number, row, shown, said))
+            continue
+        if not all(_is_number(c) for c in cells):
+            said = f"expected finite numbers `time_s,mbit`, got {shown}"
+            problems.append(TraceProblem(number, row, shown, said))
+            continue
+        t, mbit = float(cells[0]), float(cells[1])
         if t < 0:
-            raise _fail(source, number, f"time {t} s is negative")
-        if mbit < 0:
-            raise _fail(source, number, f"rate {mbit} Mbit/s is negative")
-        if steps and t <= steps[-1][0]:
-            raise _fail(
-                source, number, f"time {t} s is not after the previous row ({steps[-1][0]} s)"
+            problems.append(
+                TraceProblem(number, "a time >= 0", cells[0], f"time {t} s is negative")
             )
-        steps.append((t, mbit * 1e6))
-    if not steps:
-        raise ValueError(f"{source}: the trace has no `time_s,mbit` rows")
+        elif steps and t <= steps[-1][0]:
+            prev = steps[-1][0]
+            said = f"time {t} s is not after the previous row ({prev} s)"
+            problems.append(
+                TraceProblem(number, f"a time > the previous one ({prev:g})", cells[0], said)
+            )
+        elif mbit < 0:
+            said = f"rate {mbit} Mbit/s is negative"
+            problems.append(TraceProblem(number, "a rate >= 0 Mbit/s", cells[1], said))
+        else:
+            steps.append((t, mbit * 1e6))
+    if not problems and not steps:
+        said = "the trace has no `time_s,mbit` rows"
+        problems.append(TraceProblem(1, "at least one time_s,mbit row", "no rows", said))
+    if problems:
+        raise TraceError(source, _capped(problems))
     last_gap = steps[-1][0] - steps[-2][0] if len(steps) > 1 else 1.0
     duration = steps[-1][0] + last_gap
     return Trace(format="csv", duration_s=duration, steps=tuple(steps), source=source)
 
 
 def _is_number(cell: str) -> bool:
+    """A finite number (`inf` and `nan` are not rates or times)."""
     try:
-        float(cell)
+        return math.isfinite(float(cell))
     except ValueError:
         return False
-    return True
+
+
+def default_format(path: str | Path) -> TraceFormat:
+    """The format of a trace file whose format is not given: `csv` for `.csv`, else mahimahi."""
+    return "csv" if str(path).lower().endswith(".csv") else "mahimahi"
 
 
 def load_trace(path: str | Path, format: TraceFormat | None = None) -> Trace:
     """Read and validate a trace file; `format` defaults to `csv` for `.csv` files.
 
-    Raises `ValueError` with the file and line number on bad input (also for a missing or
-    unreadable file), so a scenario validator can show it as is.
+    Raises `TraceError` naming the wrong lines, or a plain `ValueError` for a missing or
+    unreadable file, so a caller can show the message as is.
     """
     path = Path(path)
     if format is None:
-        format = "csv" if path.suffix.lower() == ".csv" else "mahimahi"
+        format = default_format(path)
     if format not in TRACE_FORMATS:
         raise ValueError(f"{path}: unknown trace format {format!r} (allowed: mahimahi, csv)")
     try:

@@ -76,6 +76,7 @@ class UserspaceLink:
         downlink: LinkProfile | None = None,
         seed: int | str = 0,
         control_path: str | os.PathLike[str] | None = None,
+        log_dir: str | os.PathLike[str] | None = None,
         die_with_parent: bool = True,
         nice: int = -10,
         python: str = sys.executable,
@@ -93,6 +94,9 @@ class UserspaceLink:
         self.die_with_parent = die_with_parent
         self.nice = nice
         self.python = python
+        # Without a log_dir the relay's log (and control socket) go to a temp folder of ours,
+        # removed on close; with one, the caller owns the folder and its lifetime.
+        self._log_dir = None if log_dir is None else str(log_dir)
         self._tmpdir: str | None = None
         self._control_path = None if control_path is None else str(control_path)
         self._proc: subprocess.Popen[bytes] | None = None
@@ -150,10 +154,13 @@ class UserspaceLink:
         """Start the relay and wait until both TUN ends are up; raise `RelayError` if not."""
         if self._proc is not None:
             raise RelayError("this link's relay is already started")
-        self._tmpdir = tempfile.mkdtemp(prefix="netem-relay-")
+        if self._log_dir is None:
+            self._tmpdir = tempfile.mkdtemp(prefix="netem-relay-")
+        folder = self._log_dir or self._tmpdir
+        assert folder is not None
         if self._control_path is None:
-            self._control_path = os.path.join(self._tmpdir, "control.sock")
-        self._log_path = os.path.join(self._tmpdir, "relay.log")
+            self._control_path = os.path.join(folder, "control.sock")
+        self._log_path = os.path.join(folder, "relay.log")
         env = dict(os.environ)
         # The relay imports this very package, installed or not.
         root = str(Path(netem.__file__).resolve().parent.parent)

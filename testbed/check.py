@@ -271,12 +271,29 @@ class Sandbox:
             handle, parent = 0xFFFF0000, TC_H_INGRESS
         else:
             handle, parent = 0x10000, TC_H_ROOT
-        self.ipr.tc("add", kind, index, handle, **_QDISC_ARGS[kind])
+        if kind == "netem":
+            self._add_netem(index)
+        else:
+            self.ipr.tc("add", kind, index, handle, **_QDISC_ARGS[kind])
         seen = [q.get_attr("TCA_KIND") for q in self.ipr.get_qdiscs(index)]
         self.ipr.tc("del", index=index, handle=handle, parent=parent)
         if kind not in seen:
             raise LookupError(f"kernel accepted {kind} but lists only {seen}")
         return "added, read back and deleted"
+
+    def _add_netem(self, index: int) -> None:
+        """Add a netem qdisc with the tc backend's own message (`netem.tc_netlink`), the one a
+        run would send: pyroute2's `tc("add", "netem")` would also rewrite pyroute2's netem
+        option classes for the rest of the process, changing how netem messages encode."""
+        from netem.profile import LinkProfile
+        from netem.tc_netlink import build_message
+        from netem.tc_plan import QdiscOp, leaf_for
+
+        op = QdiscOp("add", "probe", TC_H_ROOT, 0x10000, leaf_for(LinkProfile(delay_s=0.005)))
+        message = build_message(op, index)
+        # pyroute2 0.9's sync nlm_request reads this key, which only some sockets set.
+        self.ipr.status.setdefault("nlm_generator", False)
+        self.ipr.nlm_request(message.msg, message.msg_type, message.flags)
 
     def open_tun(self, ifname: str) -> int:
         """Create a TUN device inside the namespace; returns its fd (closed by close())."""

@@ -94,7 +94,10 @@ def schema() -> None:
 def up(
     file: ScenarioFile,
     dry_run: Annotated[
-        bool, typer.Option("--dry-run", help="Print the equivalent ip/tc commands; change nothing.")
+        bool,
+        typer.Option(
+            "--dry-run", help="Print the equivalent ip/tc (and relay) commands; change nothing."
+        ),
     ] = False,
 ) -> None:
     """Build the scenario's network (namespaces, links, routes) and leave it up.
@@ -115,6 +118,7 @@ def up(
     if dry_run:
         return
     con.ok(f"run {net.run_id} is up: {len(net.nodes)} namespaces, {len(net.links)} links")
+    con.plain(f"link backend: {net.backend_text()}")
     for node in net.nodes.values():
         con.plain(f"  {node.name:<10} {node.role:<8} {node.netns:<18} {node.addresses()}")
     con.plain(f"tear down with: testbed down {net.run_id}")
@@ -154,6 +158,46 @@ def run(
         f"run {result.run_id} ok: every vehicle reached its edge server; "
         f"up {t['up'] * 1000:.0f} ms, down {t['down'] * 1000:.0f} ms; results in {result.folder}/"
     )
+
+
+@app.command("link-test")
+def link_test(
+    file: ScenarioFile,
+    json_out: JsonFlag = False,
+    quick: Annotated[
+        bool, typer.Option("--quick", help="Shorter probes (what `testbed run` does).")
+    ] = False,
+) -> None:
+    """Bring the scenario's network up, measure every link direction (RTT, one-way delay,
+    TCP/UDP goodput, loss over 10,000 datagrams) against its profile, tear down.
+
+    Exits 1 when a figure is out of tolerance (delay 0.5 ms over the measured baseline, rate
+    5% of configured x payload fraction, loss 0.5 percentage points).
+    Example: testbed link-test scenarios/smoke.yaml --quick
+    """
+    from testbed.linktest import link_test as measure
+    from testbed.scenario import ScenarioError, load
+
+    try:
+        scenario = load(file)
+    except ScenarioError as err:
+        raise _fail(err) from None
+    try:
+        report = measure(scenario, quick=quick, progress=None if json_out else con.plain)
+    except TestbedError as err:
+        raise _fail(err) from None
+    if json_out:
+        sys.stdout.write(json.dumps(report.to_dict(), indent=2) + "\n")
+    else:
+        con.plain(f"link backend: {report.backend}")
+        for line in report.text().splitlines():
+            con.plain(line)
+    if not report.ok:
+        if not json_out:
+            con.error("a link is out of tolerance (rows marked OUT)")
+        raise typer.Exit(EXIT_FAILED)
+    if not json_out:
+        con.ok(f"every link within tolerance ({report.seconds:.1f} s)")
 
 
 @app.command()

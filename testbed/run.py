@@ -1,9 +1,13 @@
 """A run of a scenario, start to finish, leaving `runs/<run-id>/` behind.
 
-Today a run builds the topology, proves with real packets that every vehicle reaches its
-core/edge server through its gNB, tears everything down and writes what it saw. Link
-emulation, the EdgeLoc nodes, the timeline and recording hang on the same skeleton: each is a
-step between `build` and teardown, and teardown happens whatever a step does (Ctrl-C included).
+Steps: build the topology with its emulated links (the backend `auto` picks, profiles
+applied), a short link self-test (`linktest.json`, when the scenario's `report.link_test` is
+on), prove with real packets that every vehicle reaches its core/edge server through its gNB,
+play the timeline for the scenario's `duration` (`events.jsonl`, a progress line every few
+seconds), tear everything down and write `run.json` (backend, link-test verdict, timeline
+lateness). The EdgeLoc nodes and recording hang on the same skeleton, between the
+connectivity check and teardown; teardown happens whatever a step does (Ctrl-C included). A
+link relay that dies, or a timeline event that fails, fails the run within a second.
 """
 
 from __future__ import annotations
@@ -18,8 +22,11 @@ from typing import Any
 
 from testbed import __version__
 from testbed.connectivity import EchoResult, vehicles_reach_cores
+from testbed.errors import TestbedError
+from testbed.linktest import LinkTest, LinkTestReport
 from testbed.scenario.model import Scenario
-from testbed.topology import build
+from testbed.timeline import AppliedEvent, TimelinePlayer
+from testbed.topology import Net, build
 
 Progress = Callable[[str], None]
 
@@ -28,7 +35,10 @@ Progress = Callable[[str], None]
 class RunResult:
     run_id: str
     folder: Path
+    link_backend: str = ""
     connectivity: list[EchoResult] = field(default_factory=list)
+    linktest: LinkTestReport | None = None
+    timeline: dict[str, Any] = field(default_factory=dict)
     timings_s: dict[str, float] = field(default_factory=dict)
 
     @property
@@ -39,8 +49,17 @@ class RunResult:
         return {
             "run_id": self.run_id,
             "ok": self.ok,
+            "link_backend": self.link_backend,
             "timings_s": self.timings_s,
             "connectivity": [r.to_dict() for r in self.connectivity],
+            "linktest": None
+            if self.linktest is None
+            else {
+                "ok": self.linktest.ok,
+                "seconds": self.linktest.seconds,
+                "file": "linktest.json",
+            },
+            "timeline": self.timeline,
         }
 
 
@@ -50,19 +69,76 @@ def _write_json(path: Path, data: object) -> None:
     tmp.replace(path)
 
 
+#: Seconds between progress lines while the timeline plays.
+PROGRESS_EVERY_S = 5.0
+#: How often the run looks at its links and timeline for a failure.
+POLL_S = 0.2
+
+
+def _check(net: Net, player: TimelinePlayer | None = None) -> None:
+    """Raise if a link relay died or a timeline event failed: the run must not go on."""
+    failure = net.control.failure() if net.control is not None else None
+    if failure:
+        raise TestbedError(f"run {net.run_id} failed: {failure}")
+    if player is not None and player.failure:
+        raise TestbedError(f"run {net.run_id} failed: {player.failure}")
+
+
+def play_timeline(net: Net, folder: Path, progress: Progress) -> TimelinePlayer:
+    """Play the scenario's timeline for its `duration`, checking for failures every 0.2 s."""
+    assert net.control is not None
+    scenario = net.scenario
+
+    def shown(event: AppliedEvent) -> None:
+        progress(f"  {event.text()}")
+
+    player = TimelinePlayer(
+        scenario.timeline, net.control, on_event=shown, log_path=folder / "events.jsonl"
+    )
+    progress(
+        f"playing the timeline: {len(scenario.timeline)} event(s) over "
+        f"{scenario.duration_s:g} s (Ctrl-C stops the run and tears it down)"
+    )
+    player.start()
+    try:
+        next_line = PROGRESS_EVERY_S
+        while (elapsed := player.elapsed()) < scenario.duration_s:
+            _check(net, player)
+            if elapsed >= next_line:
+                progress(f"  t={elapsed:5.1f} s of {scenario.duration_s:g} s")
+                next_line += PROGRESS_EVERY_S
+            time.sleep(min(POLL_S, max(0.0, scenario.duration_s - elapsed)))
+        _check(net, player)
+    finally:
+        player.stop()
+    return player
+
+
 def run_scenario(scenario: Scenario, runs_dir: Path, progress: Progress) -> RunResult:
     """Run `scenario`; everything it creates is gone when this returns or raises."""
     t0 = time.perf_counter()
     with build(scenario, mode="run") as net:
         t_up = time.perf_counter() - t0
-        result = RunResult(net.run_id, runs_dir / net.run_id)
+        result = RunResult(net.run_id, runs_dir / net.run_id, net.backend_text())
         result.folder.mkdir(parents=True, exist_ok=False)
         if scenario.source is not None:
             shutil.copyfile(scenario.source, result.folder / "scenario.yaml")
         progress(
             f"run {net.run_id}: {len(net.nodes)} namespaces, {len(net.links)} links up "
-            f"in {t_up * 1000:.0f} ms"
+            f"in {t_up * 1000:.0f} ms; link backend: {result.link_backend}"
         )
+        watch = getattr(net.control, "watch", None)
+        if watch is not None:
+            watch()  # a relay that dies sets the failure `_check` raises within POLL_S
+        if scenario.report.link_test:
+            report = LinkTest(net, quick=True, progress=progress).run()
+            result.linktest = report
+            _write_json(result.folder / "linktest.json", report.to_dict())
+            for line in report.text().splitlines():
+                progress(f"  {line}")
+            if not report.ok:
+                progress("  warning: a link is out of tolerance (see linktest.json)")
+        _check(net)
         result.connectivity = vehicles_reach_cores(net)
         for r in result.connectivity:
             rtt = f"{r.rtt_ms_median:.2f} ms" if r.rtt_ms_median is not None else "-"
@@ -70,6 +146,15 @@ def run_scenario(scenario: Scenario, runs_dir: Path, progress: Progress) -> RunR
                 f"  {r.src} -> {r.dst} ({r.dst_addr}): {r.received}/{r.sent} echoes, "
                 f"median RTT {rtt}"
             )
+        _check(net)
+        if result.ok:
+            player = play_timeline(net, result.folder, progress)
+            result.timeline = {
+                "events": len(scenario.timeline),
+                "applied": len(player.applied),
+                "lateness": player.lateness(),
+                "file": "events.jsonl",
+            }
         t1 = time.perf_counter()
     result.timings_s = {
         "up": t_up,
@@ -84,8 +169,6 @@ def run_scenario(scenario: Scenario, runs_dir: Path, progress: Progress) -> RunR
             "source": str(scenario.source) if scenario.source else None,
             "seed": scenario.seed,
             "testbed_version": __version__,
-            # Links are plain veth until link emulation is wired into runs; say so, never hide it.
-            "link_backend": "none (plain veth, links not emulated)",
             **result.to_dict(),
         },
     )

@@ -37,7 +37,7 @@ from pyroute2 import IPRoute
 from pyroute2.netlink.exceptions import NetlinkError as PyNetlinkError
 
 from netem.profile import LinkProfile
-from testbed import cgroups, check
+from testbed import cgroups, check, links
 from testbed import state as st
 from testbed.addressing import LinkAddresses, assign, choose_pool, host_networks
 from testbed.errors import BadInput, NetlinkError, TestbedError
@@ -200,6 +200,10 @@ class Net:
         self.nodes: dict[str, Node] = {}
         self.links: dict[str, Link] = {}
         self.state: st.RunState | None = None
+        # What carries the links (`links.choose_backend`), and the controller of the live
+        # links; None when the caller chose plain ends itself (links not emulated).
+        self.link_backend: links.BackendChoice | None = None
+        self.control: links.LinkController | None = None
         self._children: list[subprocess.Popen[Any]] = []
         self._removed: Removed | None = None
 
@@ -297,6 +301,8 @@ class Net:
         """Remove everything this run created (idempotent)."""
         if self._removed is not None:
             return self._removed
+        if self.control is not None:
+            self.control.close()  # helper threads first; a run's own relays stop with it
         if self.dry_run or self.state is None:
             self._removed = Removed(self.run_id)
             return self._removed
@@ -305,6 +311,12 @@ class Net:
             node.ns = None
         self._removed = removed
         return removed
+
+    def backend_text(self) -> str:
+        """The link backend as run.json and `testbed up` name it."""
+        if self.link_backend is None:
+            return f"none (plain {self.backend.name}, links not emulated)"
+        return self.link_backend.describe()
 
     def _open_ns(self) -> list[Netns]:
         return [n.ns for n in self.nodes.values() if n.ns is not None]
@@ -406,14 +418,24 @@ def build(
 
     `mode="up"`: left running after this process exits (`testbed up`; the run becomes
     'detached'); `mode="run"`: owned by this process (dead if it dies). `dry_run` creates and
-    records nothing and passes each equivalent `ip` command to `echo`. If building fails or is
-    interrupted, everything created so far is removed before the error propagates.
+    records nothing and passes each equivalent `ip` and `tc` command (and relay command line)
+    to `echo`. If building fails or is interrupted, everything created so far is removed
+    before the error propagates.
+
+    Links: with `backend=None` the scenario's `links.backend` decides (`links.choose_backend`)
+    and every link's profiles are applied once the network is up (`net.control` then changes
+    them live). An explicit `backend` (plain `VethEnds` in topology tests and benchmarks)
+    builds those ends as they are, unshaped.
     """
     if run_id is not None and not st.RUN_ID_RE.match(run_id):
         raise BadInput(f"run id {run_id!r} must be 6 lowercase hex characters")
     if not dry_run:
         require_root()
     _check_names(scenario)
+    choice: links.BackendChoice | None = None
+    if backend is None:
+        choice = links.choose_backend(scenario)
+        backend = links.ends_for(choice, mode, scenario)
     n_links = len(_link_pairs(scenario))
     source = str(scenario.source) if scenario.source else None
     with st.locked() if not dry_run else contextlib.nullcontext():
@@ -427,8 +449,14 @@ def build(
             scenario.topology.address_pool, n_links, host_networks(), _live_pools(runs)
         )
         net = plan(scenario, run_id, pool, mode, backend, dry_run)
+        net.link_backend = choice
         if dry_run:
-            for line in net.commands():
+            lines = net.commands()
+            if choice is not None and choice.name == "tc":  # relays start with their profiles
+                net.control = links.controller_for(net)
+                net.control.apply()
+                lines += net.control.commands()
+            for line in lines:
                 if echo is not None:
                     echo(line)
             return net
@@ -436,7 +464,12 @@ def build(
         net.state = st.new_run(scenario.name, source, mode, run_id, str(pool))
         net.state.record_namespaces([n.netns for n in net.nodes.values()])
     try:
+        if choice is not None:
+            links.write_backend(run_id, choice)
         net._realise()
+        if choice is not None:
+            net.control = links.controller_for(net)
+            net.control.apply()
         net.state.set_phase("up")
     except BaseException:
         net.teardown()
@@ -514,8 +547,10 @@ def _remove_cgroup(path: str) -> str | None:
 
 def _remove_namespaces(names: Sequence[str], removed: Removed, open_ns: Sequence[Netns]) -> None:
     identities = {i for i in (netns_identity(n) for n in names) if i is not None}
-    if identities:
-        removed.processes += _stop(_processes_in(identities))
+    # Link relays live in the host namespace with TUN ends in ours: found by command line.
+    relays = [st.ProcessRef.of(pid, "link relay") for pid in links.relay_pids(list(names))]
+    if identities or relays:
+        removed.processes += _stop([*(_processes_in(identities) if identities else []), *relays])
     for ns in open_ns:
         ns.close()  # our sockets keep a namespace alive after it is unregistered
     for name in names:
@@ -545,6 +580,7 @@ def _remove_run(
             removed.cgroups += 1
     # The run's cgroup parent (`edgeloc/<run>`) is not recorded itself; remove the whole tree.
     removed.cgroups += len(cgroups.remove_all(state.run_id))
+    links.remove_run_folder(state.run_id)  # relay sockets and logs
     if not removed.problems:
         state.delete()
     return removed

@@ -60,6 +60,7 @@ def test_up_carries_packets_and_down_leaves_nothing(state_dir: Path) -> None:
     up = _testbed("up", "scenarios/smoke.yaml")
     assert up.returncode == 0, up.stderr
     run_id = re.search(r"run ([0-9a-f]{6}) is up", up.stdout).group(1)
+    assert re.search(r"link backend: (userspace|tc) \(auto: ", up.stdout)
     names = _ours(run_id)
     assert len(names) == 3
     # A datagram from the vehicle's namespace reaches the core's through the gNB.
@@ -121,16 +122,38 @@ def test_sigkill_of_up_midway_then_clean_leaves_nothing(state_dir: Path, tmp_pat
 
 
 def test_run_leaves_a_run_folder_and_no_namespaces(state_dir: Path, tmp_path: Path) -> None:
+    # The smoke scenario, shortened to 3 s with its second uplink phase at 2 s.
+    short = tmp_path / "smoke-short.yaml"
+    short.write_text(
+        (REPO / "scenarios/smoke.yaml")
+        .read_text()
+        .replace("duration: 20s", "duration: 3s")
+        .replace("at: 10s", "at: 2s")
+    )
     runs = tmp_path / "runs"
-    result = _testbed("run", "scenarios/smoke.yaml", "--runs-dir", str(runs))
+    result = _testbed("run", str(short), "--runs-dir", str(runs))
     assert result.returncode == 0, result.stdout + result.stderr
     (folder,) = runs.iterdir()
     run = json.loads((folder / "run.json").read_text())
     assert run["ok"] is True and run["run_id"] == folder.name
+    assert run["link_backend"].startswith(("userspace (", "tc ("))
+    assert run["timeline"]["applied"] == 2 and run["timeline"]["lateness"]["count"] == 2
+    events = [json.loads(x) for x in (folder / "events.jsonl").read_text().splitlines()]
+    assert [(e["kind"], e["scheduled_s"]) for e in events] == [("shape", 0.0), ("shape", 2.0)]
+    assert "shape av1 uplink 8 Mbit/s" in result.stdout
     echoes = json.loads((folder / "connectivity.json").read_text())
     assert [(e["src"], e["dst"], e["received"]) for e in echoes] == [("av1", "core1", 5)]
-    assert (folder / "scenario.yaml").read_text() == (REPO / "scenarios/smoke.yaml").read_text()
+    assert (folder / "scenario.yaml").read_text() == short.read_text()
     assert _ours(folder.name) == []
+    assert st.list_runs() == []
+
+
+def test_up_dry_run_prints_ip_and_link_commands(state_dir: Path) -> None:
+    result = _testbed("up", "--dry-run", "scenarios/smoke.yaml")
+    assert result.returncode == 0, result.stderr
+    assert "ip netns add el-" in result.stdout
+    # tc lines where the kernel has netem, relay command lines where it does not
+    assert "tc -n el-" in result.stdout or "-m netem.relay --netns-a el-" in result.stdout
     assert st.list_runs() == []
 
 

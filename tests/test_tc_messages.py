@@ -7,6 +7,8 @@ back field by field instead of being sent.
 from __future__ import annotations
 
 import struct
+import subprocess
+import sys
 from pathlib import Path
 
 import pytest
@@ -295,3 +297,32 @@ def test_names_and_ends() -> None:
     long = ifb_name("veth-av12-gnb3x")
     assert len(long) <= 15 and long != ifb_name("veth-av12-gnb3y")
     assert shaping_end("air") == "upper" and shaping_end("backhaul") == "lower"
+
+
+def test_netem_encoding_survives_pyroute2_compiling_tcmsg_first() -> None:
+    """pyroute2 caches a compiled NLA table per class; once its own tcmsg has been used (any
+    `ipr.tc(...)` in a process does that), our subclass must still encode netem our way. A
+    fresh interpreter, because the order of first use is what matters."""
+    script = """
+from pyroute2.netlink.rtnl.tcmsg import tcmsg
+plain = tcmsg()
+plain["attrs"] = [["TCA_KIND", "htb"]]
+plain.encode()  # compiles tcmsg's table first, as `testbed check`'s htb probe does
+from netem.profile import LinkProfile
+from netem.tc_netlink import TcMessage, build_message
+from netem.tc_plan import LEAF_HANDLES, PROFILE_CLASSID, QdiscOp, leaf_for
+op = QdiscOp("add", "v0", PROFILE_CLASSID, LEAF_HANDLES[0], leaf_for(LinkProfile(delay_s=0.02)))
+message = build_message(op, ifindex=7)
+message.msg.encode()
+decoded = TcMessage(message.msg.data)
+decoded.decode()
+print(decoded.get_attr("TCA_OPTIONS").get_attr("TCA_NETEM_LATENCY64"))
+"""
+    out = subprocess.run(
+        [sys.executable, "-c", script],
+        capture_output=True,
+        text=True,
+        check=True,
+        cwd=Path(__file__).resolve().parents[1],
+    )
+    assert out.stdout.strip() == "20000000"

@@ -23,11 +23,11 @@ import yaml
 from yaml.nodes import Node
 
 from netem.profile import GilbertElliott, LinkProfile
+from netem.traces import TraceError, TraceProblem, default_format
 from testbed import units
 from testbed.scenario import model, spec
 from testbed.scenario.issues import ROOT_PATH, Issue, ScenarioError
 from testbed.scenario.spec import Context, Items, Section
-from testbed.scenario.traces import TraceProblem, default_format, parse_csv, parse_mahimahi
 
 __all__ = ["load", "loads", "profile_changes"]
 
@@ -165,9 +165,9 @@ def profile_changes(section: Section) -> dict[str, object]:
     return changes
 
 
-def _emulator_problems(text: str, fmt: str) -> list[TraceProblem]:
-    """What the link emulator's own trace reader refuses, so `validate` never passes a trace
-    that a run would then reject (it stops at the first wrong line)."""
+def _trace_problems(text: str, fmt: str) -> list[TraceProblem]:
+    """The wrong lines of a trace, as the link emulator's own parser (`netem.traces`, the only
+    trace parser) finds them, so a trace that validates is one a run accepts."""
     from netem import traces as emulator_traces
 
     try:
@@ -175,11 +175,14 @@ def _emulator_problems(text: str, fmt: str) -> list[TraceProblem]:
             emulator_traces.parse_csv(text, source="")
         else:
             emulator_traces.parse_mahimahi(text, source="")
-    except ValueError as err:
+    except TraceError as err:
+        return list(err.problems)
+    except ValueError as err:  # a message without structured problems: `line N: text`
         m = re.match(r"^ ?line (\d+): (.*)$", str(err))
         if m:
-            return [TraceProblem(int(m[1]), "a line the link emulator accepts", m[2])]
-        return [TraceProblem(1, "a trace the link emulator accepts", str(err).lstrip(": "))]
+            return [TraceProblem(int(m[1]), "a line the link emulator accepts", m[2], m[2])]
+        text = str(err).lstrip(": ")
+        return [TraceProblem(1, "a trace the link emulator accepts", text, text)]
     return []
 
 
@@ -475,10 +478,8 @@ class _Builder:
                 event.at("file"), event.path_of("file"), expected, f"{file!r} ({err.strerror})"
             )
             return None
-        _, problems = parse_csv(text) if fmt == "csv" else parse_mahimahi(text)
+        problems = _trace_problems(text, fmt)
         where = event.at("file").start_mark
-        if not problems:
-            problems = _emulator_problems(text, fmt)
         for problem in problems:
             self.ctx.add(
                 None,

@@ -3,7 +3,8 @@
     sudo .venv/bin/python tests/bench/bench_relay.py [--quick]
 
 Builds two namespaces (`elq-<hex>-a`, `elq-<hex>-b`) joined by one `UserspaceLink`, runs Python
-UDP/TCP senders and receivers inside them (forked processes that enter the namespaces), and
+UDP/TCP senders and receivers inside them (forked processes that enter the namespaces; the
+same ones the link self-test uses, from `testbed.linktest`), and
 prints one table row per figure with its target. One-way delays are measured with the
 sender's CLOCK_MONOTONIC stamp in each datagram (both ends share the host clock). Everything
 is removed at the end, also on failure. The host has 2 cores that other work may share, so
@@ -13,13 +14,9 @@ throughput and CPU figures vary with that load (the load average is printed).
 from __future__ import annotations
 
 import argparse
-import contextlib
-import multiprocessing as mp
 import os
 import secrets
-import socket
 import statistics
-import struct
 import sys
 import time
 from collections.abc import Callable, Iterator
@@ -32,112 +29,30 @@ from netem.profile import LinkProfile
 from netem.stages import jitter_sd
 from netem.tun import in_netns
 from netem.userspace import UserspaceLink
+from testbed.linktest import (
+    CTX,
+    PORT,
+    Worker,
+    in_namespace,
+    tcp_receive,
+    tcp_send,
+    udp_receive,
+    udp_send,
+)
 
-ADDR_A, ADDR_B, PORT = "10.214.0.1", "10.214.0.2", 9100
-STAMP = struct.Struct("!dI")  # send time (monotonic), sequence number
-CTX = mp.get_context("fork")
-
-
-# -- traffic, run inside a namespace ----------------------------------------------------------
-
-
-def in_ns(ns: str, fn: Callable[..., Any], *args: Any) -> tuple[mp.Process, Any]:
-    """Start `fn(*args)` in a forked process inside namespace `ns`; its result comes on a queue."""
-    results = CTX.Queue()
-
-    def run() -> None:
-        # The endpoints get the relay's priority: on a shared 2-core host an endpoint waiting
-        # for a CPU would be measured as link delay.
-        os.nice(-10)
-        with in_netns(ns):
-            results.put(fn(*args))
-
-    proc = CTX.Process(target=run, daemon=True)
-    proc.start()
-    return proc, results
+ADDR_A, ADDR_B = "10.214.0.1", "10.214.0.2"
 
 
-def result(handle: tuple[mp.Process, Any], timeout_s: float = 60.0) -> Any:
-    proc, results = handle
-    value = results.get(timeout=timeout_s)
-    proc.join(5)
-    return value
+# -- traffic: the link self-test's senders and receivers (testbed.linktest) -----------------
 
 
-def udp_receive(ready: Any, duration_s: float) -> list[tuple[float, float, int, int]]:
-    """(receive time, send stamp, sequence, size) of each datagram for `duration_s`."""
-    sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-    sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4 << 20)
-    sock.bind((ADDR_B, PORT))
-    sock.settimeout(0.2)
-    ready.set()
-    out = []
-    end = time.monotonic() + duration_s
-    buf = bytearray(65535)
-    while time.monotonic() < end:
-        try:
-            n = sock.recv_into(buf)
-        except TimeoutError:
-            continue
-        sent, seq = STAMP.unpack_from(buf)
-        out.append((time.monotonic(), sent, seq, n))
-    sock.close()
-    return out
+def in_ns(ns: str, fn: Callable[..., Any], *args: Any) -> Worker:
+    """Start `fn(*args)` in a forked process inside namespace `ns` (at the relay's priority)."""
+    return in_namespace(ns, fn, *args)
 
 
-def udp_send(count: int, size: int, rate_bps: float) -> int:
-    """Send `count` stamped datagrams of `size` bytes, paced at `rate_bps` of UDP payload."""
-    sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-    sock.setsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF, 4 << 20)
-    pad = bytes(size - STAMP.size)
-    t0 = time.monotonic()
-    for seq in range(count):
-        due = t0 + seq * size * 8 / rate_bps
-        wait = due - time.monotonic()
-        if wait > 0.0005:
-            time.sleep(wait)
-        # A full local queue loses the datagram, as on a real host; it counts as lost.
-        with contextlib.suppress(OSError):
-            sock.sendto(STAMP.pack(time.monotonic(), seq) + pad, (ADDR_B, PORT))
-    sock.close()
-    return count
-
-
-def tcp_receive(ready: Any, duration_s: float) -> list[tuple[float, int]]:
-    """(time, bytes so far) after each recv for `duration_s` after the connection opens."""
-    server = socket.create_server((ADDR_B, PORT))
-    ready.set()
-    conn, _ = server.accept()
-    conn.settimeout(1.0)
-    buf = bytearray(1 << 20)
-    marks, total = [], 0
-    end = time.monotonic() + duration_s
-    while time.monotonic() < end:
-        try:
-            n = conn.recv_into(buf)
-        except TimeoutError:
-            continue
-        if n == 0:
-            break
-        total += n
-        marks.append((time.monotonic(), total))
-    conn.close()
-    server.close()
-    return marks
-
-
-def tcp_send(duration_s: float) -> int:
-    sock = socket.create_connection((ADDR_B, PORT), timeout=5)
-    chunk = bytes(1 << 20)
-    end = time.monotonic() + duration_s
-    sent = 0
-    try:
-        while time.monotonic() < end:
-            sent += sock.send(chunk)
-    except OSError:
-        pass
-    sock.close()
-    return sent
+def result(handle: Worker, timeout_s: float = 60.0) -> Any:
+    return handle.result(timeout_s)
 
 
 # -- measurements -----------------------------------------------------------------------------
@@ -193,9 +108,9 @@ class Bench:
     ) -> tuple[list[tuple[float, float, int, int]], dict[str, Any]]:
         with self.link(profile) as link:
             ready = CTX.Event()
-            receiver = in_ns(self.ns_b, udp_receive, ready, listen_s)
+            receiver = in_ns(self.ns_b, udp_receive, ready, ADDR_B, PORT, listen_s)
             ready.wait(5)
-            result(in_ns(self.ns_a, udp_send, count, size, rate_bps))
+            result(in_ns(self.ns_a, udp_send, ADDR_B, PORT, count, size, rate_bps))
             got = result(receiver)
             return got, link.counters()
 
@@ -205,9 +120,9 @@ class Bench:
         """Steady-state TCP goodput (bit/s) A->B, and relay CPU seconds per second."""
         with self.link(profile, back, mtu=mtu) as link:
             ready = CTX.Event()
-            receiver = in_ns(self.ns_b, tcp_receive, ready, seconds + 0.5)
+            receiver = in_ns(self.ns_b, tcp_receive, ready, ADDR_B, PORT, seconds + 0.5)
             ready.wait(5)
-            sender = in_ns(self.ns_a, tcp_send, seconds)
+            sender = in_ns(self.ns_a, tcp_send, ADDR_B, PORT, seconds)
             time.sleep(min(1.0, seconds / 3))
             cpu0, t0 = link.counters()["relay"]["cpu_s"], time.monotonic()
             time.sleep(seconds - min(1.0, seconds / 3) - 0.2)

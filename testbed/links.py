@@ -1,0 +1,621 @@
+"""Link emulation for a run: which backend carries the links, how each link's two ends come to
+exist, and one controller that changes live links.
+
+Nouns:
+- `BackendChoice` / `choose_backend(scenario)`: `auto` is `tc` where the kernel takes a netem
+  qdisc (`testbed.check.netem_status`, the one probe, found by trying) and `userspace`
+  elsewhere. An explicit `tc` on a kernel without netem is refused (HostError, exit 3) only
+  when the scenario needs netem (delay, jitter, loss, outages); pure rate shaping is HTB.
+- `TunRelayEnds`: the userspace backend as a `LinkEnds`: each link's two interfaces are TUN
+  devices made by one relay process (`netem.userspace.UserspaceLink`), whose pid goes into the
+  run state and whose control socket lives in the run's state folder.
+- `LinkController`: what the timeline player and the link self-test call on live links:
+  `apply` (the scenario's profiles), `set` (profile fields in place), `shape`/`clear`
+  (Wondershaper-style caps on a node's interface), `outage`, `trace`. `TcController` does it
+  with qdiscs at the gNB end of each link (`netem.tc.shaping_end`); `UserspaceController` asks
+  each link's relay. Caps (`shape`) are HTB/IFB on both backends (HTB works on TUN devices).
+
+Trace replay on the tc backend (the relay replays traces itself): a csv trace's rows become
+HTB rate changes at their times; a mahimahi trace is turned into a rate per 100 ms window
+(`opportunities in the window x 1500 B x 8 / 0.1 s`), applied window by window. A rate of 0
+(no opportunity in a window) becomes 8 bit/s, HTB's smallest useful rate.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import os
+import re
+import shutil
+import threading
+import time
+from collections.abc import Callable, Iterator, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import TYPE_CHECKING, Any, Literal, Protocol
+
+from netem.profile import LinkProfile
+from netem.tc import IngressShaper, ShapedInterface, TcLinkBackend, shaping_end
+from netem.tc_plan import UNLIMITED_BPS, needs_netem
+from netem.traces import OPPORTUNITY_BYTES, Trace, load_trace
+from netem.userspace import RelayError, UserspaceLink
+from testbed import check
+from testbed import state as st
+from testbed.errors import BadInput, HostError, TestbedError
+from testbed.net import EndNames, VethEnds
+from testbed.scenario.model import (
+    ClearEvent,
+    Event,
+    Links,
+    OutageEvent,
+    Scenario,
+    SetEvent,
+    ShapeEvent,
+)
+
+if TYPE_CHECKING:
+    from testbed.topology import Link, Net, Node
+
+BackendName = Literal["tc", "userspace"]
+Direction = Literal["uplink", "downlink"]
+Directions = Literal["uplink", "downlink", "both"]
+DIRECTIONS: tuple[Direction, Direction] = ("uplink", "downlink")
+
+#: Bytes a link carries per IP packet beyond the packet itself: HTB on a veth counts the
+#: 14-byte Ethernet header, the relay counts IP packets as read from the TUN device.
+FRAME_OVERHEAD = {"tc": 14, "userspace": 0}
+#: Window of a mahimahi trace replayed as HTB rate steps on the tc backend.
+TRACE_WINDOW_S = 0.1
+#: HTB cannot send at 0 bit/s; a trace's zero-rate step becomes this.
+MIN_RATE_BPS = 8.0
+#: The netem fields a profile may change; `set` events naming any of them need netem on tc.
+NETEM_FIELDS = ("delay_s", "jitter_s", "loss", "gilbert_elliott")
+RELAY_FILE = "links.json"
+
+
+# ---- which backend -------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class BackendChoice:
+    """The backend a run uses, and why (what run.json and `testbed up` print)."""
+
+    name: BackendName
+    reason: str
+
+    def describe(self) -> str:
+        return f"{self.name} ({self.reason})"
+
+
+def netem_needs(scenario: Scenario) -> list[str]:
+    """What in `scenario` only a netem qdisc can do on the tc backend, one phrase each."""
+    needs = []
+    for spec in scenario.links.links:
+        for direction in DIRECTIONS:
+            if needs_netem(spec.profile(direction)):
+                needs.append(f"{spec.name} {direction} (delay/jitter/loss)")
+    for event in scenario.timeline:
+        if isinstance(event, SetEvent) and any(
+            event.changes.get(f) not in (None, 0, 0.0) for f in NETEM_FIELDS
+        ):
+            needs.append(f"the `set` event on {event.link} at {event.at_s:g} s")
+        elif isinstance(event, OutageEvent):
+            needs.append(f"the outage of {event.link} at {event.at_s:g} s")
+    return needs
+
+
+def choose_backend(
+    scenario: Scenario, probe: Callable[[], tuple[bool, str]] = check.netem_status
+) -> BackendChoice:
+    """The backend for `scenario` on this kernel; HostError if it asks for one that cannot work."""
+    wanted = scenario.links.backend
+    if wanted == "userspace":
+        return BackendChoice("userspace", "asked for by the scenario")
+    ok, detail = probe()
+    if wanted == "auto":
+        if ok:
+            return BackendChoice("tc", "auto: the kernel has sch_netem")
+        return BackendChoice("userspace", f"auto: {detail.split(';')[0]}")
+    if ok:
+        return BackendChoice("tc", "asked for by the scenario")
+    needs = netem_needs(scenario)
+    if needs:
+        shown = ", ".join(needs[:3]) + (f" and {len(needs) - 3} more" if len(needs) > 3 else "")
+        raise HostError(
+            f"links.backend is `tc`, but this kernel cannot add a netem qdisc "
+            f"({detail.split(';')[0]}), and the scenario needs netem for {shown}. "
+            "Use `backend: userspace` (the TUN relay) or `backend: auto`."
+        )
+    return BackendChoice("tc", "asked for; rate shaping only (HTB), the kernel has no sch_netem")
+
+
+def ends_for(choice: BackendChoice, mode: st.Mode, scenario: Scenario) -> VethEnds | TunRelayEnds:
+    """The `LinkEnds` of a backend: veth pairs for tc, relay-made TUN pairs for userspace."""
+    if choice.name == "tc":
+        return VethEnds()
+    # `up` leaves the network to outlive this process; a `run` owns it (its relays die with it).
+    return TunRelayEnds(scenario.links, die_with_parent=mode == "run", seed=scenario.seed)
+
+
+# ---- the userspace backend's link ends -----------------------------------------------------
+
+
+def run_folder(run_id: str) -> Path:
+    """Where a run keeps its relays' control sockets and `links.json` (in the state dir)."""
+    return st.state_dir() / run_id
+
+
+class TunRelayEnds:
+    """A link's two interfaces as TUN devices made by one relay process per link.
+
+    The relay (`python -m netem.relay`) opens one TUN in each namespace, named as
+    `link.ends` says, and brings both up; it is started with the link's profiles (uplink =
+    lower -> upper), so the link shapes from its first packet. Addresses and routes are added
+    afterwards by the topology as for veth (the relay is given none, so nothing is done
+    twice). Each relay's pid is recorded in the run state right after it starts (`down` and
+    `clean` stop it; `clean` also finds relays by the namespaces on their command line, for a
+    crash between start and record). `relays` maps link names to their `UserspaceLink`.
+    """
+
+    name = "userspace"
+
+    def __init__(self, links: Links, die_with_parent: bool = True, seed: int = 0) -> None:
+        self.specs = {spec.name: spec for spec in links.links}
+        self.die_with_parent = die_with_parent
+        self.seed = seed
+        self.relays: dict[str, UserspaceLink] = {}
+
+    def _relay(
+        self, ends: EndNames, control: str | None = None, log_dir: Path | None = None
+    ) -> UserspaceLink:
+        # ends are named after the peers: the lower node's interface is the upper's name
+        spec = self.specs.get(f"{ends.upper_ifname}-{ends.lower_ifname}")
+        up = spec.uplink if spec is not None else LinkProfile()
+        down = spec.downlink if spec is not None else LinkProfile()
+        return UserspaceLink(
+            ends.lower_netns,
+            ends.upper_netns,
+            dev_a=ends.lower_ifname,
+            dev_b=ends.upper_ifname,
+            uplink=up,
+            downlink=down,
+            seed=f"{self.seed}:{ends.lower_ifname}-{ends.upper_ifname}",
+            control_path=control,
+            log_dir=log_dir,
+            die_with_parent=self.die_with_parent,
+        )
+
+    def commands(self, ends: EndNames) -> list[str]:
+        relay = self._relay(ends, control="<state dir>/<run id>/<n>.sock")
+        return [" ".join(_shell_word(w) for w in relay.command()) + " &"]
+
+    def create(self, link: Link, net: Net) -> None:
+        folder = run_folder(net.run_id)
+        folder.mkdir(parents=True, exist_ok=True)
+        n = len(self.relays)
+        control = folder / f"{n}.sock"  # short: unix socket paths are <108 B
+        logs = folder / f"{n}.log.d"  # the relay's log lives with the run, not in /tmp
+        logs.mkdir(exist_ok=True)
+        relay = self._relay(link.ends, control=str(control), log_dir=logs)
+        try:
+            relay.start()
+        except RelayError as err:
+            raise TestbedError(f"link {link.name}: {err}") from None
+        self.relays[link.name] = relay
+        net.record_pid(relay.pid or 0, f"relay {link.name}")
+        _write_relay_file(folder, self.relays)
+
+
+def _shell_word(word: str) -> str:
+    return (
+        word if re.fullmatch(r"[\w@%+=:,./<>-]+", word) else "'" + word.replace("'", "'\\''") + "'"
+    )
+
+
+def _write_relay_file(folder: Path, relays: dict[str, UserspaceLink]) -> None:
+    """`links.json`: each relay's pid, control socket and log folder (for `down`/`clean`)."""
+    data = {
+        "backend": "userspace",
+        "relays": [
+            {
+                "link": name,
+                "pid": relay.pid,
+                "control": relay.control_path,
+            }
+            for name, relay in relays.items()
+        ],
+    }
+    tmp = folder / f".{RELAY_FILE}.tmp"
+    tmp.write_text(json.dumps(data, indent=1) + "\n")
+    tmp.replace(folder / RELAY_FILE)
+
+
+def write_backend(run_id: str, choice: BackendChoice) -> None:
+    """Record the run's backend in its folder's `links.json` (what `down`/`status` read)."""
+    folder = run_folder(run_id)
+    folder.mkdir(parents=True, exist_ok=True)
+    path = folder / RELAY_FILE
+    try:
+        data = json.loads(path.read_text())
+    except (OSError, ValueError):
+        data = {}
+    data.update(backend=choice.name, reason=choice.reason)
+    tmp = folder / f".{RELAY_FILE}.tmp"
+    tmp.write_text(json.dumps(data, indent=1) + "\n")
+    tmp.replace(path)
+
+
+def remove_run_folder(run_id: str) -> None:
+    """Remove a run's folder: relay sockets, relay logs, `links.json` (after relays stopped)."""
+    shutil.rmtree(run_folder(run_id), ignore_errors=True)
+
+
+def relay_pids(namespaces: list[str]) -> list[int]:
+    """Relay processes whose command line names one of `namespaces` (found in /proc)."""
+    wanted = {ns.encode() for ns in namespaces}
+    found = []
+    for entry in os.listdir("/proc"):
+        if not entry.isdigit():
+            continue
+        try:
+            argv = Path(f"/proc/{entry}/cmdline").read_bytes().split(b"\0")
+        except OSError:
+            continue
+        if b"netem.relay" in argv and any(
+            a == b"--netns-a" and i + 1 < len(argv) and argv[i + 1] in wanted
+            for i, a in enumerate(argv)
+        ):
+            found.append(int(entry))
+    return found
+
+
+# ---- live links ------------------------------------------------------------------------------
+
+
+class LinkController(Protocol):
+    """Changes a run's live links; one implementation per backend (`controller_for`)."""
+
+    backend: BackendName
+    frame_overhead: int
+
+    def apply(self) -> None:
+        """Put every link's scenario profiles in place."""
+        ...
+
+    def profile(self, link: str, direction: Direction) -> LinkProfile:
+        """The profile a link direction has now."""
+        ...
+
+    def set(self, link: str, direction: Directions, changes: dict[str, Any]) -> None:
+        """Change the named profile fields of one direction (or both) in place."""
+        ...
+
+    def prepare(self, events: Sequence[Event]) -> None:
+        """Open what `events` will need (netlink sockets of shaped nodes) ahead of time, so
+        applying them on time costs no socket set-up."""
+        ...
+
+    def shape(self, node: str, uplink_bps: float | None, downlink_bps: float | None) -> None:
+        """Wondershaper: cap what `node` sends (uplink) / receives (downlink) on its interface
+        towards its gNB (a gNB: towards its core)."""
+        ...
+
+    def clear(self, node: str) -> None:
+        """Lift the caps `shape` put on `node` (link profiles stay)."""
+        ...
+
+    def outage(self, link: str, seconds: float) -> None:
+        """Drop every packet on the link, both directions, for `seconds` from now."""
+        ...
+
+    def trace(self, link: str, direction: Direction, path: Path, fmt: str, loop: bool) -> None:
+        """Let a bandwidth trace set the direction's rate from now on."""
+        ...
+
+    def failure(self) -> str | None:
+        """Why the links stopped working (a relay died), or None."""
+        ...
+
+    def commands(self) -> list[str]:
+        """What `apply` runs, as shell lines (dry run)."""
+        ...
+
+    def close(self) -> None:
+        """Stop helper threads (and, for a run that owns them, the relays)."""
+        ...
+
+
+def shaped_interface(net: Net, node_name: str) -> tuple[Node, str]:
+    """The node and its interface that `shape` caps: a vehicle's or core's interface towards its
+    gNB, a gNB's towards its core (its backhaul)."""
+    if node_name not in net.nodes:
+        raise BadInput(f"shape: no node {node_name!r} in this run ({', '.join(net.nodes)})")
+    node = net.nodes[node_name]
+    topo = net.scenario.topology
+    if node.role == "vehicle":
+        peer = next(v.gnb for v in topo.vehicles if v.name == node_name)
+    elif node.role == "gnb":
+        peer = topo.cell_of_gnb(node_name).core
+    else:
+        peer = next(c.gnb for c in topo.cells if c.core == node_name)
+    return node, peer
+
+
+class _Base:
+    """What both controllers share: profile bookkeeping, caps, trace and outage timers."""
+
+    backend: BackendName
+
+    def __init__(self, net: Net) -> None:
+        self.net = net
+        self.frame_overhead = FRAME_OVERHEAD[self.backend]
+        self.profiles: dict[tuple[str, Direction], LinkProfile] = {}
+        for link in net.links.values():
+            spec = link.spec
+            for d in DIRECTIONS:
+                self.profiles[link.name, d] = spec.profile(d) if spec else LinkProfile()
+        self._lock = threading.RLock()
+        self._stop = threading.Event()
+        self._threads: list[threading.Thread] = []
+        # Per shaped node: its egress tree and its ingress (IFB) shaper, sockets held open.
+        self._caps: dict[str, tuple[ShapedInterface, IngressShaper]] = {}
+
+    def _link(self, name: str) -> Link:
+        if name not in self.net.links:
+            raise BadInput(f"no link {name!r} in this run ({', '.join(self.net.links)})")
+        return self.net.links[name]
+
+    @staticmethod
+    def _directions(direction: Directions) -> tuple[Direction, ...]:
+        return DIRECTIONS if direction == "both" else (direction,)
+
+    def profile(self, link: str, direction: Direction) -> LinkProfile:
+        self._link(link)
+        return self.profiles[link, direction]
+
+    def prepare(self, events: Sequence[Event]) -> None:
+        for event in events:
+            if isinstance(event, ShapeEvent | ClearEvent):
+                egress, ingress = self._cap_shapers(event.node)
+            if isinstance(event, ShapeEvent):
+                # Install the cap trees now, unlimited, so the event itself is one in-place
+                # HTB class change (a few ms) instead of building a tree (tens of ms).
+                if event.uplink_bps is not None and egress.state() is None:
+                    egress.set_cap(UNLIMITED_BPS)
+                if event.downlink_bps is not None and ingress.state() is None:
+                    ingress.set_cap(UNLIMITED_BPS)
+
+    def _cap_shapers(self, node: str) -> tuple[ShapedInterface, IngressShaper]:
+        """What `shape` changes on a node, opened once (as `netem.shaping.shape` does per
+        call, which costs tens of ms of socket set-up)."""
+        if node not in self._caps:
+            where, ifname = shaped_interface(self.net, node)
+            egress = ShapedInterface(where.netns, ifname)
+            try:
+                self._caps[node] = (egress, IngressShaper(where.netns, ifname))
+            except BaseException:
+                egress.close()
+                raise
+        return self._caps[node]
+
+    def shape(self, node: str, uplink_bps: float | None, downlink_bps: float | None) -> None:
+        if uplink_bps is None and downlink_bps is None:
+            raise BadInput(f"shape {node}: needs an uplink rate, a downlink rate or both")
+        for value in (uplink_bps, downlink_bps):
+            if value is not None and not value >= MIN_RATE_BPS:
+                raise BadInput(f"shape {node}: {value!r} is not a rate of at least 8 bit/s")
+        egress, ingress = self._cap_shapers(node)
+        with self._lock:
+            if uplink_bps is not None:
+                egress.set_cap(uplink_bps)
+            if downlink_bps is not None:
+                ingress.set_cap(downlink_bps)
+
+    def clear(self, node: str) -> None:
+        egress, ingress = self._cap_shapers(node)
+        with self._lock:
+            egress.set_cap(None)
+            ingress.set_cap(None)
+
+    def _later(self, name: str, fn: Callable[[], None]) -> None:
+        thread = threading.Thread(target=fn, name=name, daemon=True)
+        self._threads.append(thread)
+        thread.start()
+
+    def close(self) -> None:
+        self._stop.set()
+        for thread in self._threads:
+            thread.join(timeout=2)
+        for egress, ingress in self._caps.values():
+            egress.close()
+            ingress.close()
+        self._caps.clear()
+
+
+class UserspaceController(_Base):
+    """Live links of the userspace backend: each link's relay does what is asked in place."""
+
+    backend: BackendName = "userspace"
+
+    def __init__(self, net: Net, ends: TunRelayEnds) -> None:
+        super().__init__(net)
+        self.relays = ends.relays
+        self._failure: str | None = None
+        self.died = threading.Event()
+
+    def watch(self, on_death: Callable[[str], None] | None = None) -> None:
+        """Watch every relay; when one dies, `failure()` says so and `on_death` is called
+        (within 0.2 s)."""
+
+        def died(err: RelayError) -> None:
+            if self._failure is None:
+                self._failure = str(err)
+            self.died.set()
+            if on_death is not None:
+                on_death(str(err))
+
+        for relay in self.relays.values():
+            relay.watch(died, interval_s=0.2)
+
+    def failure(self) -> str | None:
+        return self._failure
+
+    def _relay(self, link: str) -> UserspaceLink:
+        self._link(link)
+        return self.relays[link]
+
+    def apply(self) -> None:
+        for name in self.net.links:
+            for d in DIRECTIONS:
+                self._relay(name).set(d, self.profiles[name, d])
+
+    def set(self, link: str, direction: Directions, changes: dict[str, Any]) -> None:
+        relay = self._relay(link)
+        with self._lock:
+            relay.set(direction, dict(changes))
+            for d in self._directions(direction):
+                self.profiles[link, d] = relay.profiles[d]
+
+    def outage(self, link: str, seconds: float) -> None:
+        self._relay(link).outage(seconds, "both")
+
+    def trace(self, link: str, direction: Direction, path: Path, fmt: str, loop: bool) -> None:
+        self._relay(link).play_trace(direction, path, fmt, loop)
+
+    def counters(self, link: str) -> dict[str, Any]:
+        return self._relay(link).counters()
+
+    def commands(self) -> list[str]:
+        return []  # the relays start with their profiles: see the relay command lines
+
+    def close(self) -> None:
+        super().close()
+        if self.net.mode == "run":
+            for relay in self.relays.values():
+                relay.close()
+
+
+class TcController(_Base):
+    """Live links of the tc backend: a `TcLinkBackend` at the gNB end of each link."""
+
+    backend: BackendName = "tc"
+
+    def __init__(self, net: Net, dry_run: bool = False) -> None:
+        super().__init__(net)
+        self.dry_run = dry_run
+        self.shapers: dict[str, TcLinkBackend] = {}
+        for link in net.links.values():
+            end = shaping_end(link.kind)
+            node = link.upper if end == "upper" else link.lower
+            ifname = link.ends.upper_ifname if end == "upper" else link.ends.lower_ifname
+            sends: Direction = "downlink" if end == "upper" else "uplink"
+            self.shapers[link.name] = TcLinkBackend(node.netns, ifname, sends, dry_run=dry_run)
+        self._outage_until: dict[str, float] = {}
+
+    def apply(self) -> None:
+        for name, shaper in self.shapers.items():
+            shaper.apply(self.profiles[name, "uplink"], self.profiles[name, "downlink"])
+
+    def commands(self) -> list[str]:
+        return [line for shaper in self.shapers.values() for line in shaper.commands]
+
+    def failure(self) -> str | None:
+        return None  # qdiscs cannot die on their own
+
+    def _change(self, link: str, direction: Direction, profile: LinkProfile) -> None:
+        self.shapers[link].change(direction, profile)
+
+    def set(self, link: str, direction: Directions, changes: dict[str, Any]) -> None:
+        self._link(link)
+        with self._lock:
+            for d in self._directions(direction):
+                # via a dict, so a Gilbert-Elliott model given as a mapping becomes one again
+                profile = LinkProfile.from_dict({**self.profiles[link, d].to_dict(), **changes})
+                if self._outage_until.get(link, 0) <= time.monotonic():
+                    self._change(link, d, profile)
+                self.profiles[link, d] = profile  # an outage's end restores this
+
+    def outage(self, link: str, seconds: float) -> None:
+        self._link(link)
+        with self._lock:
+            self._outage_until[link] = time.monotonic() + seconds
+            for d in DIRECTIONS:
+                self._change(link, d, self.profiles[link, d].replace(loss=1.0))
+
+        def restore() -> None:
+            if self._stop.wait(max(0.0, self._outage_until[link] - time.monotonic())):
+                return
+            with self._lock:
+                if self._outage_until[link] > time.monotonic():
+                    return  # a later outage extended it; its own timer restores
+                for d in DIRECTIONS:
+                    self._change(link, d, self.profiles[link, d])
+
+        self._later(f"outage-{link}", restore)
+
+    def trace(self, link: str, direction: Direction, path: Path, fmt: str, loop: bool) -> None:
+        self._link(link)
+        steps = trace_rate_steps(load_trace(path, fmt))  # type: ignore[arg-type]
+        start = time.monotonic()
+
+        def replay() -> None:
+            for at_s, rate in _steps_forever(steps, loop):
+                if self._stop.wait(max(0.0, start + at_s - time.monotonic())):
+                    return
+                self.set(link, direction, {"rate_bps": max(MIN_RATE_BPS, rate)})
+
+        self._later(f"trace-{link}-{direction}", replay)
+
+    def close(self) -> None:
+        super().close()
+        for shaper in self.shapers.values():
+            shaper.close()
+
+
+def trace_rate_steps(trace: Trace) -> tuple[list[tuple[float, float]], float]:
+    """A trace as `(time_s, rate_bps)` steps over one period, and the period: csv rows as
+    they are; mahimahi opportunities counted per `TRACE_WINDOW_S` window."""
+    if trace.format == "csv":
+        return list(trace.steps), trace.duration_s
+    windows = max(1, round(trace.duration_s / TRACE_WINDOW_S))
+    counts = [0] * windows
+    for t in trace.opportunities_s:
+        # an opportunity at t ms delivers in the window that ends at or after it
+        index = min(windows - 1, max(0, int((t - 1e-9) / TRACE_WINDOW_S)))
+        counts[index] += 1
+    per_bit = OPPORTUNITY_BYTES * 8 / TRACE_WINDOW_S
+    return [(i * TRACE_WINDOW_S, n * per_bit) for i, n in enumerate(counts)], trace.duration_s
+
+
+def _steps_forever(
+    steps_and_period: tuple[list[tuple[float, float]], float], loop: bool
+) -> Iterator[tuple[float, float]]:
+    steps, period = steps_and_period
+    offset = 0.0
+    while True:
+        for at_s, rate in steps:
+            yield offset + at_s, rate
+        if not loop or period <= 0:
+            return
+        offset += period
+
+
+def controller_for(net: Net) -> LinkController:
+    """The controller of a built (or dry-run) net, by the backend its links were made with."""
+    if isinstance(net.backend, TunRelayEnds):
+        return UserspaceController(net, net.backend)
+    return TcController(net, dry_run=net.dry_run)
+
+
+@contextlib.contextmanager
+def neutral(controller: LinkController, link: str, direction: Direction) -> Iterator[None]:
+    """Run the block with one link direction unshaped (delay 0, no loss, no rate), then put
+    its profile back: the baseline of the link self-test."""
+    before = controller.profile(link, direction)
+    flat = LinkProfile(queue_packets=before.queue_packets)
+    controller.set(link, direction, {f: getattr(flat, f) for f in flat.to_dict()})
+    try:
+        yield
+    finally:
+        controller.set(link, direction, before.to_dict())

@@ -1,0 +1,565 @@
+"""Link self-test: measure what every link of a built network really does and compare it with
+its profile.
+
+    with build(scenario, mode="run") as net:
+        report = LinkTest(net, quick=True).run()
+    print(report.table()); report.ok
+
+Per link: the RTT (median, p99) of a UDP echo. Per direction: one-way delay (median, p99,
+jitter sd) of sparse stamped datagrams, and the same with the direction made neutral for a
+moment (the *baseline*: what the path costs with no emulated delay); loss over >= 10,000
+datagrams; TCP goodput; UDP goodput at 1.2x the configured rate. Senders and receivers are
+forked processes that step into the namespaces (`in_namespace`), so the link, not one
+interpreter's GIL, is what is measured; both ends share the host's monotonic clock, so a
+datagram's send stamp gives its one-way delay exactly.
+
+Verdicts (SPEC §7): delay median within `DELAY_TOL_S` of configured + baseline; rate within
+`RATE_TOL` of configured x payload fraction (TCP 1448, UDP 1472 bytes of payload per 1500-byte
+IP packet, plus 14 bytes of Ethernet header on the tc backend's veth), judged on TCP when the
+direction has no random loss (TCP backs off on loss, so its goodput then says nothing about the
+rate) and on UDP otherwise; loss within `LOSS_TOL` of the profile's expected loss.
+
+The measurement functions (`udp_send`, `udp_receive`, `tcp_send`, `tcp_receive`,
+`in_namespace`) are shared with the benchmarks (tests/bench/bench_relay.py, bench_links.py).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import multiprocessing as mp
+import os
+import socket
+import statistics
+import struct
+import time
+from dataclasses import asdict, dataclass, field
+from typing import TYPE_CHECKING, Any, ClassVar
+
+from netem.profile import LinkProfile
+from testbed.errors import TestbedError
+from testbed.links import DIRECTIONS, Direction, LinkController, neutral
+from testbed.net import inside, netns_path
+
+if TYPE_CHECKING:
+    from testbed.topology import Link, Net, Node
+
+STAMP = struct.Struct("!dI")  # send time (monotonic), sequence number
+CTX = mp.get_context("fork")
+PORT = 9100
+DELAY_TOL_S = 0.0005
+RATE_TOL = 0.05
+LOSS_TOL = 0.005
+LOSS_PACKETS = 10_000
+TCP_PAYLOAD, UDP_PAYLOAD, IP_PACKET = 1448, 1472, 1500
+#: Above this rate the Python UDP sender cannot offer 1.2x the rate; UDP goodput is skipped.
+UDP_MAX_BPS = 400e6
+
+
+# ---- measurement primitives (run inside a namespace) ---------------------------------------
+
+
+class Worker:
+    """A forked process running one function inside a namespace; `result()` waits for it."""
+
+    def __init__(self, netns: str, fn: Any, *args: Any, nice: int = -10) -> None:
+        self.queue: Any = CTX.Queue()
+
+        def run() -> None:
+            # Endpoints get the relay's priority: on a shared 2-core host an endpoint that
+            # waits for a CPU would be measured as link delay.
+            with contextlib.suppress(OSError):
+                os.nice(nice)
+            try:
+                with inside(netns_path(netns)):
+                    self.queue.put(("ok", fn(*args)))
+            except BaseException as err:  # reported to the parent, never lost
+                self.queue.put(("error", f"{type(err).__name__}: {err}"))
+
+        self.proc = CTX.Process(target=run, daemon=True)
+        self.proc.start()
+
+    def result(self, timeout_s: float = 60.0) -> Any:
+        try:
+            status, value = self.queue.get(timeout=timeout_s)
+        except Exception:
+            self.proc.kill()
+            raise TestbedError(
+                f"a measurement process gave no result in {timeout_s:.0f} s"
+            ) from None
+        finally:
+            self.proc.join(5)
+        if status != "ok":
+            raise TestbedError(f"a measurement process failed: {value}")
+        return value
+
+
+def in_namespace(netns: str, fn: Any, *args: Any) -> Worker:
+    """Start `fn(*args)` in a forked process inside namespace `netns` (a name in /run/netns)."""
+    return Worker(netns, fn, *args)
+
+
+def udp_receive(
+    ready: Any, addr: str, port: int, duration_s: float, idle_s: float = 0.0
+) -> list[tuple[float, float, int, int]]:
+    """(receive time, send stamp, sequence, size) of each datagram, for up to `duration_s`;
+    with `idle_s`, also stop once nothing has come for that long after the first datagram."""
+    sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4 << 20)
+    sock.bind((addr, port))
+    sock.settimeout(0.05)
+    ready.set()
+    out: list[tuple[float, float, int, int]] = []
+    end = time.monotonic() + duration_s
+    buf = bytearray(65535)
+    last = 0.0
+    while (now := time.monotonic()) < end:
+        if idle_s and out and now - last > idle_s:
+            break
+        try:
+            n = sock.recv_into(buf)
+        except TimeoutError:
+            continue
+        last = time.monotonic()
+        sent, seq = STAMP.unpack_from(buf)
+        out.append((last, sent, seq, n))
+    sock.close()
+    return out
+
+
+def udp_send(addr: str, port: int, count: int, size: int, rate_bps: float) -> int:
+    """Send `count` stamped datagrams of `size` bytes, paced at `rate_bps` of UDP payload."""
+    sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    sock.setsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF, 4 << 20)
+    pad = bytes(max(0, size - STAMP.size))
+    t0 = time.monotonic()
+    for seq in range(count):
+        due = t0 + seq * size * 8 / rate_bps
+        wait = due - time.monotonic()
+        if wait > 0.0005:
+            time.sleep(wait)
+        # A full local queue loses the datagram, as on a real host; it counts as lost.
+        with contextlib.suppress(OSError):
+            sock.sendto(STAMP.pack(time.monotonic(), seq) + pad, (addr, port))
+    sock.close()
+    return count
+
+
+def tcp_receive(ready: Any, addr: str, port: int, duration_s: float) -> list[tuple[float, int]]:
+    """(time, bytes so far) after each recv, for `duration_s` after the connection opens."""
+    server = socket.create_server((addr, port))
+    server.settimeout(10)
+    ready.set()
+    conn, _ = server.accept()
+    conn.settimeout(1.0)
+    buf = bytearray(1 << 20)
+    marks: list[tuple[float, int]] = []
+    total = 0
+    end = time.monotonic() + duration_s
+    while time.monotonic() < end:
+        try:
+            n = conn.recv_into(buf)
+        except TimeoutError:
+            continue
+        if n == 0:
+            break
+        total += n
+        marks.append((time.monotonic(), total))
+    conn.close()
+    server.close()
+    return marks
+
+
+def tcp_send(addr: str, port: int, duration_s: float) -> int:
+    """Send as fast as TCP lets us for `duration_s`; returns the bytes sent."""
+    sock = socket.create_connection((addr, port), timeout=5)
+    chunk = bytes(1 << 20)
+    end = time.monotonic() + duration_s
+    sent = 0
+    with contextlib.suppress(OSError):
+        while time.monotonic() < end:
+            sent += sock.send(chunk)
+    sock.close()
+    return sent
+
+
+def goodput_bps(marks: list[tuple[float, int]], start_s: float, end_s: float) -> float:
+    """Goodput between `start_s` and `end_s` after the first mark, from (time, total) marks."""
+    if not marks:
+        return 0.0
+    first = marks[0][0]
+    window = [m for m in marks if first + start_s <= m[0] <= first + end_s]
+    if len(window) < 2 or window[-1][0] <= window[0][0]:
+        return 0.0
+    return (window[-1][1] - window[0][1]) * 8 / (window[-1][0] - window[0][0])
+
+
+def udp_stream(
+    src_ns: str, dst_ns: str, addr: str, count: int, size: int, rate_bps: float, tail_s: float
+) -> list[tuple[float, float, int, int]]:
+    """Send `count` datagrams src -> dst and return what arrived (see `udp_receive`)."""
+    ready = CTX.Event()
+    duration = count * size * 8 / rate_bps
+    receiver = in_namespace(dst_ns, udp_receive, ready, addr, PORT, duration + tail_s + 2, tail_s)
+    if not ready.wait(5):
+        raise TestbedError(f"the UDP receiver in {dst_ns} did not start")
+    in_namespace(src_ns, udp_send, addr, PORT, count, size, rate_bps).result(duration + 30)
+    return receiver.result(duration + tail_s + 30)
+
+
+def tcp_goodput(src_ns: str, dst_ns: str, addr: str, seconds: float, warm_s: float) -> float:
+    """Steady-state TCP goodput src -> dst (bit/s), skipping the first `warm_s`."""
+    ready = CTX.Event()
+    receiver = in_namespace(dst_ns, tcp_receive, ready, addr, PORT, seconds + 0.5)
+    if not ready.wait(5):
+        raise TestbedError(f"the TCP receiver in {dst_ns} did not start")
+    sender = in_namespace(src_ns, tcp_send, addr, PORT, seconds)
+    marks = receiver.result(seconds + 30)
+    sender.result(30)
+    return goodput_bps(marks, warm_s, seconds - 0.05)
+
+
+def percentile(values: list[float], q: float) -> float:
+    ordered = sorted(values)
+    return ordered[min(len(ordered) - 1, max(0, round(q * (len(ordered) - 1))))]
+
+
+# ---- verdicts ---------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class Verdict:
+    """One compared figure: what was measured, what the profile says, and the tolerance."""
+
+    what: str
+    measured: float
+    expected: float
+    tolerance: str
+    ok: bool
+
+
+@dataclass
+class DirectionResult:
+    """What one direction of a link did (delays in ms, rates in Mbit/s, loss in %)."""
+
+    link: str
+    direction: Direction
+    src: str
+    dst: str
+    profile: dict[str, Any]
+    baseline_ms: float | None = None
+    owd_median_ms: float | None = None
+    owd_p99_ms: float | None = None
+    jitter_sd_ms: float | None = None
+    loss_pct: float | None = None
+    loss_packets: int = 0
+    tcp_mbit: float | None = None
+    udp_mbit: float | None = None
+    verdicts: list[Verdict] = field(default_factory=list)
+
+    @property
+    def ok(self) -> bool:
+        return all(v.ok for v in self.verdicts)
+
+
+@dataclass
+class LinkResult:
+    link: str
+    rtt_median_ms: float | None
+    rtt_p99_ms: float | None
+    directions: list[DirectionResult]
+
+    @property
+    def ok(self) -> bool:
+        return self.rtt_median_ms is not None and all(d.ok for d in self.directions)
+
+
+@dataclass
+class LinkTestReport:
+    """Every link's figures and verdicts; `ok` when all are within tolerance."""
+
+    backend: str
+    quick: bool
+    links: list[LinkResult]
+    seconds: float = 0.0
+
+    @property
+    def ok(self) -> bool:
+        return bool(self.links) and all(link.ok for link in self.links)
+
+    def to_dict(self) -> dict[str, Any]:
+        return {
+            "backend": self.backend,
+            "quick": self.quick,
+            "ok": self.ok,
+            "seconds": self.seconds,
+            "tolerances": {
+                "delay_ms": DELAY_TOL_S * 1000,
+                "rate_fraction": RATE_TOL,
+                "loss_pp": LOSS_TOL * 100,
+            },
+            "links": [
+                {
+                    **asdict(link),
+                    "ok": link.ok,
+                    "directions": [_dir_dict(d) for d in link.directions],
+                }
+                for link in self.links
+            ],
+        }
+
+    def rows(self) -> list[list[str]]:
+        """One table row per link direction: figures, then each verdict."""
+        rows = []
+        for link in self.links:
+            for d in link.directions:
+                rtt = _fmt(link.rtt_median_ms, "{:.2f}") + "/" + _fmt(link.rtt_p99_ms, "{:.2f}")
+                checks = "; ".join(
+                    f"{v.what} {v.measured:.3g} vs {v.expected:.3g} ({v.tolerance})"
+                    f"{'' if v.ok else ' OUT'}"
+                    for v in d.verdicts
+                )
+                rows.append(
+                    [
+                        link.link,
+                        d.direction,
+                        rtt,
+                        _fmt(d.baseline_ms, "{:.3f}"),
+                        _fmt(d.owd_median_ms, "{:.3f}") + "/" + _fmt(d.owd_p99_ms, "{:.2f}"),
+                        _fmt(d.jitter_sd_ms, "{:.2f}"),
+                        _fmt(d.tcp_mbit, "{:.2f}"),
+                        _fmt(d.udp_mbit, "{:.2f}"),
+                        _fmt(d.loss_pct, "{:.2f}") + f" of {d.loss_packets}",
+                        "ok" if d.ok else "OUT",
+                        checks,
+                    ]
+                )
+        return rows
+
+    HEADERS: ClassVar[list[str]] = [
+        "link",
+        "dir",
+        "rtt ms med/p99",
+        "base ms",
+        "owd ms med/p99",
+        "sd ms",
+        "tcp Mbit/s",
+        "udp Mbit/s",
+        "loss %",
+        "ok",
+        "checks",
+    ]
+
+    def text(self) -> str:
+        widths = [len(h) for h in self.HEADERS]
+        rows = self.rows()
+        for row in rows:
+            widths = [max(w, len(c)) for w, c in zip(widths, row, strict=True)]
+        lines = ["  ".join(h.ljust(w) for h, w in zip(self.HEADERS, widths, strict=True))]
+        lines += ["  ".join(c.ljust(w) for c, w in zip(row, widths, strict=True)) for row in rows]
+        return "\n".join(line.rstrip() for line in lines)
+
+
+def _fmt(value: float | None, spec: str) -> str:
+    return "-" if value is None else spec.format(value)
+
+
+def _dir_dict(d: DirectionResult) -> dict[str, Any]:
+    return {**asdict(d), "ok": d.ok}
+
+
+def _profile_summary(p: LinkProfile) -> dict[str, Any]:
+    return {
+        "rate_mbit": None if p.rate_bps is None else p.rate_bps / 1e6,
+        "delay_ms": p.delay_s * 1000,
+        "jitter_ms": p.jitter_s * 1000,
+        "loss_pct": p.expected_loss * 100,
+    }
+
+
+# ---- the test --------------------------------------------------------------------------------
+
+
+class LinkTest:
+    """Measures every link of `net` (built with emulated links) against its profile."""
+
+    def __init__(self, net: Net, quick: bool = False, progress: Any = None) -> None:
+        if net.control is None:
+            raise TestbedError("the link self-test needs a network built with emulated links")
+        self.net = net
+        self.control: LinkController = net.control
+        self.quick = quick
+        self.progress = progress or (lambda _line: None)
+
+    def run(self) -> LinkTestReport:
+        t0 = time.monotonic()
+        results = []
+        for link in self.net.links.values():
+            self.progress(f"link test: {link.name}")
+            results.append(self.link(link))
+            self._check_alive()
+        backend = self.net.backend_text()
+        return LinkTestReport(backend, self.quick, results, time.monotonic() - t0)
+
+    def _check_alive(self) -> None:
+        failure = self.control.failure()
+        if failure:
+            raise TestbedError(f"a link failed during the link self-test: {failure}")
+
+    def link(self, link: Link) -> LinkResult:
+        rtts = self.rtt(link.lower, link.upper, 30 if self.quick else 200)
+        directions = [self.direction(link, d) for d in DIRECTIONS]
+        return LinkResult(
+            link.name,
+            statistics.median(rtts) if rtts else None,
+            percentile(rtts, 0.99) if rtts else None,
+            directions,
+        )
+
+    def rtt(self, src: Node, dst: Node, count: int) -> list[float]:
+        """RTTs (ms) of a UDP echo src -> dst, one datagram at a time."""
+        addr = str(dst.address_towards(src.name))
+        server = dst.socket()
+        client = src.socket()
+        rtts = []
+        try:
+            server.bind((addr, PORT))
+            server.settimeout(1.0)
+            client.settimeout(1.0)
+            for seq in range(count):
+                payload = seq.to_bytes(4, "big") + bytes(28)
+                t_send = time.perf_counter()
+                client.sendto(payload, (addr, PORT))
+                try:
+                    data, peer = server.recvfrom(2048)
+                    server.sendto(data, peer)
+                    reply, _ = client.recvfrom(2048)
+                except TimeoutError:
+                    continue
+                if reply == payload:
+                    rtts.append((time.perf_counter() - t_send) * 1000)
+        finally:
+            server.close()
+            client.close()
+        return rtts
+
+    def direction(self, link: Link, direction: Direction) -> DirectionResult:
+        src, dst = (link.lower, link.upper) if direction == "uplink" else (link.upper, link.lower)
+        addr = str(dst.address_towards(src.name))
+        profile = self.control.profile(link.name, direction)
+        result = DirectionResult(
+            link.name, direction, src.name, dst.name, _profile_summary(profile)
+        )
+        tail = profile.delay_s + 4 * profile.jitter_s + 0.3
+
+        def owd_ms(count: int, rate_pps: float) -> list[float]:
+            got = udp_stream(src.netns, dst.netns, addr, count, 64, rate_pps * 64 * 8, tail)
+            return [(r - s) * 1000 for r, s, _, _ in got]
+
+        # Baseline: the same probe with this direction neutral for a moment.
+        with neutral(self.control, link.name, direction):
+            base = owd_ms(100 if self.quick else 300, 500)
+        # Sparse datagrams (5 ms apart): a link that keeps order must not hold one back
+        # behind its predecessor's jitter, or the median would measure the clamping. Enough
+        # of them that the median's standard error (1.25 sd / sqrt(n)) stays near 0.15 ms
+        # (0.1 ms in a full test) when the profile jitters.
+        jitter_ms = profile.jitter_s * 1000
+        low, per_sd, high = (100, 8.4, 600) if self.quick else (300, 12.5, 1500)
+        owd = owd_ms(int(min(high, max(low, (per_sd * jitter_ms) ** 2))), 200)
+        if base:
+            result.baseline_ms = statistics.median(base)
+        if len(owd) >= 2:
+            result.owd_median_ms = statistics.median(owd)
+            result.owd_p99_ms = percentile(owd, 0.99)
+            result.jitter_sd_ms = statistics.stdev(owd)
+        if result.owd_median_ms is not None and result.baseline_ms is not None:
+            want = profile.delay_s * 1000 + result.baseline_ms
+            result.verdicts.append(
+                Verdict(
+                    "delay ms",
+                    result.owd_median_ms,
+                    want,
+                    f"±{DELAY_TOL_S * 1000:g} ms",
+                    abs(result.owd_median_ms - want) <= DELAY_TOL_S * 1000,
+                )
+            )
+        else:
+            result.verdicts.append(Verdict("delay ms", float("nan"), 0.0, "no echo", False))
+        self.loss(result, profile, src, dst, addr, tail)
+        self.rate(result, profile, src, dst, addr)
+        return result
+
+    def loss(
+        self,
+        result: DirectionResult,
+        profile: LinkProfile,
+        src: Node,
+        dst: Node,
+        addr: str,
+        tail_s: float,
+    ) -> None:
+        wire = (64 + 28 + self.control.frame_overhead) * 8
+        pps = 20_000.0
+        if profile.rate_bps is not None:
+            pps = min(pps, 0.4 * profile.rate_bps / wire)  # well below the rate: no queue drops
+        if profile.queue_packets is not None:
+            # and the delay line must stay well inside the queue limit
+            line_s = profile.delay_s + 3 * profile.jitter_s + 0.001
+            pps = min(pps, 0.25 * profile.queue_packets / line_s)
+        got = udp_stream(src.netns, dst.netns, addr, LOSS_PACKETS, 64, pps * 64 * 8, tail_s)
+        lost = 1 - len({seq for _, _, seq, _ in got}) / LOSS_PACKETS
+        result.loss_pct, result.loss_packets = lost * 100, LOSS_PACKETS
+        want = profile.expected_loss
+        result.verdicts.append(
+            Verdict("loss %", lost * 100, want * 100, "±0.5 pp", abs(lost - want) <= LOSS_TOL)
+        )
+
+    def rate(
+        self, result: DirectionResult, profile: LinkProfile, src: Node, dst: Node, addr: str
+    ) -> None:
+        packet = IP_PACKET + self.control.frame_overhead
+        seconds = 1.5 if self.quick else 3.0
+        lossy = profile.expected_loss > 0
+        if not (self.quick and lossy):
+            tcp = tcp_goodput(src.netns, dst.netns, addr, seconds, 0.5)
+            result.tcp_mbit = tcp / 1e6
+            if profile.rate_bps is not None and not lossy:
+                want = profile.rate_bps * TCP_PAYLOAD / packet
+                result.verdicts.append(_rate_verdict("tcp Mbit/s", tcp, want))
+        udp_ok = profile.rate_bps is not None and profile.rate_bps * 1.2 <= UDP_MAX_BPS
+        if udp_ok and (lossy or not self.quick):
+            assert profile.rate_bps is not None
+            want = profile.rate_bps * UDP_PAYLOAD / packet
+            count = int(1.2 * want * seconds / (UDP_PAYLOAD * 8))
+            got = udp_stream(
+                src.netns, dst.netns, addr, count, UDP_PAYLOAD, 1.2 * want, profile.delay_s + 0.3
+            )
+            if got:
+                first = got[0][0]
+                start, end = first + 0.3, first + seconds - 0.2
+                size = sum(n for r, _, _, n in got if start <= r <= end)
+                udp = size * 8 / (end - start)
+            else:
+                udp = 0.0
+            result.udp_mbit = udp / 1e6
+            result.verdicts.append(_rate_verdict("udp Mbit/s", udp, want))
+
+
+def _rate_verdict(what: str, measured_bps: float, want_bps: float) -> Verdict:
+    return Verdict(
+        what,
+        measured_bps / 1e6,
+        want_bps / 1e6,
+        f"±{RATE_TOL:.0%}",
+        abs(measured_bps / want_bps - 1) <= RATE_TOL,
+    )
+
+
+def link_test(scenario: Any, quick: bool = False, progress: Any = None) -> LinkTestReport:
+    """`testbed link-test`: build the scenario's network, measure every link, tear down."""
+    from testbed.topology import build
+
+    with build(scenario, mode="run") as net:
+        assert net.control is not None
+        if hasattr(net.control, "watch"):
+            net.control.watch()
+        return LinkTest(net, quick=quick, progress=progress).run()

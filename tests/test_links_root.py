@@ -1,0 +1,208 @@
+"""Real emulated links: the userspace backend (TUN relays) end to end, caps with HTB/IFB on TUN
+devices, outages, relay death, `up`/`down` of relays, the timeline on live links, and the tc
+backend (HTB here; its netem paths skip with the kernel's reason where sch_netem is missing).
+"""
+
+from __future__ import annotations
+
+import os
+import signal
+import time
+from pathlib import Path
+
+import pytest
+
+from testbed import links
+from testbed import state as st
+from testbed.errors import HostError
+from testbed.scenario import load
+from testbed.timeline import TimelinePlayer
+from testbed.topology import Net, build, teardown_run
+
+pytestmark = pytest.mark.root
+
+NETEM_OK, NETEM_DETAIL = (False, "not probed")
+if os.geteuid() == 0:
+    from testbed.check import netem_status
+
+    NETEM_OK, NETEM_DETAIL = netem_status()
+
+
+def _scenario(tmp_path: Path, backend: str, air_up: str, timeline: str = "") -> Path:
+    path = tmp_path / "s.yaml"
+    path.write_text(
+        "name: t\nseed: 3\nduration: 10s\n"
+        "topology:\n  cells:\n    - {gnb: gnb1, core: core1}\n  vehicles:\n"
+        "    - {name: av1, gnb: gnb1}\n"
+        f"links:\n  backend: {backend}\n  air:\n    uplink: {air_up}\n"
+        "    downlink: {rate: 100mbit}\n"
+        "  backhaul:\n    uplink: {rate: 1gbit}\n    downlink: {rate: 1gbit}\n" + timeline
+    )
+    return path
+
+
+def _rtt_ms(net: Net, count: int = 5) -> float:
+    """Median RTT av1 -> gnb1 over the air link, one datagram at a time."""
+    addr = str(net["gnb1"].address_towards("av1"))
+    server, client = net["gnb1"].socket(), net["av1"].socket()
+    rtts = []
+    try:
+        server.bind((addr, 0))
+        server.settimeout(1)
+        client.settimeout(1)
+        for _ in range(count):
+            t0 = time.perf_counter()
+            client.sendto(b"x", (addr, server.getsockname()[1]))
+            try:
+                data, peer = server.recvfrom(16)
+                server.sendto(data, peer)
+                client.recvfrom(16)
+            except TimeoutError:
+                continue
+            rtts.append((time.perf_counter() - t0) * 1000)
+    finally:
+        server.close()
+        client.close()
+    return sorted(rtts)[len(rtts) // 2] if rtts else float("inf")
+
+
+def _qdisc_kinds(net: Net, node: str) -> set[str]:
+    return {q.get_attr("TCA_KIND") for q in net[node].ipr.get_qdiscs()}
+
+
+def test_userspace_links_carry_the_profiles_and_change_live(
+    state_dir: Path, tmp_path: Path
+) -> None:
+    scenario = load(_scenario(tmp_path, "userspace", "{rate: 20mbit, delay: 5ms}"))
+    with build(scenario, mode="run") as net:
+        assert net.link_backend is not None and net.link_backend.name == "userspace"
+        control = net.control
+        assert isinstance(control, links.UserspaceController)
+        relay = control.relays["av1-gnb1"]
+        assert relay.profiles["uplink"].delay_s == 0.005
+        assert relay.profiles["uplink"].rate_bps == 20e6
+        # Every relay is on file, and its control socket is in the run's state folder.
+        pids = sorted(r.pid for r in control.relays.values())
+        assert sorted(p.pid for p in st.load_run(net.run_id).pids) == pids
+        assert sorted(links.relay_pids(net.state.namespaces)) == pids
+        assert Path(relay.control_path).parent == state_dir / net.run_id
+        assert 5 <= _rtt_ms(net) < 9
+        control.set("av1-gnb1", "both", {"delay_s": 0.010})
+        assert control.profile("av1-gnb1", "downlink").delay_s == 0.010
+        assert control.profile("av1-gnb1", "uplink").rate_bps == 20e6  # untouched field
+        assert 20 <= _rtt_ms(net) < 24
+    assert links.relay_pids(net.state.namespaces) == []
+    assert not (state_dir / net.run_id).exists()
+
+
+def test_shape_caps_a_tun_interface_with_htb_and_ifb(state_dir: Path, tmp_path: Path) -> None:
+    scenario = load(_scenario(tmp_path, "userspace", "{delay: 1ms}"))
+    with build(scenario, mode="run") as net:
+        assert net.control is not None
+        net.control.shape("av1", 5e6, 3e6)
+        kinds = _qdisc_kinds(net, "av1")
+        assert {"htb", "ingress"} <= kinds
+        assert net["av1"].ipr.link_lookup(ifname="ifb-gnb1")
+        net.control.shape("av1", 8e6, None)  # in place
+        net.control.clear("av1")
+        assert "htb" not in _qdisc_kinds(net, "av1")
+        assert not net["av1"].ipr.link_lookup(ifname="ifb-gnb1")
+        # A gNB is capped towards its core.
+        assert links.shaped_interface(net, "gnb1")[1] == "core1"
+
+
+def test_outage_drops_everything_for_its_duration(state_dir: Path, tmp_path: Path) -> None:
+    scenario = load(_scenario(tmp_path, "userspace", "{delay: 1ms}"))
+    with build(scenario, mode="run") as net:
+        assert net.control is not None
+        net.control.outage("av1-gnb1", 0.5)
+        assert _rtt_ms(net, count=1) == float("inf")
+        time.sleep(0.6)
+        assert _rtt_ms(net) < 5
+
+
+def test_a_dead_relay_is_reported_within_a_second(state_dir: Path, tmp_path: Path) -> None:
+    scenario = load(_scenario(tmp_path, "userspace", "{delay: 1ms}"))
+    with build(scenario, mode="run") as net:
+        control = net.control
+        assert isinstance(control, links.UserspaceController)
+        control.watch()
+        os.kill(control.relays["av1-gnb1"].pid, signal.SIGKILL)
+        t0 = time.monotonic()
+        assert control.died.wait(1.0)
+        assert time.monotonic() - t0 < 1.0
+        assert "died" in (control.failure() or "")
+
+
+def test_up_leaves_relays_running_and_down_stops_them(state_dir: Path, tmp_path: Path) -> None:
+    scenario = load(_scenario(tmp_path, "userspace", "{delay: 1ms}"))
+    net = build(scenario, mode="up")
+    control = net.control
+    assert isinstance(control, links.UserspaceController)
+    log_dirs = [Path(r._tmpdir) for r in control.relays.values() if r._tmpdir]
+    pids = links.relay_pids(net.state.namespaces)
+    assert len(pids) == 2 and all(d.is_dir() for d in log_dirs)
+    assert (state_dir / net.run_id / "links.json").is_file()
+    removed = teardown_run(net.run_id)
+    assert removed.processes >= 2 and not removed.problems
+    assert links.relay_pids(net.state.namespaces) == []
+    assert not any(d.exists() for d in log_dirs)
+    assert not (state_dir / net.run_id).exists()
+
+
+def test_timeline_plays_on_real_links(state_dir: Path, tmp_path: Path) -> None:
+    (tmp_path / "up.csv").write_text("time_s,mbit\n0,4\n0.2,8\n")
+    timeline = (
+        "timeline:\n"
+        "  - {at: 0s, set: av1-gnb1, delay: 3ms}\n"
+        "  - {at: 100ms, shape: av1, uplink: 10mbit}\n"
+        "  - {at: 200ms, trace: av1-gnb1, direction: uplink, file: up.csv}\n"
+        "  - {at: 300ms, clear: av1}\n"
+    )
+    scenario = load(_scenario(tmp_path, "userspace", "{delay: 1ms}", timeline))
+    with build(scenario, mode="run") as net:
+        assert net.control is not None
+        log = tmp_path / "events.jsonl"
+        player = TimelinePlayer(scenario.timeline, net.control, log_path=log)
+        player.start()
+        assert player.wait(5)
+        assert player.failure is None
+        assert [a.kind for a in player.applied] == ["set", "shape", "trace", "clear"]
+        assert all(a.lateness_s >= 0 for a in player.applied)
+        assert len(log.read_text().splitlines()) == 4
+        assert net.control.profile("av1-gnb1", "uplink").delay_s == 0.003
+        assert "htb" not in _qdisc_kinds(net, "av1")
+
+
+def test_tc_backend_shapes_rates_with_htb_at_the_gnb(state_dir: Path, tmp_path: Path) -> None:
+    scenario = load(_scenario(tmp_path, "tc", "{rate: 20mbit}"))
+    with build(scenario, mode="run") as net:
+        assert net.link_backend is not None and net.link_backend.name == "tc"
+        assert isinstance(net.control, links.TcController)
+        assert {"htb", "ingress"} <= _qdisc_kinds(net, "gnb1")
+        assert "htb" not in _qdisc_kinds(net, "av1")  # the gNB end carries both directions
+        net.control.set("av1-gnb1", "uplink", {"rate_bps": 5e6})
+        tree = net.control.shapers["av1-gnb1"].side("uplink").state()
+        assert tree is not None and tree.profile_rate * 8 == 5e6
+        assert _rtt_ms(net) < 5
+
+
+@pytest.mark.skipif(NETEM_OK, reason="this kernel has sch_netem: tc takes delay here")
+def test_tc_with_delay_on_a_kernel_without_netem_is_a_host_error(
+    state_dir: Path, tmp_path: Path
+) -> None:
+    scenario = load(_scenario(tmp_path, "tc", "{rate: 20mbit, delay: 5ms}"))
+    with pytest.raises(HostError, match="backend: userspace"):
+        build(scenario, mode="run")
+    assert st.list_runs() == []
+
+
+@pytest.mark.skipif(not NETEM_OK, reason=f"tc netem path: {NETEM_DETAIL}")
+def test_tc_backend_applies_netem_delay(state_dir: Path, tmp_path: Path) -> None:
+    scenario = load(_scenario(tmp_path, "tc", "{rate: 20mbit, delay: 5ms}"))
+    with build(scenario, mode="run") as net:
+        assert "netem" in _qdisc_kinds(net, "gnb1")
+        assert 5 <= _rtt_ms(net) < 9
+        assert net.control is not None
+        net.control.outage("av1-gnb1", 0.3)
+        assert _rtt_ms(net, count=1) == float("inf")

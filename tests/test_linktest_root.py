@@ -1,0 +1,70 @@
+"""The link self-test on real emulated links: it finds what the profile says, and it notices
+when a link does something else."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+from testbed import links
+from testbed.linktest import LinkTest, LinkTestReport
+from testbed.scenario import load
+from testbed.topology import build
+
+pytestmark = pytest.mark.root
+
+SCENARIO = """\
+name: lt
+seed: 5
+duration: 10s
+topology:
+  cells:
+    - {gnb: gnb1, core: core1}
+  vehicles:
+    - {name: av1, gnb: gnb1}
+links:
+  backend: userspace
+  air:
+    uplink: {rate: 20mbit, delay: 4ms, loss: 1%}
+    downlink: {rate: 40mbit, delay: 4ms}
+  backhaul:
+    uplink: {rate: 100mbit}
+    downlink: {rate: 100mbit}
+"""
+
+
+@pytest.fixture
+def scenario(tmp_path: Path):
+    path = tmp_path / "lt.yaml"
+    path.write_text(SCENARIO)
+    return load(path)
+
+
+def test_link_test_measures_what_the_profile_says(state_dir: Path, scenario) -> None:
+    with build(scenario, mode="run") as net:
+        test = LinkTest(net, quick=True)
+        result = test.link(net.links["av1-gnb1"])
+    report = LinkTestReport(net.backend_text(), True, [result])
+    up, down = result.directions
+    assert result.rtt_median_ms is not None and 8 <= result.rtt_median_ms < 10
+    assert up.loss_packets == 10_000 and 0.5 <= (up.loss_pct or 0) <= 1.5
+    # lossy uplink: rate judged on UDP; clean downlink: on TCP
+    assert {v.what for v in up.verdicts} == {"delay ms", "loss %", "udp Mbit/s"}
+    assert {v.what for v in down.verdicts} == {"delay ms", "loss %", "tcp Mbit/s"}
+    assert report.ok, report.text()
+    assert "av1-gnb1" in report.text() and report.to_dict()["ok"] is True
+
+
+def test_link_test_notices_a_link_that_is_not_its_profile(state_dir: Path, scenario) -> None:
+    with build(scenario, mode="run") as net:
+        control = net.control
+        assert isinstance(control, links.UserspaceController)
+        # A Wondershaper cap the profile does not know of: av1 receives at most 20 Mbit/s.
+        control.shape("av1", None, 20e6)
+        test = LinkTest(net, quick=True)
+        link = net.links["av1-gnb1"]
+        direction = test.direction(link, "downlink")
+    rate = next(v for v in direction.verdicts if v.what == "tcp Mbit/s")
+    assert not rate.ok and rate.measured < 0.6 * rate.expected
+    assert not direction.ok
