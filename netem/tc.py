@@ -164,6 +164,8 @@ class ShapedInterface:
         if cap_bps is None and state.is_neutral():
             self._remove()
             return
+        # Each class change is ACKed by the kernel (a refusal raises), so unlike an install
+        # there is no read-back here: a timeline `shape` must land within a few ms.
         self.run(plan_cap_change(self.ifname, state, cap_bps))
         if self._nl is None:
             self._planned = TreeState(
@@ -174,8 +176,6 @@ class ShapedInterface:
                 leaf_kind=state.leaf_kind,
                 order_rate=state.order_rate,
             )
-        else:
-            self.verify(None, cap_bps, check_profile=False)
 
     def clear(self) -> None:
         """Remove the profile's shaping: the whole tree, or only the profile part if capped."""
