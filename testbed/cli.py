@@ -160,6 +160,27 @@ def run(
     )
 
 
+@app.command()
+def replay(
+    file: ScenarioFile,
+    runs_dir: Annotated[
+        Path, typer.Option("--runs-dir", help="Where run folders go.", file_okay=False)
+    ] = Path("runs"),
+    json_out: JsonFlag = False,
+) -> None:
+    """Replay the scenario's EdgeLoc workload in one process (no network, faster than real
+    time): VO, DNN, Kalman and EdgeLoc errors beside the paper's, the learner per bandwidth
+    phase; writes runs/<id>/summary.json and TUM trajectories.
+
+    Example: testbed replay scenarios/default.yaml
+    """
+    from testbed.replay_cmd import replay_command
+
+    code = replay_command(file, runs_dir, json_out=json_out)
+    if code:
+        raise typer.Exit(code)
+
+
 @app.command("link-test")
 def link_test(
     file: ScenarioFile,

@@ -1,0 +1,393 @@
+"""How long one split inference request takes: vehicle compute, network path, edge compute.
+
+The replay (and any other offline study) asks a `LatencyModel` what happens to a request sent
+at time `t` with split `k` and `n` activation bytes. The answer is a `RequestTiming`:
+
+    head compute(k) on the vehicle  (measured per stage, scaled by the vehicle's CPU budget)
+  + uplink:  serialisation of the request bytes at the path's bottleneck rate (integrated over
+             time, so a rate change or an outage mid-transfer counts), plus the path's one-way
+             delay and one draw of its jitter
+  + tail compute(k) on the edge     (measured per stage, scaled by the edge's CPU budget)
+  + downlink: the same for the reply (the pose, the split id and t0)
+
+The nouns:
+
+- `PathState`: one direction of the vehicle↔edge path at one instant, every hop folded into one:
+  bottleneck rate, summed delay, root-sum-square jitter, combined loss, and whether it is up.
+- `PathSchedule`: that state as a step function of time (the scenario's timeline: shape, set,
+  outage and trace events each start a new step).
+- `ComputeProfile`: seconds per DNN stage on the measuring machine (torch, one thread), and the
+  CPU budgets (cores) of the vehicle and the edge. A stage that needs `c` s on one full core
+  takes `c / min(cpu, 1)` s under a budget of `cpu` cores (a fluid model of a cgroup quota:
+  one inference thread cannot use more than one core, and a quota below one core stretches
+  it). `None` = unlimited = the measured time.
+- `LatencyModel`: the three together plus the loss policy; `timing()` is the whole request.
+
+Wire size: a message of `n` payload bytes goes as ceil(n / 1400) packets with `PACKET_OVERHEAD`
+bytes of headers each (IPv4 20 + UDP 8 + RTPS/DDS ~42), as the ROS 2 nodes will send it.
+
+Loss (per packet, independent, with the path's combined loss rate), two documented policies:
+
+- `retransmit` (default; reliable QoS / TCP): a lost packet is sent again after `rto_s`
+  (200 ms, Linux TCP's minimum RTO); a request whose transfer overlaps an outage waits for the
+  link to come back (the rate is 0 while it is down) and then pays one `rto_s`.
+- `drop` (best effort): a lost packet, or an outage during the transfer, loses the request;
+  the vehicle gives up after `timeout_s` and the learner is charged `timeout_s` for that play.
+
+Everything random comes from the generator the caller passes, so a seeded replay repeats.
+"""
+
+from __future__ import annotations
+
+import bisect
+import math
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from typing import Literal
+
+import numpy as np
+
+PACKET_PAYLOAD = 1400  # bytes of message per packet (below a 1500-byte MTU)
+PACKET_OVERHEAD = 70  # IPv4 20 + UDP 8 + RTPS header and DATA submessage ~42
+REQUEST_HEADER = 16  # split id and capture stamp t0 travel with every request and reply
+LossPolicy = Literal["retransmit", "drop"]
+JITTERS = ("normal", "uniform", "pareto")
+
+
+def wire_bytes(payload: int) -> int:
+    """Bytes on the wire for a message of `payload` bytes (headers of every packet included)."""
+    packets = max(1, math.ceil(payload / PACKET_PAYLOAD))
+    return payload + packets * PACKET_OVERHEAD
+
+
+def packets_of(payload: int) -> int:
+    return max(1, math.ceil(payload / PACKET_PAYLOAD))
+
+
+@dataclass(frozen=True)
+class PathState:
+    """One direction of the path at an instant. `rate_bps=inf` means no rate limit."""
+
+    rate_bps: float = math.inf
+    delay_s: float = 0.0
+    jitter_s: float = 0.0
+    jitter_distribution: str = "normal"
+    loss: float = 0.0
+    up: bool = True
+
+    def __post_init__(self) -> None:
+        if not (self.rate_bps > 0):
+            raise ValueError(f"path rate must be > 0 bit/s, got {self.rate_bps!r}")
+        if not (math.isfinite(self.delay_s) and self.delay_s >= 0):
+            raise ValueError(f"path delay must be >= 0 s, got {self.delay_s!r}")
+        if not (math.isfinite(self.jitter_s) and self.jitter_s >= 0):
+            raise ValueError(f"path jitter must be >= 0 s, got {self.jitter_s!r}")
+        if self.jitter_distribution not in JITTERS:
+            raise ValueError(
+                f"jitter distribution must be one of {', '.join(JITTERS)}, "
+                f"got {self.jitter_distribution!r}"
+            )
+        if not 0.0 <= self.loss <= 1.0:
+            raise ValueError(f"path loss must be a fraction in [0, 1], got {self.loss!r}")
+
+    @classmethod
+    def fold(cls, hops: Sequence[PathState]) -> PathState:
+        """The hops in series: the slowest rate, summed delays, jitter in quadrature,
+        1 − Π(1 − loss), up only if every hop is up. The first hop's jitter shape wins."""
+        if not hops:
+            return cls()
+        jit = [h for h in hops if h.jitter_s > 0]
+        return cls(
+            rate_bps=min(h.rate_bps for h in hops),
+            delay_s=sum(h.delay_s for h in hops),
+            jitter_s=math.sqrt(sum(h.jitter_s**2 for h in hops)),
+            jitter_distribution=jit[0].jitter_distribution if jit else "normal",
+            loss=1.0 - math.prod(1.0 - h.loss for h in hops),
+            up=all(h.up for h in hops),
+        )
+
+    def draw_jitter(self, rng: np.random.Generator) -> float:
+        """One draw of the delay variation (seconds, mean 0, std `jitter_s`)."""
+        if self.jitter_s == 0:
+            return 0.0
+        if self.jitter_distribution == "uniform":  # U(-a, a) has std a / sqrt(3)
+            a = self.jitter_s * math.sqrt(3.0)
+            return float(rng.uniform(-a, a))
+        if self.jitter_distribution == "pareto":  # Lomax shape 3: heavy right tail
+            shape = 3.0
+            std = math.sqrt(shape / ((shape - 1) ** 2 * (shape - 2)))
+            return float((rng.pareto(shape) - 1.0 / (shape - 1)) / std * self.jitter_s)
+        return float(rng.normal(0.0, self.jitter_s))
+
+
+@dataclass(frozen=True)
+class PathSchedule:
+    """A `PathState` per step: `states[i]` holds from `times[i]` until `times[i + 1]`.
+
+    `times[0]` must be 0 (the run's start); the last state holds for ever.
+    """
+
+    times: tuple[float, ...]
+    states: tuple[PathState, ...]
+
+    def __post_init__(self) -> None:
+        if len(self.times) != len(self.states) or not self.times:
+            raise ValueError("a path schedule needs one state per step time, at least one")
+        if self.times[0] != 0.0:
+            raise ValueError(f"a path schedule starts at 0 s, not {self.times[0]!r}")
+        if any(b <= a for a, b in zip(self.times, self.times[1:], strict=False)):
+            raise ValueError("path schedule step times must increase")
+
+    @classmethod
+    def constant(cls, state: PathState) -> PathSchedule:
+        return cls((0.0,), (state,))
+
+    def index(self, t: float) -> int:
+        return max(bisect.bisect_right(self.times, t) - 1, 0)
+
+    def at(self, t: float) -> PathState:
+        return self.states[self.index(t)]
+
+    def transmit(self, start_s: float, bits: float) -> tuple[float, bool]:
+        """When the last bit of `bits` leaves, sent from `start_s` at the bottleneck rate, and
+        whether the transfer met an outage (no progress while the path is down)."""
+        t, left, hit_outage = start_s, float(bits), False
+        i = self.index(t)
+        while True:
+            state = self.states[i]
+            end = self.times[i + 1] if i + 1 < len(self.times) else math.inf
+            if not state.up:
+                hit_outage = True
+                if end == math.inf:
+                    return math.inf, True
+            elif state.rate_bps == math.inf:
+                return t, hit_outage
+            else:
+                need = left / state.rate_bps
+                if t + need <= end:
+                    return t + need, hit_outage
+                left -= (end - t) * state.rate_bps
+            t, i = end, i + 1
+
+
+@dataclass(frozen=True)
+class ComputeProfile:
+    """Seconds per DNN stage on one full core, and the CPU budgets that stretch them.
+
+    `stage_s[j]` is stage j (between split j and split j+1 of `splits`); `encode_s[k]` and
+    `decode_s[k]` the codec time of the activation at split k. Budgets are cores (None:
+    unlimited). `source` says where the numbers came from (measured here, or given).
+    """
+
+    splits: tuple[str, ...]
+    stage_s: tuple[float, ...]
+    encode_s: tuple[float, ...]
+    decode_s: tuple[float, ...]
+    vehicle_cpu: float | None = None
+    edge_cpu: float | None = None
+    source: str = "given"
+
+    def __post_init__(self) -> None:
+        k = len(self.splits)
+        if len(self.stage_s) != k - 1 or len(self.encode_s) != k or len(self.decode_s) != k:
+            raise ValueError(
+                f"compute profile: {k} splits need {k - 1} stage times and {k} codec times"
+            )
+        for name, cpu in (("vehicle", self.vehicle_cpu), ("edge", self.edge_cpu)):
+            if cpu is not None and not (math.isfinite(cpu) and cpu > 0):
+                raise ValueError(f"{name} CPU budget must be > 0 cores, got {cpu!r}")
+
+    @staticmethod
+    def stretch(cpu: float | None) -> float:
+        """How much slower one inference thread runs under a budget of `cpu` cores."""
+        return 1.0 if cpu is None else 1.0 / min(cpu, 1.0)
+
+    def head_s(self, split: str) -> float:
+        """Vehicle: stages [0:k] and encoding the activation at k, under the vehicle budget."""
+        k = self.splits.index(split)
+        return (sum(self.stage_s[:k]) + self.encode_s[k]) * self.stretch(self.vehicle_cpu)
+
+    def tail_s(self, split: str) -> float:
+        """Edge: decoding the activation at k and stages [k:], under the edge budget."""
+        k = self.splits.index(split)
+        return (self.decode_s[k] + sum(self.stage_s[k:])) * self.stretch(self.edge_cpu)
+
+    def with_budgets(self, vehicle_cpu: float | None, edge_cpu: float | None) -> ComputeProfile:
+        return ComputeProfile(
+            self.splits,
+            self.stage_s,
+            self.encode_s,
+            self.decode_s,
+            vehicle_cpu,
+            edge_cpu,
+            self.source,
+        )
+
+    def to_dict(self) -> dict[str, object]:
+        return {
+            "source": self.source,
+            "model": "stage seconds on one core, stretched by 1 / min(cpu, 1) under a budget",
+            "vehicle_cpu": self.vehicle_cpu,
+            "edge_cpu": self.edge_cpu,
+            "stage_s": dict(zip(self.splits[1:], self.stage_s, strict=True)),
+            "encode_s": dict(zip(self.splits, self.encode_s, strict=True)),
+            "decode_s": dict(zip(self.splits, self.decode_s, strict=True)),
+            "head_s": {k: self.head_s(k) for k in self.splits},
+            "tail_s": {k: self.tail_s(k) for k in self.splits},
+        }
+
+    @classmethod
+    def measure(
+        cls, model: object, image: np.ndarray, codec: str, reps: int = 50
+    ) -> ComputeProfile:
+        """Time every stage and the codec on this machine with torch on one thread (median of
+        `reps` runs after a warm-up); the global torch thread count is restored afterwards."""
+        import torch
+
+        from nodes.edgeloc.codec import decode, encode
+        from nodes.edgeloc.model import SPLITS
+
+        threads = torch.get_num_threads()
+        torch.set_num_threads(1)
+        try:
+            with torch.no_grad():
+                acts = [torch.from_numpy(np.ascontiguousarray(image[None]))]
+                for stage in model.stages:  # type: ignore[attr-defined]
+                    acts.append(stage(acts[-1]))
+
+                def median_s(fn) -> float:
+                    for _ in range(5):
+                        fn()
+                    samples = []
+                    for _ in range(reps):
+                        t = time.perf_counter()
+                        fn()
+                        samples.append(time.perf_counter() - t)
+                    return float(np.median(samples))
+
+                stage_s = tuple(
+                    median_s(lambda s=s, a=a: s(a))
+                    for s, a in zip(model.stages, acts[:-1], strict=True)  # type: ignore[attr-defined]
+                )
+                blobs = [encode(a, codec) for a in acts]
+                encode_s = tuple(median_s(lambda a=a: encode(a, codec)) for a in acts)
+                decode_s = tuple(median_s(lambda b=b: decode(b)) for b in blobs)
+        finally:
+            torch.set_num_threads(threads)
+        source = f"measured on this machine: torch {torch.__version__}, 1 thread, median of {reps}"
+        return cls(tuple(SPLITS), stage_s, encode_s, decode_s, source=source)
+
+
+@dataclass(frozen=True)
+class RequestTiming:
+    """One request's fate: the parts of its latency, or `lost` (then `latency_s` = timeout)."""
+
+    split: str
+    sent_s: float  # when thread 2 started on it (compute begins)
+    head_s: float
+    uplink_s: float  # serialisation + delay + jitter (+ retransmissions, outage waits)
+    tail_s: float
+    downlink_s: float
+    request_bytes: int  # on the wire, headers included
+    reply_bytes: int
+    lost: bool
+    latency_s: float  # from sent_s to the answer (or to giving up)
+
+
+@dataclass
+class LatencyModel:
+    """Compute profile + uplink and downlink schedules + loss policy: timings of requests."""
+
+    compute: ComputeProfile
+    uplink: PathSchedule
+    downlink: PathSchedule
+    loss_policy: LossPolicy = "retransmit"
+    rto_s: float = 0.2
+    timeout_s: float = 1.0
+    reply_payload: int = 38  # the pose as the `vehicle` split encodes it
+    notes: list[str] = field(default_factory=list)
+
+    def __post_init__(self) -> None:
+        if self.loss_policy not in ("retransmit", "drop"):
+            raise ValueError(f"loss policy must be retransmit or drop, got {self.loss_policy!r}")
+        if not (self.rto_s > 0 and self.timeout_s > 0):
+            raise ValueError("rto_s and timeout_s must be > 0 s")
+
+    def _leg(
+        self, path: PathSchedule, start: float, payload: int, rng: np.random.Generator
+    ) -> tuple[float, bool]:
+        """(seconds from `start` to delivery, lost) for one message on one direction."""
+        done, outage = path.transmit(start, 8.0 * wire_bytes(payload))
+        if done == math.inf:
+            return math.inf, True
+        state = path.at(done)
+        # every packet of the message rides the same queue; one jitter draw per message
+        arrive = done + state.delay_s + state.draw_jitter(rng)
+        arrive = max(arrive, done)  # jitter never makes a packet arrive before it left
+        extra = 0.0
+        if state.loss > 0:
+            tries = (
+                rng.geometric(1.0 - state.loss, size=packets_of(payload))
+                if state.loss < 1
+                else None
+            )
+            if tries is None:
+                return math.inf, True
+            worst = int(tries.max()) - 1  # retransmissions of the unluckiest packet
+            if worst > 0:
+                if self.loss_policy == "drop":
+                    return math.inf, True
+                extra += worst * self.rto_s
+        if outage:
+            if self.loss_policy == "drop":
+                return math.inf, True
+            extra += self.rto_s
+        return arrive + extra - start, False
+
+    def timing(
+        self, split: str, sent_s: float, payload: int, rng: np.random.Generator
+    ) -> RequestTiming:
+        """What happens to a request of `payload` activation bytes at `split` sent at `sent_s`."""
+        head = self.compute.head_s(split)
+        tail = self.compute.tail_s(split)
+        up, lost_up = self._leg(self.uplink, sent_s + head, payload + REQUEST_HEADER, rng)
+        down, lost_down = math.inf, True
+        if not lost_up:
+            reply_at = sent_s + head + up + tail
+            down, lost_down = self._leg(
+                self.downlink, reply_at, self.reply_payload + REQUEST_HEADER, rng
+            )
+        lost = lost_up or lost_down
+        total = head + up + tail + down
+        if lost or total > self.timeout_s:
+            lost, total = True, self.timeout_s
+        return RequestTiming(
+            split=split,
+            sent_s=sent_s,
+            head_s=head,
+            uplink_s=up,
+            tail_s=tail,
+            downlink_s=down,
+            request_bytes=wire_bytes(payload + REQUEST_HEADER),
+            reply_bytes=wire_bytes(self.reply_payload + REQUEST_HEADER),
+            lost=lost,
+            latency_s=total,
+        )
+
+    def expected_s(self, split: str, t: float, payload: int) -> float:
+        """Noise- and loss-free latency of `split` at time `t` (the oracle's view)."""
+        head, tail = self.compute.head_s(split), self.compute.tail_s(split)
+        up_state, down_state = self.uplink.at(t), self.downlink.at(t)
+        if not (up_state.up and down_state.up):
+            return math.inf
+        req = 8.0 * wire_bytes(payload + REQUEST_HEADER)
+        rep = 8.0 * wire_bytes(self.reply_payload + REQUEST_HEADER)
+        return (
+            head
+            + req / up_state.rate_bps
+            + up_state.delay_s
+            + tail
+            + rep / down_state.rate_bps
+            + down_state.delay_s
+        )

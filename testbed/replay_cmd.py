@@ -1,0 +1,376 @@
+"""`testbed replay FILE`: the scenario's EdgeLoc workload replayed in one process, no network.
+
+This module only adapts: it turns a `Scenario` into the plain `ReplayConfig` and
+`LatencyModel` that `nodes.edgeloc.replay` runs, writes runs/<id>/ (summary.json, TUM
+trajectories, scenario.yaml) and prints a table and the headline line.
+
+How the scenario becomes a latency model (for the first vehicle, or `vehicle=`):
+
+- the path is the vehicle's air link and its cell's backhaul; uplink = air uplink then backhaul
+  uplink, downlink = backhaul downlink then air downlink; a direction's state folds its hops
+  (slowest rate, summed delays, jitter in quadrature, combined loss);
+- `shape` caps the vehicle's uplink (its air-uplink hop) and downlink, and a core's egress and
+  ingress (its backhaul hops), as Wondershaper does; `clear` lifts them; `set` changes profile
+  fields; `outage` stalls both directions of a link for its duration; `trace` drives a link
+  direction's rate (csv steps as given; mahimahi opportunities averaged over 100 ms bins; a
+  zero-rate step or the end of a non-looping trace stalls the link like an outage);
+- compute: head/tail per split measured on this machine (torch, one thread), stretched by the
+  vehicle's `cpu` and the cell's `core_cpu` budgets (`latency.ComputeProfile`).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import secrets
+import shutil
+from collections.abc import Callable
+from pathlib import Path
+
+from netem.profile import LinkProfile
+from netem.traces import OPPORTUNITY_BYTES, Trace, load_trace
+from nodes.edgeloc.gate import GateSettings
+from nodes.edgeloc.latency import ComputeProfile, LatencyModel, PathSchedule, PathState
+from nodes.edgeloc.replay import (
+    KalmanSettings,
+    LearnerSettings,
+    ReplayConfig,
+    ReplayResult,
+    run_replay,
+)
+from testbed.errors import BadInput
+from testbed.scenario.model import (
+    ClearEvent,
+    LinkSpec,
+    OutageEvent,
+    Scenario,
+    SetEvent,
+    ShapeEvent,
+    TraceEvent,
+)
+
+MAHIMAHI_BIN_S = 0.1
+DEFAULT_GATE = GateSettings()  # beyond the paper; see nodes.edgeloc.gate
+_ComputeCache: dict[tuple[str, str], ComputeProfile] = {}
+
+
+# ---- scenario -> replay config ----------------------------------------------------------------
+
+
+def replay_config(scenario: Scenario, gate: GateSettings | None = DEFAULT_GATE) -> ReplayConfig:
+    """The plain replay settings of a scenario's workload."""
+    w = scenario.workload
+    lr = w.learner
+    times = sorted({0.0, *(e.at_s for e in scenario.timeline if e.at_s < scenario.duration_s)})
+    return ReplayConfig(
+        name=scenario.name,
+        seed=scenario.seed,
+        duration_s=scenario.duration_s,
+        rate_hz=w.rate_hz,
+        dataset=str(w.dataset),
+        corruption=w.corruption,
+        codec=w.codec,
+        weights=None if w.weights is None else str(w.weights),
+        splits=tuple(w.splits) if w.splits else ReplayConfig().splits,
+        learner=LearnerSettings(
+            window=lr.window,
+            cost=lr.cost,
+            fixed_split=lr.fixed_split,
+            detector=lr.detector,
+            kl_threshold=lr.kl_threshold,
+            consecutive=lr.consecutive,
+            detector_window=lr.detector_window,
+        ),
+        k_s=w.fusion.k_s,
+        dt0_s=w.fusion.dt0_s,
+        kalman=KalmanSettings(w.kalman.q_pos, w.kalman.q_yaw, w.kalman.r_pos, w.kalman.r_yaw),
+        gate=gate,
+        phases=tuple(times),
+    )
+
+
+class _PathPlan:
+    """The hops between one vehicle and its edge, and what the timeline does to them."""
+
+    def __init__(self, scenario: Scenario, vehicle: str | None) -> None:
+        topo = scenario.topology
+        if not topo.vehicles:
+            raise BadInput(f"{scenario.name}: the scenario has no vehicle to replay")
+        names = [v.name for v in topo.vehicles]
+        name = vehicle or names[0]
+        if name not in names:
+            raise BadInput(f"no vehicle {name!r} in the scenario (vehicles: {', '.join(names)})")
+        self.vehicle = next(v for v in topo.vehicles if v.name == name)
+        self.cell = topo.cell_of_gnb(self.vehicle.gnb)
+        self.air = self._link(scenario, "air", name)
+        self.backhaul = self._link(scenario, "backhaul", self.cell.gnb)
+        self.scenario = scenario
+        self.traces: dict[tuple[str, str], tuple[TraceEvent, Trace]] = {}
+        for e in scenario.timeline:
+            if isinstance(e, TraceEvent):
+                try:
+                    self.traces[(e.link, e.direction)] = (e, load_trace(e.path, e.format))
+                except ValueError as err:
+                    raise BadInput(f"trace of {e.link} at {e.at_s:g} s: {err}") from None
+
+    @staticmethod
+    def _link(scenario: Scenario, kind: str, lower: str) -> LinkSpec:
+        for link in scenario.links.links:
+            if link.kind == kind and lower in (link.lower, link.upper):
+                return link
+        raise BadInput(f"{scenario.name}: no {kind} link at {lower}; cannot build its path")
+
+    def breakpoints(self, horizon: float) -> list[float]:
+        times = {0.0}
+        for e in self.scenario.timeline:
+            times.add(e.at_s)
+            if isinstance(e, OutageEvent):
+                times.add(e.at_s + e.duration_s)
+        for ev, trace in self.traces.values():
+            for t in _trace_steps(ev, trace, horizon):
+                times.add(t)
+        return sorted(t for t in times if 0.0 <= t < horizon)
+
+    def states_at(self, t: float) -> tuple[PathState, PathState]:
+        """(uplink, downlink) path states at time `t` (events at or before `t` applied)."""
+        prof: dict[tuple[str, str], LinkProfile] = {}
+        for link in (self.air, self.backhaul):
+            prof[(link.name, "uplink")] = link.uplink
+            prof[(link.name, "downlink")] = link.downlink
+        caps: dict[str, list[float | None]] = {}
+        trace_on: dict[tuple[str, str], TraceEvent] = {}
+        down: set[str] = set()
+        for e in sorted(self.scenario.timeline, key=lambda e: e.at_s):
+            if e.at_s > t:
+                break
+            if isinstance(e, SetEvent):
+                dirs = ("uplink", "downlink") if e.direction == "both" else (e.direction,)
+                for d in dirs:
+                    if (e.link, d) in prof:
+                        prof[(e.link, d)] = prof[(e.link, d)].replace(**dict(e.changes))
+            elif isinstance(e, ShapeEvent):
+                cap = caps.setdefault(e.node, [None, None])
+                if e.uplink_bps is not None:
+                    cap[0] = e.uplink_bps
+                if e.downlink_bps is not None:
+                    cap[1] = e.downlink_bps
+            elif isinstance(e, ClearEvent):
+                caps.pop(e.node, None)
+            elif isinstance(e, OutageEvent):
+                if t < e.at_s + e.duration_s:
+                    down.add(e.link)
+            elif isinstance(e, TraceEvent):
+                trace_on[(e.link, e.direction)] = e
+
+        def hop(link: LinkSpec, direction: str, cap: float | None) -> PathState:
+            p = prof[(link.name, direction)]
+            rate = math.inf if p.rate_bps is None else float(p.rate_bps)
+            up = link.name not in down
+            if (link.name, direction) in trace_on:
+                ev, trace = self.traces[(link.name, direction)]
+                r = _trace_rate(ev, trace, t)
+                rate, up = (r, up) if r > 0 else (rate, False)
+            if cap is not None:
+                rate = min(rate, cap)
+            return PathState(
+                rate_bps=rate,
+                delay_s=p.delay_s,
+                jitter_s=p.jitter_s,
+                jitter_distribution=p.jitter_distribution,
+                loss=p.expected_loss,
+                up=up,
+            )
+
+        v, c = self.vehicle.name, self.cell.core
+        vcap, ccap = caps.get(v, [None, None]), caps.get(c, [None, None])
+        uplink = PathState.fold(
+            [hop(self.air, "uplink", vcap[0]), hop(self.backhaul, "uplink", ccap[1])]
+        )
+        downlink = PathState.fold(
+            [hop(self.backhaul, "downlink", ccap[0]), hop(self.air, "downlink", vcap[1])]
+        )
+        return uplink, downlink
+
+    def schedules(self, horizon: float) -> tuple[PathSchedule, PathSchedule]:
+        times, ups, downs = [], [], []
+        for t in self.breakpoints(horizon):
+            up, dn = self.states_at(t)
+            if ups and up == ups[-1] and dn == downs[-1]:
+                continue
+            times.append(t)
+            ups.append(up)
+            downs.append(dn)
+        return PathSchedule(tuple(times), tuple(ups)), PathSchedule(tuple(times), tuple(downs))
+
+
+def _trace_period_rates(trace: Trace) -> list[tuple[float, float]]:
+    """(offset_s, rate_bps) steps of one period of a trace."""
+    if trace.format == "csv":
+        return list(trace.steps)
+    bins = max(1, math.ceil(trace.duration_s / MAHIMAHI_BIN_S))
+    counts = [0] * bins
+    for t in trace.opportunities_s:
+        counts[min(int(t / MAHIMAHI_BIN_S), bins - 1)] += 1
+    return [
+        (i * MAHIMAHI_BIN_S, c * OPPORTUNITY_BYTES * 8 / MAHIMAHI_BIN_S)
+        for i, c in enumerate(counts)
+    ]
+
+
+def _trace_steps(ev: TraceEvent, trace: Trace, horizon: float) -> list[float]:
+    steps = _trace_period_rates(trace)
+    out, offset = [], ev.at_s
+    while offset < horizon:
+        out += [offset + s for s, _ in steps]
+        out.append(offset + trace.duration_s)
+        if not ev.loop or trace.duration_s <= 0:
+            break
+        offset += trace.duration_s
+    return out
+
+
+def _trace_rate(ev: TraceEvent, trace: Trace, t: float) -> float:
+    u = t - ev.at_s
+    if trace.duration_s <= 0:
+        return 0.0
+    if u >= trace.duration_s:
+        if not ev.loop:
+            return 0.0  # the trace has ended: the link delivers nothing more
+        u = math.fmod(u, trace.duration_s)
+    rate = 0.0
+    for s, r in _trace_period_rates(trace):
+        if s <= u + 1e-12:
+            rate = r
+    return rate
+
+
+def compute_profile(codec: str, weights: str | None) -> ComputeProfile:
+    """Stage and codec times measured once per process (torch, one thread)."""
+    key = (codec, weights or "")
+    if key not in _ComputeCache:
+        from nodes.edgeloc.dataset import open_dataset
+        from nodes.edgeloc.train import load_model
+
+        image = open_dataset("synthetic", seed=0, duration_s=1.0).image(0)
+        _ComputeCache[key] = ComputeProfile.measure(load_model(weights), image, codec)
+    return _ComputeCache[key]
+
+
+def latency_model(
+    scenario: Scenario,
+    compute: ComputeProfile | None = None,
+    vehicle: str | None = None,
+    loss_policy: str = "retransmit",
+) -> LatencyModel:
+    """The scenario's path and compute as a `LatencyModel` (see the module docstring)."""
+    plan = _PathPlan(scenario, vehicle)
+    w = scenario.workload
+    if compute is None:
+        compute = compute_profile(w.codec, None if w.weights is None else str(w.weights))
+    compute = compute.with_budgets(plan.vehicle.cpu, plan.cell.core_cpu)
+    uplink, downlink = plan.schedules(scenario.duration_s)
+    notes = [
+        f"vehicle {plan.vehicle.name}: path {plan.air.name} + {plan.backhaul.name}",
+        "one request in flight at a time (thread 2 waits for its answer): no self-queueing",
+        "one jitter draw per message; loss per packet with the path's combined loss rate",
+    ]
+    return LatencyModel(compute, uplink, downlink, loss_policy=loss_policy, notes=notes)  # type: ignore[arg-type]
+
+
+# ---- the command -------------------------------------------------------------------------------
+
+
+def replay_scenario(
+    scenario: Scenario,
+    runs_dir: Path,
+    compute: ComputeProfile | None = None,
+    gate: GateSettings | None = DEFAULT_GATE,
+) -> tuple[Path, ReplayResult, dict[str, object]]:
+    """Replay and write runs/<id>/; returns the folder, the result and the summary."""
+    config = replay_config(scenario, gate=gate)
+    model = latency_model(scenario, compute)
+    try:
+        result = run_replay(config, model)
+    except ValueError as err:  # a bad dataset folder, weights that do not fit
+        raise BadInput(f"{scenario.name}: {err}") from None
+    run_id = secrets.token_hex(3)
+    folder = Path(runs_dir) / run_id
+    summary = result.write(folder)
+    summary_path = folder / "summary.json"
+    summary["run_id"] = run_id
+    summary_path.write_text(json.dumps(summary, indent=2) + "\n")
+    if scenario.source is not None and Path(scenario.source).is_file():
+        shutil.copyfile(scenario.source, folder / "scenario.yaml")
+    return folder, result, summary
+
+
+def summary_lines(summary: dict[str, object]) -> list[list[str]]:
+    rows = []
+    for m in ("vo", "dnn", "kalman", "edgeloc"):
+        p = summary["methods"][m]["position_m"]  # type: ignore[index]
+        h = summary["methods"][m]["heading_deg"]  # type: ignore[index]
+        rows.append(
+            [
+                m,
+                f"{p['total']:.1f}",
+                f"{p['mean']:.2f}",
+                f"{p['median']:.2f}",
+                f"{p['rmse']:.2f}",
+                f"{p['p95']:.2f}",
+                f"{p['max']:.2f}",
+                f"{h['mean']:.2f}",
+            ]
+        )
+    return rows
+
+
+def replay_command(
+    path: Path,
+    runs_dir: Path = Path("runs"),
+    json_out: bool = False,
+    echo: Callable[[str], None] | None = None,
+) -> int:
+    """Load `path`, replay it, write runs/<id>/, print the table and the headline; exit code."""
+    from testbed import console as con
+    from testbed.errors import TestbedError
+    from testbed.scenario import load
+
+    say = echo or con.plain
+    try:
+        scenario = load(path)
+        folder, result, summary = replay_scenario(scenario, runs_dir)
+    except TestbedError as err:
+        for line in str(err).splitlines():
+            con.error(line)
+        return err.exit_code
+    if json_out:
+        say(json.dumps(summary, indent=2))
+        return 0
+    headers = ["method", "total m", "mean m", "median m", "rmse m", "p95 m", "max m", "yaw deg"]
+    if echo is None:
+        con.table(headers, summary_lines(summary))
+    else:
+        for row in [headers, *summary_lines(summary)]:
+            say("  ".join(row))
+    for ph in summary["learner"]["phases"]:  # type: ignore[index]
+        rate = ph["uplink_rate_bps"]
+        say(
+            f"phase {ph['start_s']:g}-{ph['end_s']:g} s, uplink "
+            f"{'unlimited' if rate is None or rate == math.inf else f'{rate / 1e6:g} Mbit/s'}: "
+            f"chose {ph['chosen']}, best in hindsight {ph['best_in_hindsight']} "
+            f"({100 * ph['share_best']:.0f}% of {ph['plays']} plays)"
+        )
+    resets = summary["learner"]["resets"]  # type: ignore[index]
+    say(f"detector resets: {len(resets)}; compute: {result.latency.compute.source}")
+    say(f"wrote {folder}/ (summary.json, *.tum) in {result.wall_s:.1f} s")
+    say(str(summary["headline"]))
+    return 0
+
+
+__all__ = [
+    "compute_profile",
+    "latency_model",
+    "replay_command",
+    "replay_config",
+    "replay_scenario",
+]
