@@ -213,11 +213,12 @@ class AdaptiveSplitLearner:
         consecutive: int = 3,
         detector_window: int = 10,
         rng_seed: int | None = 0,
+        detector_fit: str = "mle",
     ) -> AdaptiveSplitLearner:
         """Build from the plain numbers a scenario's `Learner` settings hold."""
         det = None
         if detector:
-            det = KLChangeDetector(detector_window, kl_threshold, consecutive)
+            det = KLChangeDetector(detector_window, kl_threshold, consecutive, fit=detector_fit)
         return cls(arms, window=window, detector=det, rng_seed=rng_seed)
 
     def select(self) -> str:

@@ -68,7 +68,12 @@ SUMMARY_VERSION = 1
 
 @dataclass(frozen=True)
 class LearnerSettings:
-    """The scenario's learner knobs (see `testbed.scenario.model.Learner`)."""
+    """The scenario's learner knobs (see `testbed.scenario.model.Learner`).
+
+    `detector_fit` is not a scenario field yet: the replay fits the detector's Gaussians with
+    median/MAD ("robust", see `detector`), because with the MLE fit one retransmitted request
+    resets the learner (KL ~75-180 against ~1-5 for a real bandwidth shift).
+    """
 
     window: int = 50
     cost: Literal["latency", "error"] = "latency"
@@ -77,6 +82,7 @@ class LearnerSettings:
     kl_threshold: float = 1.0
     consecutive: int = 3
     detector_window: int = 20
+    detector_fit: Literal["mle", "robust"] = "robust"
 
 
 @dataclass(frozen=True)
@@ -446,6 +452,7 @@ class Replay:
             consecutive=lc.consecutive,
             detector_window=lc.detector_window,
             rng_seed=config.seed,
+            detector_fit=lc.detector_fit,
         )
         self.rng = np.random.default_rng([config.seed, 4242])
         self.t = np.asarray(dataset.timestamps, dtype=np.float64)
