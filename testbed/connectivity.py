@@ -38,21 +38,28 @@ class EchoResult:
         return {**asdict(self), "ok": self.ok}
 
 
-def udp_echo(
-    src: Node, dst: Node, dst_addr: str, *, count: int = 5, timeout_s: float = 1.0
-) -> EchoResult:
-    """Send `count` datagrams from `src` to `dst_addr` (an address of `dst`) and time the echoes."""
+def echo_rtts(
+    src: Node,
+    dst: Node,
+    dst_addr: str,
+    *,
+    count: int,
+    port: int = ECHO_PORT,
+    timeout_s: float = 1.0,
+) -> list[float]:
+    """RTTs (ms) of `count` datagrams echoed one at a time from `src` to `dst_addr` (on
+    `dst`); a datagram lost or late beyond `timeout_s` is left out."""
     server = dst.socket(socket.AF_INET, socket.SOCK_DGRAM)
     client = src.socket(socket.AF_INET, socket.SOCK_DGRAM)
     rtts: list[float] = []
     try:
-        server.bind((dst_addr, ECHO_PORT))
+        server.bind((dst_addr, port))
         server.settimeout(timeout_s)
         client.settimeout(timeout_s)
         for seq in range(count):
             payload = seq.to_bytes(4, "big") + os.urandom(28)
             t0 = time.perf_counter()
-            client.sendto(payload, (dst_addr, ECHO_PORT))
+            client.sendto(payload, (dst_addr, port))
             try:
                 data, peer = server.recvfrom(2048)
                 server.sendto(data, peer)
@@ -64,7 +71,14 @@ def udp_echo(
     finally:
         server.close()
         client.close()
-    rtts.sort()
+    return rtts
+
+
+def udp_echo(
+    src: Node, dst: Node, dst_addr: str, *, count: int = 5, timeout_s: float = 1.0
+) -> EchoResult:
+    """Echo `count` datagrams from `src` to `dst_addr` (an address of `dst`) and summarise."""
+    rtts = sorted(echo_rtts(src, dst, dst_addr, count=count, timeout_s=timeout_s))
     return EchoResult(
         src=src.name,
         dst=dst.name,

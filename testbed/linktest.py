@@ -36,6 +36,7 @@ from dataclasses import asdict, dataclass, field
 from typing import TYPE_CHECKING, Any, ClassVar
 
 from netem.profile import LinkProfile
+from testbed.connectivity import echo_rtts
 from testbed.errors import TestbedError
 from testbed.links import DIRECTIONS, Direction, LinkController, neutral
 from testbed.net import inside, netns_path
@@ -417,30 +418,7 @@ class LinkTest:
 
     def rtt(self, src: Node, dst: Node, count: int) -> list[float]:
         """RTTs (ms) of a UDP echo src -> dst, one datagram at a time."""
-        addr = str(dst.address_towards(src.name))
-        server = dst.socket()
-        client = src.socket()
-        rtts = []
-        try:
-            server.bind((addr, PORT))
-            server.settimeout(1.0)
-            client.settimeout(1.0)
-            for seq in range(count):
-                payload = seq.to_bytes(4, "big") + bytes(28)
-                t_send = time.perf_counter()
-                client.sendto(payload, (addr, PORT))
-                try:
-                    data, peer = server.recvfrom(2048)
-                    server.sendto(data, peer)
-                    reply, _ = client.recvfrom(2048)
-                except TimeoutError:
-                    continue
-                if reply == payload:
-                    rtts.append((time.perf_counter() - t_send) * 1000)
-        finally:
-            server.close()
-            client.close()
-        return rtts
+        return echo_rtts(src, dst, str(dst.address_towards(src.name)), count=count, port=PORT)
 
     def direction(self, link: Link, direction: Direction) -> DirectionResult:
         src, dst = (link.lower, link.upper) if direction == "uplink" else (link.upper, link.lower)

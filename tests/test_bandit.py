@@ -204,3 +204,21 @@ def test_detector_catches_every_bandwidth_shift() -> None:
     for k in range(1, len(run.phases)):
         shift = k * 400
         assert any(shift < e.at_play <= shift + 100 for e in run.events), f"shift at {shift}"
+
+
+def test_robust_detector_fit_ignores_a_lone_spike_but_sees_a_shift() -> None:
+    """One retransmitted request (+200 ms) among ~30 ms costs: the MLE fit fires, median/MAD
+    does not; a shift of the bulk of the costs fires both."""
+    rng = np.random.default_rng(3)
+    base = list(0.030 + 0.003 * rng.standard_normal(100))
+    spiky = [*base[:70], 0.230, *base[71:]]
+    fired = {}
+    for fit in ("mle", "robust"):
+        det = KLChangeDetector(window=30, threshold=1.0, consecutive=3, fit=fit)
+        fired[fit] = any(det.update("image", c) is not None for c in spiky)
+    assert fired == {"mle": True, "robust": False}
+    shifted = base[:70] + [c + 0.008 for c in base[70:]]
+    det = KLChangeDetector(window=30, threshold=1.0, consecutive=3, fit="robust")
+    assert any(det.update("image", c) is not None for c in shifted)
+    with pytest.raises(ValueError, match="detector fit"):
+        KLChangeDetector(fit="median")

@@ -143,7 +143,11 @@ def test_default_scenario_path_follows_the_timeline() -> None:
     assert lm.downlink.at(45.0).rate_bps == 200e6  # the shape capped only the uplink
     cfg = replay_config(sc)
     assert cfg.phases == (0.0, 30.0, 60.0)
-    assert cfg.learner.window == 50 and cfg.k_s == 20.0
+    assert cfg.splits == ("image", "conv3", "vehicle")
+    assert cfg.learner.window == 100 and cfg.learner.detector_window == 30
+    assert cfg.k_s == 120.0 and cfg.dt0_s == 0.0
+    assert cfg.learner.detector_fit == "robust"
+    assert lm.compute.vehicle_cpu == 0.01  # the whole network takes ~40 ms on the vehicle
 
 
 def test_outage_and_set_events_change_the_path() -> None:
@@ -194,18 +198,27 @@ def test_replay_writes_summary_and_trajectories(smoke_run) -> None:
     assert np.all(np.diff(decisions["sent_s"]) > 0)
 
 
-def test_edgeloc_beats_vo_and_dnn_by_the_papers_margins_on_the_default_replay(
+def test_default_replay_edgeloc_beats_every_baseline_and_the_learner_holds_the_best_split(
     tmp_path: Path,
 ) -> None:
     """90 s of default.yaml with the plausibility gate (beyond the paper, on EdgeLoc and KF).
 
-    Over the 20 s smoke drive VO has not drifted yet and wins; over 90 s it has. The Kalman
-    baseline, gated alike, is NOT beaten at the scenario's fusion settings (see the bench)."""
+    EdgeLoc beats VO and DNN by at least the paper's margins and the Kalman baseline (fixed
+    Q/R of the scenario) by a clear margin, though below the paper's 30.26% (see the bench for
+    the figures and for Kalman filters with other R). The learner: per bandwidth phase the
+    split it played most is the best in hindsight, with >= 90% of the plays in the phase's
+    second half (the ceiling of the paper's exploration rule is 96% for K = 3, W = 100)."""
     sc = load(ROOT / "scenarios" / "default.yaml")
     _, _, summary = replay_scenario(sc, tmp_path, COMPUTE)
     red = {r["versus"]: r for r in summary["paper_comparison"]["reductions"]}
     assert red["vo"]["ours_pct"] >= red["vo"]["paper_pct"]
     assert red["dnn"]["ours_pct"] >= red["dnn"]["paper_pct"]
+    assert red["kalman"]["ours_pct"] >= 10.0
+    for ph in summary["learner"]["phases"]:
+        assert ph["chosen"] == ph["best_in_hindsight"] == ph["expected_best"]
+        assert ph["share_best_second_half"] >= 0.9
+    # the robust detector does not reset on every lost packet: a few resets in 90 s, not ~15
+    assert len(summary["learner"]["resets"]) <= 5
 
 
 def test_replay_is_deterministic(smoke_run) -> None:
