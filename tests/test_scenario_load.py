@@ -26,7 +26,7 @@ def test_default_scenario() -> None:
     s = load(SCENARIOS / "default.yaml")
     assert (s.name, s.seed, s.duration_s, s.version) == ("default", 7, 90.0, 1)
     assert s.source == SCENARIOS / "default.yaml"
-    assert s.topology.vehicles == (m.Vehicle("av1", "gnb1"),)
+    assert s.topology.vehicles == (m.Vehicle("av1", "gnb1", cpu=0.01),)
     assert s.topology.cells == (m.Cell("gnb1", "core1"),)
     assert s.links.backend == "auto"
     assert s.links.names() == ["av1-gnb1", "gnb1-core1"]
@@ -43,7 +43,7 @@ def test_default_scenario() -> None:
         (60.0, "av1", 20e6),
     ]
     assert all(isinstance(e, m.ShapeEvent) and e.downlink_bps is None for e in s.timeline)
-    assert s.workload.fusion == m.Fusion(k_s=20.0, dt0_s=0.25)
+    assert s.workload.fusion == m.Fusion(k_s=120.0, dt0_s=0.0)
 
 
 def test_smoke_scenario() -> None:

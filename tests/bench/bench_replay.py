@@ -45,6 +45,7 @@ from testbed.scenario import load
 
 ROOT = Path(__file__).resolve().parents[2]
 SWEEP_DELAYS_S = (0.0, 0.025, 0.05, 0.1, 0.2, 0.4, 0.8)
+OTHER_SEEDS = (1, 2, 3, 4)
 
 
 def totals_line(label: str, res: ReplayResult) -> str:
@@ -176,6 +177,32 @@ def main() -> int:
         cfg = replace(cfg0, kalman=replace(cfg0.kalman, r_pos=r_pos, r_yaw=0.1))
         res = run_replay(cfg, lm, ds, model, cache)
         print("  " + totals_line(f"KF r_pos={r_pos:g} r_yaw=0.1", res))
+
+    print(
+        "   other drives (seeds 1-4, same scenario): EdgeLoc at the scenario's fusion and at "
+        "k_s=20 dt0=-0.15s; KF at its fixed Q/R and at r_pos=16 (hindsight)"
+    )
+    for seed in OTHER_SEEDS:
+        other = replace(sc, seed=seed)
+        ods = open_dataset("synthetic", seed=seed, rate_hz=sc.workload.rate_hz, duration_s=90.0)
+        ocache = InferenceCache(model, ods, sc.workload.codec)
+        ocfg = replay_config(other)
+        olm = latency_model(other, compute)
+        for label, cfg in (
+            ("scenario", ocfg),
+            ("k_s=20 dt0=-0.15s", replace(ocfg, k_s=20.0, dt0_s=-0.15)),
+            (
+                "k_s=20 dt0=-0.15s, KF r16",
+                replace(
+                    ocfg,
+                    k_s=20.0,
+                    dt0_s=-0.15,
+                    kalman=replace(ocfg.kalman, r_pos=16.0, r_yaw=0.1),
+                ),
+            ),
+        ):
+            res = run_replay(cfg, olm, ods, model, ocache)
+            print("  " + totals_line(f"seed {seed} {label}", res))
 
     print("\n2. latency sweep: fixed split image, uplink one-way delay raised (gate on)")
     for ks, dt0 in ((cfg0.k_s, cfg0.dt0_s), (20.0, -0.15)):
