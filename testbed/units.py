@@ -158,8 +158,14 @@ def parse_rate(text: str) -> float:
     raise RateError(RATE_EXPECTED, _show(text))
 
 
-def parse_duration(text: str | int | float) -> float:
-    """`8ms` -> 0.008 (s). Units: us, ms, s, m, h. A bare 0 is accepted (no unit needed)."""
+def parse_duration(text: str | int | float, signed: bool = False) -> float:
+    """`8ms` -> 0.008 (s). Units: us, ms, s, m, h. A bare 0 is accepted (no unit needed).
+
+    `signed` allows a leading minus, for offsets such as a sigmoid's midpoint (`-150ms`);
+    a time span is never negative.
+    """
+    if signed and isinstance(text, str) and text.strip().startswith("-"):
+        return -parse_duration(text.strip()[1:].lstrip())
     if isinstance(text, bool):
         raise DurationError(DURATION_EXPECTED, str(text).lower())
     if isinstance(text, int | float):

@@ -145,7 +145,7 @@ def test_default_scenario_path_follows_the_timeline() -> None:
     assert cfg.phases == (0.0, 30.0, 60.0)
     assert cfg.splits == ("image", "conv3", "vehicle")
     assert cfg.learner.window == 100 and cfg.learner.detector_window == 30
-    assert cfg.k_s == 120.0 and cfg.dt0_s == 0.0
+    assert cfg.k_s == 20.0 and cfg.dt0_s == -0.15
     assert cfg.learner.detector_fit == "robust"
     assert lm.compute.vehicle_cpu == 0.01  # the whole network takes ~40 ms on the vehicle
 

@@ -43,7 +43,7 @@ def test_default_scenario() -> None:
         (60.0, "av1", 20e6),
     ]
     assert all(isinstance(e, m.ShapeEvent) and e.downlink_bps is None for e in s.timeline)
-    assert s.workload.fusion == m.Fusion(k_s=120.0, dt0_s=0.0)
+    assert s.workload.fusion == m.Fusion(k_s=20.0, dt0_s=-0.15)
 
 
 def test_smoke_scenario() -> None:

@@ -211,3 +211,12 @@ def test_schema_patterns_agree_with_the_parsers(
         assert re.search(pattern, text), text
     for text in bad:
         assert not re.search(pattern, text), text
+
+
+def test_signed_durations_only_where_asked() -> None:
+    from testbed.units import DurationError, parse_duration
+
+    assert parse_duration("-150ms", signed=True) == pytest.approx(-0.15)
+    assert parse_duration("150ms", signed=True) == pytest.approx(0.15)
+    with pytest.raises(DurationError):
+        parse_duration("-150ms")  # a delay or a duration is never negative

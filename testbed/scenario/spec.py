@@ -377,26 +377,34 @@ class Duration(_Ranged):
     tags = (STR, INT, FLOAT)
 
     def __init__(
-        self, hi: float, lo: float = 0.0, lo_open: bool = False, noun: str = "a duration"
+        self,
+        hi: float,
+        lo: float = 0.0,
+        lo_open: bool = False,
+        noun: str = "a duration",
+        signed: bool = False,
     ) -> None:
-        self.lo, self.hi, self.lo_open, self.noun = lo, hi, lo_open, noun
+        self.lo, self.hi, self.lo_open, self.noun, self.signed = lo, hi, lo_open, noun, signed
         self.expected = f"{units.DURATION_EXPECTED}{self.range_doc()}"
 
     def fmt(self, value: float) -> str:
-        return units.format_duration(value)
+        return ("-" if value < 0 else "") + units.format_duration(abs(value))
 
     def convert(self, value: Any, node: ScalarNode) -> float:
         try:
-            seconds = units.parse_duration(value)
+            seconds = units.parse_duration(value, signed=self.signed)
         except units.UnitError as err:
             raise Invalid(self.expected, err.found, err.hint) from None
         return self.in_range(seconds, describe(node))
 
     def schema(self, defs: dict[str, Any]) -> dict[str, Any]:
-        return {"anyOf": [{"type": "string", "pattern": units.DURATION_PATTERN}, {"const": 0}]}
+        pattern = units.DURATION_PATTERN
+        if self.signed:
+            pattern = "^-?" + pattern.removeprefix("^")
+        return {"anyOf": [{"type": "string", "pattern": pattern}, {"const": 0}]}
 
     def to_yaml(self, value: Any) -> Any:
-        return units.format_duration(value)
+        return self.fmt(value)
 
 
 class Rate(_Ranged):
@@ -1176,7 +1184,11 @@ FUSION = Obj(
     [
         Field("k_s", Float(0.0, lo_open=True, noun="a slope (1/s)"), "Slope k_s, in 1/s."),
         Field(
-            "dt0", Duration(MAX_DELAY_S, noun="a latency"), "Midpoint latency dt0.", attr="dt0_s"
+            "dt0",
+            Duration(MAX_DELAY_S, lo=-MAX_DELAY_S, noun="a latency offset", signed=True),
+            "Midpoint latency dt0 of the sigmoid; may be negative (the weight u is then below"
+            " 1/2 even for an instant answer).",
+            attr="dt0_s",
         ),
     ],
     model=model.Fusion,
