@@ -132,7 +132,9 @@ def run(
     ] = Path("runs"),
 ) -> None:
     """Run a scenario: build its network, check every vehicle reaches its edge server with real
-    packets, tear down, and leave runs/<run-id>/ (run.json, connectivity.json, scenario.yaml).
+    packets, run the EdgeLoc ROS 2 nodes in the namespaces while the timeline plays, tear down,
+    and leave runs/<run-id>/ (run.json with node stats and link byte counters, logs/<node>.log,
+    nodes/<node>.json, connectivity.json, events.jsonl, scenario.yaml).
 
     Example: testbed run scenarios/default.yaml
     """

@@ -4,10 +4,12 @@ Steps: build the topology with its emulated links (the backend `auto` picks, pro
 applied), a short link self-test (`linktest.json`, when the scenario's `report.link_test` is
 on), prove with real packets that every vehicle reaches its core/edge server through its gNB,
 play the timeline for the scenario's `duration` (`events.jsonl`, a progress line every few
-seconds), tear everything down and write `run.json` (backend, link-test verdict, timeline
-lateness). The EdgeLoc nodes and recording hang on the same skeleton, between the
-connectivity check and teardown; teardown happens whatever a step does (Ctrl-C included). A
-link relay that dies, or a timeline event that fails, fails the run within a second.
+seconds) while the EdgeLoc nodes run (`testbed.supervisor`: started after the connectivity
+check, stopped before teardown, their stats and the links' byte counters go into run.json),
+tear everything down and write `run.json` (backend, link-test verdict, timeline lateness).
+Recording hangs on the same skeleton; teardown happens whatever a step does (Ctrl-C
+included). A link relay or node process that dies, or a timeline event that fails, fails the
+run within a second.
 """
 
 from __future__ import annotations
@@ -25,6 +27,7 @@ from testbed.connectivity import EchoResult, vehicles_reach_cores
 from testbed.errors import TestbedError
 from testbed.linktest import LinkTest, LinkTestReport
 from testbed.scenario.model import Scenario
+from testbed.supervisor import Supervisor, ros_available
 from testbed.timeline import AppliedEvent, TimelinePlayer
 from testbed.topology import Net, build
 
@@ -40,6 +43,8 @@ class RunResult:
     linktest: LinkTestReport | None = None
     timeline: dict[str, Any] = field(default_factory=dict)
     timings_s: dict[str, float] = field(default_factory=dict)
+    nodes: dict[str, Any] = field(default_factory=dict)
+    link_counters: dict[str, Any] = field(default_factory=dict)
 
     @property
     def ok(self) -> bool:
@@ -60,6 +65,8 @@ class RunResult:
                 "file": "linktest.json",
             },
             "timeline": self.timeline,
+            "nodes": self.nodes,
+            "link_counters": self.link_counters,
         }
 
 
@@ -84,8 +91,11 @@ def _check(net: Net, player: TimelinePlayer | None = None) -> None:
         raise TestbedError(f"run {net.run_id} failed: {player.failure}")
 
 
-def play_timeline(net: Net, folder: Path, progress: Progress) -> TimelinePlayer:
-    """Play the scenario's timeline for its `duration`, checking for failures every 0.2 s."""
+def play_timeline(
+    net: Net, folder: Path, progress: Progress, watch: Callable[[], None] | None = None
+) -> TimelinePlayer:
+    """Play the scenario's timeline for its `duration`, checking for failures every 0.2 s
+    (`watch`, e.g. the node supervisor's check, raises when something else died)."""
     assert net.control is not None
     scenario = net.scenario
 
@@ -104,6 +114,8 @@ def play_timeline(net: Net, folder: Path, progress: Progress) -> TimelinePlayer:
         next_line = PROGRESS_EVERY_S
         while (elapsed := player.elapsed()) < scenario.duration_s:
             _check(net, player)
+            if watch is not None:
+                watch()
             if elapsed >= next_line:
                 progress(f"  t={elapsed:5.1f} s of {scenario.duration_s:g} s")
                 next_line += PROGRESS_EVERY_S
@@ -112,6 +124,52 @@ def play_timeline(net: Net, folder: Path, progress: Progress) -> TimelinePlayer:
     finally:
         player.stop()
     return player
+
+
+def link_counters(net: Net) -> dict[str, Any]:
+    """Per link and direction, the packets/bytes that entered and left it (userspace relays;
+    empty for the tc backend, whose qdisc counters are not read here)."""
+    counters = getattr(net.control, "counters", None)
+    out: dict[str, Any] = {}
+    if counters is None:
+        return out
+    for name in net.links:
+        try:
+            c = counters(name)
+        except Exception as err:  # a dead relay must not hide the run's own result
+            out[name] = {"error": str(err)}
+            continue
+        out[name] = {d: c[d]["total"] for d in ("uplink", "downlink") if d in c}
+    return out
+
+
+def counters_delta(before: dict[str, Any], after: dict[str, Any]) -> dict[str, Any]:
+    """`after - before` of the byte/packet counts of `link_counters` (per link, direction)."""
+    keys = ("packets_in", "bytes_in", "packets_out", "bytes_out")
+    out: dict[str, Any] = {}
+    for link, dirs in after.items():
+        if "error" in dirs or "error" in before.get(link, {}):
+            continue
+        out[link] = {
+            d: {k: c[k] - before.get(link, {}).get(d, {}).get(k, 0) for k in keys}
+            for d, c in dirs.items()
+        }
+    return out
+
+
+def node_line(nodes: dict[str, Any]) -> str:
+    """One progress line: fused poses, requests and answers per vehicle."""
+    procs = nodes.get("processes", {})
+    parts = []
+    for name, p in procs.items():
+        st = p.get("stats", {})
+        if name.endswith(".fusion"):
+            parts.append(f"{name}: {st.get('published', {}).get('edgeloc', 0)} fused poses")
+        elif name.endswith(".inference"):
+            parts.append(
+                f"{name}: {st.get('requests', 0)} requests, {st.get('answers', 0)} answers"
+            )
+    return "  nodes stopped; " + ("; ".join(parts) or "no stats")
 
 
 def run_scenario(scenario: Scenario, runs_dir: Path, progress: Progress) -> RunResult:
@@ -147,14 +205,35 @@ def run_scenario(scenario: Scenario, runs_dir: Path, progress: Progress) -> RunR
                 f"median RTT {rtt}"
             )
         _check(net)
+        ros_ok, ros_why = ros_available()
+        if result.ok and not ros_ok:
+            progress(f"  warning: EdgeLoc nodes not started: {ros_why}")
+            result.nodes = {"skipped": ros_why}
         if result.ok:
-            player = play_timeline(net, result.folder, progress)
-            result.timeline = {
-                "events": len(scenario.timeline),
-                "applied": len(player.applied),
-                "lateness": player.lateness(),
-                "file": "events.jsonl",
-            }
+            nodes = Supervisor(net, result.folder, progress)
+            before = link_counters(net)  # the link test's bytes are not the workload's
+            try:
+                if ros_ok:
+                    nodes.start()
+                _check(net)
+                player = play_timeline(net, result.folder, progress, watch=nodes.check)
+                result.timeline = {
+                    "events": len(scenario.timeline),
+                    "applied": len(player.applied),
+                    "lateness": player.lateness(),
+                    "file": "events.jsonl",
+                }
+            finally:
+                # Nodes stop before teardown (they write their stats); links still up.
+                if ros_ok:
+                    result.nodes = nodes.stop()
+                after = link_counters(net)
+                result.link_counters = {
+                    "since_link_creation": after,
+                    "during_nodes": counters_delta(before, after),
+                }
+            if ros_ok:
+                progress(node_line(result.nodes))
         t1 = time.perf_counter()
     result.timings_s = {
         "up": t_up,

@@ -1,0 +1,228 @@
+"""What every EdgeLoc node shares: its command line, the run's settings, its ROS lifecycle,
+the JSON lines it logs and the stats file it writes at exit.
+
+The settings are the replay's (`nodes.edgeloc.replay.ReplayConfig`, written as JSON by the
+supervisor from the scenario through `testbed.replay_cmd.replay_config`), so a real run and a
+replay of the same scenario use the same learner, fusion, Kalman and gate settings.
+
+Lifecycle (Jazzy aborts at exit otherwise, SPEC §8): our own SIGTERM/SIGINT handler sets a
+stop flag; the node's loop ends; the executor thread is joined and the node destroyed before
+`rclpy.shutdown()`.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import signal
+import sys
+import threading
+import time
+from collections.abc import Iterator, Sequence
+from contextlib import contextmanager
+from dataclasses import dataclass, fields
+from pathlib import Path
+from typing import Any
+
+from nodes.edgeloc.gate import GateSettings
+from nodes.edgeloc.replay import KalmanSettings, LearnerSettings, ReplayConfig
+
+#: Extra seconds of dataset beyond the scenario's duration: nodes start before the timeline.
+DATASET_MARGIN_S = 60.0
+#: The line every node logs once it is ready; the supervisor waits for it.
+READY = "ready"
+
+
+def config_to_dict(config: ReplayConfig) -> dict[str, Any]:
+    """A ReplayConfig as plain JSON values (what the supervisor writes for the nodes)."""
+    from dataclasses import asdict
+
+    data = asdict(config)
+    data["splits"] = list(config.splits)
+    data["phases"] = list(config.phases)
+    return data
+
+
+def config_from_dict(data: dict[str, Any]) -> ReplayConfig:
+    """The inverse of `config_to_dict`; unknown keys are an error (a stale file)."""
+    known = {f.name for f in fields(ReplayConfig)}
+    unknown = sorted(set(data) - known)
+    if unknown:
+        raise ValueError(f"unknown settings in node config: {', '.join(unknown)}")
+    d = dict(data)
+    d["splits"] = tuple(d.get("splits", ReplayConfig().splits))
+    d["phases"] = tuple(d.get("phases", (0.0,)))
+    d["learner"] = LearnerSettings(**d.get("learner", {}))
+    d["kalman"] = KalmanSettings(**d.get("kalman", {}))
+    gate = d.get("gate")
+    d["gate"] = None if gate is None else GateSettings(**gate)
+    return ReplayConfig(**d)
+
+
+@dataclass(frozen=True)
+class NodeArgs:
+    """A node's command line: the run's settings file, whose node it is, where stats go."""
+
+    config: ReplayConfig
+    vehicle: str
+    edge: str
+    stats: Path | None
+    events: Path | None
+    timeout_s: float
+
+    @classmethod
+    def parse(cls, argv: Sequence[str] | None = None, prog: str = "") -> NodeArgs:
+        p = argparse.ArgumentParser(prog=prog)
+        p.add_argument("--config", required=True, help="the run's node settings (JSON)")
+        p.add_argument("--vehicle", default="", help="the vehicle this node serves")
+        p.add_argument("--edge", default="", help="the core/edge node serving the vehicle")
+        p.add_argument("--stats", default=None, help="write a stats JSON here at exit")
+        p.add_argument("--events", default=None, help="timeline events.jsonl to follow")
+        p.add_argument("--timeout", type=float, default=1.0, help="request timeout, seconds")
+        a = p.parse_args(argv)
+        try:
+            config = config_from_dict(json.loads(Path(a.config).read_text()))
+        except (OSError, ValueError, TypeError) as err:
+            p.error(f"cannot read node settings {a.config}: {err}")
+        if not (math.isfinite(a.timeout) and a.timeout > 0):
+            p.error(f"--timeout must be > 0 s, got {a.timeout}")
+        return cls(
+            config=config,
+            vehicle=a.vehicle,
+            edge=a.edge,
+            stats=Path(a.stats) if a.stats else None,
+            events=Path(a.events) if a.events else None,
+            timeout_s=a.timeout,
+        )
+
+
+def emit(event: str, **values: Any) -> None:
+    """One JSON line on stdout (the node's log file): what the supervisor and tests read.
+    The ready line also names the process's network namespace (inode), so a reader can check
+    where each node ran."""
+    if event == READY:
+        values["netns"] = os.stat("/proc/self/ns/net").st_ino
+        values["pid"] = os.getpid()
+    print(json.dumps({"event": event, "t": round(time.time(), 6), **values}), flush=True)
+
+
+def write_stats(path: Path | None, stats: dict[str, Any]) -> None:
+    """The node's counters at exit, written atomically (a reader never sees half a file)."""
+    if path is None:
+        return
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_suffix(".tmp")
+    tmp.write_text(json.dumps(stats, indent=2, default=_json_default) + "\n")
+    tmp.replace(path)
+
+
+def _json_default(value: object) -> object:
+    if isinstance(value, float) and not math.isfinite(value):
+        return None
+    return str(value)
+
+
+def topic(vehicle: str, name: str) -> str:
+    """A vehicle's topic, e.g. `/av1/pose`."""
+    return f"/{vehicle}/{name}"
+
+
+def action_name(edge: str) -> str:
+    """The split-inference action of one edge server, e.g. `/core1/split_inference`."""
+    return f"/{edge}/split_inference"
+
+
+def to_stamp(t: float) -> Any:
+    """A float of seconds (wall clock) as a builtin_interfaces/Time."""
+    from builtin_interfaces.msg import Time
+
+    sec = math.floor(t)
+    return Time(sec=int(sec), nanosec=min(round((t - sec) * 1e9), 999_999_999))
+
+
+def from_stamp(stamp: Any) -> float:
+    return float(stamp.sec) + float(stamp.nanosec) * 1e-9
+
+
+class Stop:
+    """Set by SIGTERM/SIGINT: the node's loops poll it and end."""
+
+    def __init__(self) -> None:
+        self.event = threading.Event()
+        for sig in (signal.SIGTERM, signal.SIGINT):
+            signal.signal(sig, self._on_signal)
+
+    def _on_signal(self, signum: int, frame: object) -> None:
+        self.event.set()
+
+    def __bool__(self) -> bool:
+        return self.event.is_set()
+
+    def wait(self, seconds: float) -> bool:
+        return self.event.wait(seconds)
+
+
+class RosContext:
+    """A running node: the rclpy node, the stop flag, and what to destroy before the node."""
+
+    def __init__(self, node: Any, stop: Stop) -> None:
+        self.node, self.stop = node, stop
+        self._closers: list[Any] = []
+
+    def owns(self, entity: Any) -> Any:
+        """Destroy `entity` (an action client/server) after the executor stopped; returns it."""
+        self._closers.append(entity.destroy)
+        return entity
+
+    def close_entities(self) -> None:
+        for close in reversed(self._closers):
+            close()
+
+
+@contextmanager
+def ros_node(name: str, spin: bool = True) -> Iterator[RosContext]:
+    """An initialised rclpy context with one node, spun by an executor thread (if `spin`), and
+    torn down in the order Jazzy needs whatever the body does: stop flag, executor thread
+    joined, owned entities and the node destroyed, then `rclpy.shutdown()`."""
+    import rclpy
+    from rclpy.executors import SingleThreadedExecutor
+    from rclpy.signals import SignalHandlerOptions
+
+    rclpy.init(signal_handler_options=SignalHandlerOptions.NO)
+    stop = Stop()
+    ctx = RosContext(rclpy.create_node(name), stop)
+    executor = SingleThreadedExecutor()
+    executor.add_node(ctx.node)
+    thread = None
+    if spin:
+
+        def loop() -> None:
+            while not stop:
+                executor.spin_once(timeout_sec=0.1)
+
+        thread = threading.Thread(target=loop, name=f"{name}-executor", daemon=True)
+        thread.start()
+    try:
+        yield ctx
+    finally:
+        stop.event.set()
+        if thread is not None:
+            thread.join(timeout=5)
+        ctx.close_entities()
+        executor.remove_node(ctx.node)
+        executor.shutdown()
+        ctx.node.destroy_node()
+        rclpy.shutdown()
+
+
+def run_main(main: Any) -> None:
+    """Run a node's `main()` and exit with its status; a bad setting is one line, not a trace."""
+    try:
+        code = main()
+    except (ValueError, FileNotFoundError) as err:
+        emit("error", message=str(err))
+        print(f"error: {err}", file=sys.stderr, flush=True)
+        code = 2
+    sys.exit(code)

@@ -1,0 +1,96 @@
+"""The edge server's RSU inference (paper §4): layers [k:] of the split DNN for each request.
+
+Serves the SplitInference action `/<edge>/split_inference`: decodes the activation
+(`codec.decode`, self-describing blob), runs `LocNet.tail(split)` and answers L_alpha(t0) with
+the goal's capture stamp. A goal that cannot be decoded or names an unknown split is answered
+with ok = false and the reason (never a crash of the server).
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections import Counter
+from typing import Any
+
+import torch
+
+from nodes.edgeloc.codec import CodecError, decode
+from nodes.edgeloc.model import split_index, to_pose
+from nodes.edgeloc.train import load_model
+from nodes.ros.common import READY, NodeArgs, action_name, emit, ros_node, run_main, write_stats
+
+RESULT_TIMEOUT_S = 1  # seconds a finished goal's result is kept for the client
+
+
+def main() -> int:
+    args = NodeArgs.parse(prog="edge_inference")
+    torch.set_num_threads(1)
+    model = load_model(args.config.weights)
+    from edgeloc_interfaces.action import SplitInference
+    from rclpy.action import ActionServer
+
+    stats: dict[str, Any] = {"node": "edge_inference", "edge": args.edge, "goals": 0, "ok": 0}
+    per_vehicle: Counter[str] = Counter()
+    compute: list[float] = []
+    payload_bytes = [0]
+
+    with ros_node(f"{args.edge}_edge_inference") as ros:
+        node = ros.node
+
+        def execute(handle: Any) -> Any:
+            received = node.get_clock().now().to_msg()
+            start = time.perf_counter()
+            goal = handle.request
+            stats["goals"] += 1
+            per_vehicle[goal.vehicle] += 1
+            blob = bytes(goal.payload)
+            payload_bytes[0] += len(blob)
+            result = SplitInference.Result(frame_id=goal.frame_id, split_index=goal.split_index)
+            try:
+                if split_index(goal.split_name) != goal.split_index:
+                    raise ValueError(f"split {goal.split_name!r} is not index {goal.split_index}")
+                with torch.no_grad():
+                    pose = to_pose(model.tail(goal.split_name, decode(blob)))[0].tolist()
+                result.ok = True
+                stats["ok"] += 1
+                p = result.pose
+                p.header.stamp = goal.capture_stamp
+                p.header.frame_id = "map"
+                p.pose.pose.position.x = float(pose[0])
+                p.pose.pose.position.y = float(pose[1])
+                p.pose.pose.orientation.z = math.sin(pose[2] / 2.0)
+                p.pose.pose.orientation.w = math.cos(pose[2] / 2.0)
+            except (CodecError, ValueError, RuntimeError) as err:
+                result.ok, result.error = False, str(err)
+                emit("bad-goal", frame=goal.frame_id, error=str(err))
+            handle.succeed()
+            result.edge_compute_s = time.perf_counter() - start
+            compute.append(result.edge_compute_s)
+            result.edge_receive_stamp = received
+            result.edge_send_stamp = node.get_clock().now().to_msg()
+            return result
+
+        # Results are fetched right after they are ready; keeping them for rclpy's default
+        # 900 s would make every goal-status message list every goal of the run (its size,
+        # and so the downlink bytes per request, would grow with the run's length).
+        ros.owns(
+            ActionServer(
+                node,
+                SplitInference,
+                action_name(args.edge),
+                execute,
+                result_timeout=RESULT_TIMEOUT_S,
+            )
+        )
+        emit(READY, node="edge_inference", action=action_name(args.edge))
+        ros.stop.wait(1e9)
+    stats["per_vehicle"] = dict(per_vehicle)
+    stats["payload_bytes"] = payload_bytes[0]
+    stats["mean_compute_s"] = sum(compute) / len(compute) if compute else None
+    write_stats(args.stats, stats)
+    return 0
+
+
+if __name__ == "__main__":
+    run_main(main)

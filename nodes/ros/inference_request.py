@@ -1,0 +1,256 @@
+"""The vehicle's thread 2 (paper §4): split point, DNN head, request to the edge, learning.
+
+Loop, as fast as answers come: take the newest camera frame not sent yet (captured at t0);
+ask the learner for a split k (`AdaptiveSplitLearner`, or the scenario's fixed split); run
+layers [0:k] and encode (`LocNet.head`, `codec.encode`); send a SplitInference goal to the
+edge; wait for the result up to the timeout. An answer is published on `/<vehicle>/dnn_answer`
+(PoseEstimate method "dnn", stamp = t0, latency_s = Δt = t_answer − t0) for the fusion node;
+the learner is charged the request's own end-to-end time (loop start → answer), or the timeout
+when no answer came (a lost request brings no pose), as `nodes.edgeloc.replay` does.
+
+Also published: one SplitDecision per request (`/<vehicle>/split_decision`) and a
+DetectorEvent (`/<vehicle>/detector`) each time the KL change detector resets the learner.
+While no edge server has been discovered, no request is sent (counted as `no_server_s`): the
+fusion node goes on with VO alone, which is the paper's fault tolerance.
+"""
+
+from __future__ import annotations
+
+import array
+import math
+import threading
+import time
+from collections import Counter
+from typing import Any
+
+import numpy as np
+import torch
+
+from nodes.edgeloc.bandit import AdaptiveSplitLearner
+from nodes.edgeloc.codec import encode
+from nodes.edgeloc.model import SPLITS, split_index
+from nodes.edgeloc.train import load_model
+from nodes.ros.common import (
+    READY,
+    NodeArgs,
+    action_name,
+    emit,
+    from_stamp,
+    ros_node,
+    run_main,
+    to_stamp,
+    topic,
+    write_stats,
+)
+
+POLL_S = 0.005  # how often the loop looks at a pending future
+
+
+class LatestFrame:
+    """The newest camera frame, handed from the executor thread to the request loop."""
+
+    def __init__(self) -> None:
+        self._cond = threading.Condition()
+        self._frame: tuple[int, float, np.ndarray] | None = None
+
+    def put(self, frame: int, t0: float, image: np.ndarray) -> None:
+        with self._cond:
+            self._frame = (frame, t0, image)
+            self._cond.notify_all()
+
+    def newer_than(self, frame: int, timeout_s: float) -> tuple[int, float, np.ndarray] | None:
+        with self._cond:
+            self._cond.wait_for(
+                lambda: self._frame is not None and self._frame[0] > frame, timeout=timeout_s
+            )
+            f = self._frame
+            return f if f is not None and f[0] > frame else None
+
+
+def _wait(future: Any, deadline: float, stop: Any) -> bool:
+    """Wait for an rclpy future until `deadline` (monotonic) or a stop; True when done."""
+    while not future.done():
+        if stop or time.monotonic() >= deadline:
+            return False
+        stop.wait(POLL_S)
+    return True
+
+
+def decision_msg(
+    vehicle: str, learner: AdaptiveSplitLearner, chosen: str, fixed: bool, frame: int, last: float
+) -> Any:
+    from edgeloc_interfaces.msg import SplitDecision
+
+    stats = learner.stats()
+    arms = [s.arm for s in stats]
+    rule = "fixed" if fixed else ("explore" if any(math.isinf(s.index) for s in stats) else "ucb")
+    return SplitDecision(
+        stamp=to_stamp(time.time()),
+        vehicle=vehicle,
+        frame_id=frame,
+        chosen=chosen,
+        chosen_index=arms.index(chosen),
+        rule=rule,
+        arm_names=arms,
+        arm_n=[s.n for s in stats],
+        arm_mean=[s.mean for s in stats],
+        arm_var=[s.var for s in stats],
+        arm_index=[s.index for s in stats],
+        last_latency_s=last,
+        plays=learner.bandit.t - 1,
+        plays_total=learner.bandit.total_plays,
+    )
+
+
+def main() -> int:
+    args = NodeArgs.parse(prog="inference_request")
+    cfg = args.config
+    lc = cfg.learner
+    torch.set_num_threads(1)  # the head is small; one thread keeps the budget honest
+    model = load_model(cfg.weights)
+    learner = AdaptiveSplitLearner.from_settings(
+        list(cfg.splits),
+        window=lc.window,
+        detector=lc.detector,
+        kl_threshold=lc.kl_threshold,
+        consecutive=lc.consecutive,
+        detector_window=lc.detector_window,
+        rng_seed=cfg.seed,
+        detector_fit=lc.detector_fit,
+    )
+    from edgeloc_interfaces.action import SplitInference
+    from edgeloc_interfaces.msg import DetectorEvent, PoseEstimate
+    from rclpy.action import ActionClient
+    from sensor_msgs.msg import Image
+
+    latest = LatestFrame()
+    lat: dict[str, list[float]] = {k: [] for k in cfg.splits}
+    played: Counter[str] = Counter()
+    stats: dict[str, Any] = {
+        "node": "inference_request",
+        "vehicle": args.vehicle,
+        "edge": args.edge,
+        "requests": 0,
+        "answers": 0,
+        "lost": 0,
+        "payload_bytes": 0,
+        "no_server_s": 0.0,
+        "resets": [],
+    }
+    with ros_node(f"{args.vehicle}_inference_request") as ros:
+        node, stop = ros.node, ros.stop
+
+        def on_image(msg: Image) -> None:
+            img = np.frombuffer(bytes(msg.data), dtype=np.uint8).copy()
+            img = img.reshape(msg.height, msg.width, 3)
+            latest.put(int(msg.header.frame_id), from_stamp(msg.header.stamp), img)
+
+        node.create_subscription(Image, topic(args.vehicle, "camera"), on_image, 10)
+        answers = node.create_publisher(PoseEstimate, topic(args.vehicle, "dnn_answer"), 50)
+        from edgeloc_interfaces.msg import SplitDecision
+
+        decisions = node.create_publisher(SplitDecision, topic(args.vehicle, "split_decision"), 50)
+        detector = node.create_publisher(DetectorEvent, topic(args.vehicle, "detector"), 10)
+        client = ros.owns(ActionClient(node, SplitInference, action_name(args.edge)))
+        emit(READY, node="inference_request", action=action_name(args.edge))
+        last_frame, last_latency = -1, math.nan
+        stats["start_s"] = time.time()
+        while not stop:
+            if not client.server_is_ready():
+                stop.wait(0.1)
+                stats["no_server_s"] += 0.1
+                continue
+            got = latest.newer_than(last_frame, timeout_s=0.2)
+            if got is None:
+                continue
+            frame, t0, image = got
+            last_frame = frame
+            start = time.time()
+            fixed = lc.fixed_split is not None
+            split = lc.fixed_split if fixed else learner.select()
+            decisions.publish(
+                decision_msg(args.vehicle, learner, split, fixed, frame, last_latency)
+            )
+            with torch.no_grad():
+                x = torch.from_numpy(image[None])
+                act = model.head(split, x)
+            blob = encode(act, cfg.codec)
+            goal = SplitInference.Goal(vehicle=args.vehicle, frame_id=frame, split_name=split)
+            goal.split_index = split_index(split)
+            goal.capture_stamp = to_stamp(t0)
+            goal.codec = cfg.codec
+            goal.shape = array.array("i", list(act.shape))
+            goal.dtype = str(act.dtype).removeprefix("torch.")
+            goal.payload = array.array("B", blob)
+            stats["requests"] += 1
+            stats["payload_bytes"] += len(blob)
+            played[split] += 1
+            deadline = time.monotonic() + args.timeout_s
+            pose, handle = None, None
+            sent = client.send_goal_async(goal)
+            if _wait(sent, deadline, stop):
+                handle = sent.result()
+                if handle is not None and handle.accepted:
+                    res = handle.get_result_async()
+                    if _wait(res, deadline, stop):
+                        result = res.result().result
+                        if result.ok:
+                            p = result.pose.pose.pose
+                            yaw = 2.0 * math.atan2(p.orientation.z, p.orientation.w)
+                            pose = (p.position.x, p.position.y, yaw)
+                        else:
+                            emit("edge-error", frame=frame, error=result.error)
+            if stop:
+                break
+            t_answer = time.time()
+            if pose is None:
+                stats["lost"] += 1
+                cost = args.timeout_s
+                if handle is not None and handle.accepted:
+                    handle.cancel_goal_async()  # the edge may still hold it
+            else:
+                stats["answers"] += 1
+                cost = t_answer - start
+                last_latency = cost
+                lat[split].append(cost)
+                answers.publish(
+                    PoseEstimate(
+                        stamp=to_stamp(t0),
+                        vehicle=args.vehicle,
+                        method="dnn",
+                        x=float(pose[0]),
+                        y=float(pose[1]),
+                        yaw=math.atan2(math.sin(pose[2]), math.cos(pose[2])),
+                        latency_s=t_answer - t0,
+                        frame_id=frame,
+                    )
+                )
+            if fixed:
+                continue
+            event = learner.update(split, cost)
+            if event is not None:
+                stats["resets"].append({"t": t_answer, "arm": event.arm, "kl": event.kl})
+                detector.publish(
+                    DetectorEvent(
+                        stamp=to_stamp(t_answer),
+                        vehicle=args.vehicle,
+                        arm=event.arm,
+                        kl=float(event.kl),
+                        threshold=lc.kl_threshold,
+                        consecutive=lc.consecutive,
+                        required=lc.consecutive,
+                        reset=True,
+                        at_play=event.at_play,
+                    )
+                )
+                emit("reset", arm=event.arm, kl=event.kl)
+    stats["end_s"] = time.time()
+    stats["split_plays"] = {k: played[k] for k in cfg.splits}
+    stats["mean_latency_s"] = {k: (float(np.mean(v)) if v else None) for k, v in lat.items()}
+    stats["splits_known"] = list(SPLITS)
+    write_stats(args.stats, stats)
+    return 0
+
+
+if __name__ == "__main__":
+    run_main(main)

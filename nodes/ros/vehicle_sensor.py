@@ -1,0 +1,105 @@
+"""The vehicle's sensors: camera frames, visual odometry and ground truth at the workload rate.
+
+Thread 1's input (paper §4): frame i of the dataset is published at `start + i / rate` with
+that wall-clock instant as its capture stamp t0, on
+- `/<vehicle>/camera` (sensor_msgs/Image, rgb8; `header.frame_id` is the frame number),
+- `/<vehicle>/vo` (PoseEstimate, method "vo": L_beta(t)),
+- `/<vehicle>/gt` (PoseEstimate, method "gt": for scoring only; no estimator reads it).
+The dataset is the scenario's (synthetic world with its seed, or a recorded folder), opened
+with `DATASET_MARGIN_S` more seconds than the run lasts. Publishing starts once the fusion and
+inference nodes subscribe (or after 20 s), so no frame is lost to discovery.
+"""
+
+from __future__ import annotations
+
+import array
+import time
+
+import numpy as np
+
+from nodes.edgeloc.dataset import open_dataset
+from nodes.ros.common import (
+    DATASET_MARGIN_S,
+    READY,
+    NodeArgs,
+    emit,
+    ros_node,
+    run_main,
+    to_stamp,
+    topic,
+    write_stats,
+)
+
+WAIT_FOR_SUBSCRIBERS_S = 20.0
+
+
+def pose_msg(vehicle: str, method: str, pose: np.ndarray, t: float, frame: int) -> object:
+    from edgeloc_interfaces.msg import PoseEstimate
+
+    return PoseEstimate(
+        stamp=to_stamp(t),
+        vehicle=vehicle,
+        method=method,
+        x=float(pose[0]),
+        y=float(pose[1]),
+        yaw=float(pose[2]),
+        latency_s=float("nan"),
+        frame_id=frame,
+    )
+
+
+def main() -> int:
+    args = NodeArgs.parse(prog="vehicle_sensor")
+    cfg = args.config
+    dataset = open_dataset(
+        cfg.dataset,
+        seed=cfg.seed,
+        rate_hz=cfg.rate_hz,
+        duration_s=cfg.duration_s + DATASET_MARGIN_S,
+        corruption=cfg.corruption,
+    )
+    from edgeloc_interfaces.msg import PoseEstimate
+    from sensor_msgs.msg import Image
+
+    stats: dict[str, object] = {"node": "vehicle_sensor", "vehicle": args.vehicle, "frames": 0}
+    with ros_node(f"{args.vehicle}_sensor", spin=False) as ros:
+        node, stop = ros.node, ros.stop
+        camera = node.create_publisher(Image, topic(args.vehicle, "camera"), 10)
+        vo_pub = node.create_publisher(PoseEstimate, topic(args.vehicle, "vo"), 50)
+        gt_pub = node.create_publisher(PoseEstimate, topic(args.vehicle, "gt"), 50)
+        emit(READY, node="vehicle_sensor", frames=len(dataset), rate_hz=dataset.rate_hz)
+        deadline = time.monotonic() + WAIT_FOR_SUBSCRIBERS_S
+        while not stop and time.monotonic() < deadline:
+            if camera.get_subscription_count() >= 1 and vo_pub.get_subscription_count() >= 1:
+                break
+            stop.wait(0.05)
+        h, w, _ = dataset.image_shape
+        period = 1.0 / dataset.rate_hz
+        start = time.time()
+        stats["start_s"] = start
+        emit("publishing", subscribers=vo_pub.get_subscription_count())
+        late_max = 0.0
+        for i in range(len(dataset)):
+            due = start + i * period
+            if stop.wait(max(0.0, due - time.time())):
+                break
+            late_max = max(late_max, time.time() - due)
+            img = Image(height=h, width=w, encoding="rgb8", is_bigendian=0, step=w * 3)
+            img.header.stamp = to_stamp(due)
+            img.header.frame_id = str(i)
+            img.data = array.array("B", np.ascontiguousarray(dataset.image(i)).tobytes())
+            camera.publish(img)
+            vo_pub.publish(pose_msg(args.vehicle, "vo", dataset.vo_pose(i), due, i))
+            gt_pub.publish(pose_msg(args.vehicle, "gt", dataset.gt_pose(i), due, i))
+            stats["frames"] = i + 1
+        else:
+            emit("dataset-end", frames=len(dataset))
+            stop.wait(1e9)  # stay up until stopped: the supervisor treats an exit as a failure
+        stats["end_s"] = time.time()
+        stats["max_lateness_s"] = late_max
+    write_stats(args.stats, stats)
+    return 0
+
+
+if __name__ == "__main__":
+    run_main(main)

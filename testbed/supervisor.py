@@ -1,0 +1,333 @@
+"""The EdgeLoc nodes of a run: each one its own process in its namespace, watched, then stopped.
+
+What runs where (one process per node, `python -m nodes.ros.<module>`):
+
+- every vehicle namespace: `sensor` (vehicle_sensor), `inference` (inference_request),
+  `fusion` (fusion_node);
+- every core namespace: `edge` (edge_inference), serving the vehicles of its cell;
+- the first gNB namespace: `link_events`, which publishes the timeline's `events.jsonl`.
+
+Every process gets the run's ROS environment (`nodes.ros_env.RosEnv`: the run's domain id,
+UDP-only Fast DDS with 4 MiB buffers, unicast peers beyond its gNB plus 127.0.0.1 for the
+participants of its own namespace), the run's node settings (`nodes/config.json`: the
+scenario's workload as `testbed.replay_cmd.replay_config` makes it, so a replay and a real run
+of one scenario use the same settings), a log `logs/<name>.log` and a stats file
+`nodes/<name>.json` it writes when stopped.
+
+CPU budgets: the processes of a vehicle share the cgroup `edgeloc/<run>/<vehicle>`, those of a
+core `edgeloc/<run>/<core>`. The scenario's `cpu`/`core_cpu` is a *replay-model* knob: in
+`testbed replay` it stretches the measured DNN compute (0.01 cores = a board 100x slower than
+this host). A real rclpy process cannot live on 0.01 cores (the kernel gives it 1 ms per 100 ms:
+one DDS message and the VO callback would miss their frame), and the three vehicle processes
+together use ~0.4 cores at 20 Hz here (with 0.5 cores they were throttled in 18% of the
+periods, adding latency the learner would have measured). So a real run applies
+`max(requested, MIN_PROCESS_CORES)` per namespace — the floor is recorded beside the request
+in run.json — and applies it only once every node has said it is ready (imports of torch and
+rclpy are not the workload). Emulating a slow vehicle DNN in a real run (a quota on the head's
+thread only) is not done yet.
+
+The watcher: `check()` raises `TestbedError` naming the node and its last log lines as soon as
+one process has exited while the run still needs it; `run.py` calls it every 0.2 s.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import importlib.util
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from nodes.ros.common import READY, config_to_dict
+from nodes.ros_env import RosEnv, domain_id_for
+from testbed import cgroups
+from testbed.cgroups import CpuBudget
+from testbed.errors import TestbedError
+from testbed.replay_cmd import replay_config
+from testbed.topology import Net
+
+Progress = Callable[[str], None]
+
+#: The least CPU a namespace's EdgeLoc processes get in a real run (see the module doc).
+MIN_PROCESS_CORES = 1.0
+#: How long every node may take to import, start and say it is ready.
+READY_TIMEOUT_S = 90.0
+#: Request timeout of the inference node (the replay's `LatencyModel.timeout_s`).
+REQUEST_TIMEOUT_S = 1.0
+#: How long a stopped node may take to write its stats and exit before it is killed.
+STOP_GRACE_S = 10.0
+#: Log lines quoted when a node dies.
+TAIL_LINES = 15
+LOOPBACK = "127.0.0.1"
+
+
+@dataclass
+class NodeProcess:
+    """One EdgeLoc node of a run: where it runs, how it was started, and its process."""
+
+    name: str  # e.g. "av1.fusion": <namespace node>.<role>
+    host: str  # the topology node (namespace) it runs in
+    module: str  # nodes.ros.<module>
+    argv: list[str]
+    peers: list[str]
+    log: Path
+    stats: Path
+    proc: subprocess.Popen[Any] | None = None
+    exit_code: int | None = None
+
+    def tail(self, lines: int = TAIL_LINES) -> str:
+        try:
+            text = self.log.read_text(errors="replace")
+        except OSError:
+            return "(no log)"
+        return "\n".join(text.splitlines()[-lines:]) or "(empty log)"
+
+    def ready(self) -> bool:
+        try:
+            text = self.log.read_text(errors="replace")
+        except OSError:
+            return False
+        return any(
+            line.startswith("{") and f'"event": "{READY}"' in line for line in text.splitlines()
+        )
+
+
+@dataclass
+class Budget:
+    """A namespace's CPU budget: what the scenario asked for and what a real run applies."""
+
+    host: str
+    requested: float | None
+    applied: float | None
+    group: CpuBudget | None = None
+    stats: dict[str, int] = field(default_factory=dict)
+
+    def to_dict(self) -> dict[str, Any]:
+        return {
+            "requested_cores": self.requested,
+            "applied_cores": self.applied,
+            "floor_cores": MIN_PROCESS_CORES,
+            "cgroup": self.group.name if self.group is not None else None,
+            "cpu_stat": self.stats,
+        }
+
+
+def ros_available() -> tuple[bool, str]:
+    """Whether this interpreter can run the nodes (rclpy and the built interfaces), and why not."""
+    for module, fix in (
+        ("rclpy", "install ROS 2 Jazzy's rclpy wheels (`make setup`)"),
+        ("edgeloc_interfaces", "build the interfaces (`python -m nodes.ros_build`)"),
+    ):
+        if importlib.util.find_spec(module) is None:
+            return False, f"{module} is not importable: {fix}"
+    return True, "rclpy and edgeloc_interfaces importable"
+
+
+def applied_cores(requested: float | None) -> float | None:
+    """The budget a real run applies for a scenario's request (None = unlimited)."""
+    return None if requested is None else max(requested, MIN_PROCESS_CORES)
+
+
+class Supervisor:
+    """Starts, watches and stops the EdgeLoc nodes of one run (see the module doc).
+
+    `edge=False` leaves the edge servers out (the vehicles then run on VO alone: what the
+    fault-tolerance test checks).
+    """
+
+    def __init__(self, net: Net, folder: Path, progress: Progress, edge: bool = True) -> None:
+        self.net, self.folder, self.progress = net, Path(folder).resolve(), progress
+        self.edge = edge
+        self.env = RosEnv(self.folder, domain_id_for(net.run_id))
+        self.nodes: list[NodeProcess] = []
+        self.budgets: dict[str, Budget] = {}
+        self.stopping = False
+        self.config_path = self.folder / "nodes" / "config.json"
+
+    # ---- plan --------------------------------------------------------------------------
+
+    def plan(self) -> list[NodeProcess]:
+        """The node processes of this run, in start order (servers first)."""
+        topo = self.net.scenario.topology
+        logs, stats = self.folder / "logs", self.folder / "nodes"
+        base = ["--config", str(self.config_path), "--timeout", str(REQUEST_TIMEOUT_S)]
+        out: list[NodeProcess] = []
+
+        def add(host: str, role: str, module: str, extra: list[str], peers: list[str]) -> None:
+            name = f"{host}.{role}"
+            out.append(
+                NodeProcess(
+                    name=name,
+                    host=host,
+                    module=f"nodes.ros.{module}",
+                    argv=[*base, *extra, "--stats", str(stats / f"{name}.json")],
+                    peers=[*peers, LOOPBACK],
+                    log=logs / f"{name}.log",
+                    stats=stats / f"{name}.json",
+                )
+            )
+
+        for cell in topo.cells:
+            mine = [v.name for v in topo.vehicles if v.gnb == cell.gnb]
+            vehicle_ips = [str(self.net[v].address_towards(cell.gnb)) for v in mine]
+            if self.edge:
+                add(cell.core, "edge", "edge_inference", ["--edge", cell.core], vehicle_ips)
+        for v in topo.vehicles:
+            core = topo.cell_of_gnb(v.gnb).core
+            core_ip = [str(self.net[core].address_towards(v.gnb))]
+            who = ["--vehicle", v.name, "--edge", core]
+            add(v.name, "fusion", "fusion_node", who, core_ip)
+            add(v.name, "inference", "inference_request", who, core_ip)
+            add(v.name, "sensor", "vehicle_sensor", who, core_ip)
+        if topo.cells:
+            gnb = topo.cells[0].gnb
+            peers = [str(self.net[v.name].address_towards(v.gnb)) for v in topo.vehicles]
+            peers += [str(self.net[c.core].address_towards(c.gnb)) for c in topo.cells]
+            events = ["--events", str(self.folder / "events.jsonl")]
+            add(gnb, "link_events", "link_events", events, peers)
+        return out
+
+    # ---- start -------------------------------------------------------------------------
+
+    def _budgets(self) -> None:
+        """One unlimited cgroup per vehicle/core namespace that runs nodes; limits come later."""
+        topo = self.net.scenario.topology
+        requests = {v.name: v.cpu for v in topo.vehicles}
+        requests.update({c.core: c.core_cpu for c in topo.cells})
+        ok, why = cgroups.available()
+        for host, cpu in requests.items():
+            budget = Budget(host, cpu, applied_cores(cpu))
+            if ok:
+                group = CpuBudget(self.net.run_id, host, None)
+                self.net.record_cgroup(group.path)
+                budget.group = group.create()
+            self.budgets[host] = budget
+        if not ok:
+            self.progress(f"  warning: no CPU budgets ({why})")
+
+    def start(self, timeout_s: float = READY_TIMEOUT_S) -> None:
+        """Start every node and wait until all are ready; then apply the CPU budgets.
+        Raises TestbedError (with the node's last log lines) if one dies or is not ready."""
+        self.config_path.parent.mkdir(parents=True, exist_ok=True)
+        config = config_to_dict(replay_config(self.net.scenario))
+        self.config_path.write_text(json.dumps(config, indent=2) + "\n")
+        (self.folder / "logs").mkdir(parents=True, exist_ok=True)
+        self._budgets()
+        self.nodes = self.plan()
+        t0 = time.monotonic()
+        for n in self.nodes:
+            env = self.env.environ(n.peers)
+            env["PYTHONUNBUFFERED"] = "1"
+            with open(n.log, "w") as log:
+                n.proc = self.net[n.host].popen(
+                    [sys.executable, "-m", n.module, *n.argv],
+                    what=f"{n.host}: EdgeLoc {n.name}",
+                    env=env,
+                    stdout=log,
+                    stderr=subprocess.STDOUT,
+                )
+            budget = self.budgets.get(n.host)
+            if budget is not None and budget.group is not None:
+                budget.group.add(n.proc.pid)  # nsenter exec()s: the pid is the node's python
+        self.progress(
+            f"EdgeLoc nodes: {len(self.nodes)} processes started "
+            f"(ROS domain {self.env.domain_id}); waiting until they are ready"
+        )
+        pending = list(self.nodes)
+        while pending:
+            self.check()
+            pending = [n for n in pending if not n.ready()]
+            if pending and time.monotonic() - t0 > timeout_s:
+                n = pending[0]
+                raise TestbedError(
+                    f"run {self.net.run_id}: node {n.name} not ready within {timeout_s:g} s; "
+                    f"last lines of {n.log}:\n{n.tail()}"
+                )
+            time.sleep(0.1)
+        for b in self.budgets.values():
+            if b.group is not None and b.applied is not None:
+                b.group.set_cores(b.applied)
+        shown = ", ".join(
+            f"{b.host} {'unlimited' if b.applied is None else f'{b.applied:g}'}"
+            + ("" if b.requested == b.applied else f" (asked {b.requested:g})")
+            for b in self.budgets.values()
+        )
+        self.progress(f"  all ready in {time.monotonic() - t0:.1f} s; CPU cores: {shown}")
+
+    # ---- watch -------------------------------------------------------------------------
+
+    def check(self) -> None:
+        """Raise if a node process has exited (the run needs every one until `stop`)."""
+        if self.stopping:
+            return
+        for n in self.nodes:
+            if n.proc is not None and n.proc.poll() is not None:
+                n.exit_code = n.proc.returncode
+                raise TestbedError(
+                    f"run {self.net.run_id} failed: node {n.name} exited with "
+                    f"{n.exit_code}; last lines of {n.log}:\n{n.tail()}"
+                )
+
+    # ---- stop --------------------------------------------------------------------------
+
+    def stop(self, grace_s: float = STOP_GRACE_S) -> dict[str, Any]:
+        """SIGTERM every node (each writes its stats and exits), kill what is left after
+        `grace_s`, read the CPU counters and remove the budgets. Returns `summary()`."""
+        self.stopping = True
+        live = [n for n in self.nodes if n.proc is not None and n.proc.poll() is None]
+        for n in live:
+            with contextlib.suppress(ProcessLookupError):
+                os.kill(n.proc.pid, signal.SIGTERM)  # type: ignore[union-attr]
+        deadline = time.monotonic() + grace_s
+        for n in self.nodes:
+            if n.proc is None:
+                continue
+            try:
+                n.proc.wait(timeout=max(0.1, deadline - time.monotonic()))
+            except subprocess.TimeoutExpired:
+                self.progress(f"  warning: node {n.name} did not stop in {grace_s:g} s; killed")
+                n.proc.kill()
+                n.proc.wait(timeout=5)
+            n.exit_code = n.proc.returncode
+        for b in self.budgets.values():
+            if b.group is not None and b.group.exists:
+                with contextlib.suppress(OSError):
+                    b.stats = b.group.stats()
+                b.group.remove()
+        return self.summary()
+
+    def node_stats(self) -> dict[str, dict[str, Any]]:
+        """Each node's stats file (empty when it wrote none, e.g. killed)."""
+        out: dict[str, dict[str, Any]] = {}
+        for n in self.nodes:
+            try:
+                out[n.name] = json.loads(n.stats.read_text())
+            except (OSError, ValueError):
+                out[n.name] = {}
+        return out
+
+    def summary(self) -> dict[str, Any]:
+        """What run.json records of the nodes: processes, exit codes, stats, budgets."""
+        stats = self.node_stats()
+        return {
+            "ros_domain_id": self.env.domain_id,
+            "config": str(self.config_path.relative_to(self.folder)),
+            "processes": {
+                n.name: {
+                    "host": n.host,
+                    "module": n.module,
+                    "exit_code": n.exit_code,
+                    "log": str(n.log.relative_to(self.folder)),
+                    "stats": stats.get(n.name, {}),
+                }
+                for n in self.nodes
+            },
+            "cpu_budgets": {h: b.to_dict() for h, b in self.budgets.items()},
+        }

@@ -1,0 +1,160 @@
+"""The EdgeLoc ROS nodes' own parts, without namespaces: settings hand-over, the estimators of
+the fusion node, the timeline-event follower, and the supervisor's plan and CPU budget rule.
+(The nodes running for real across the emulated 5G path: tests/test_run_e2e_root.py.)"""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from nodes.edgeloc.dataset import open_dataset
+from nodes.edgeloc.gate import GateSettings
+from nodes.edgeloc.metrics import position_errors
+from nodes.edgeloc.replay import ReplayConfig
+from nodes.ros.common import NodeArgs, config_from_dict, config_to_dict
+from nodes.ros.fusion_node import VehicleEstimators
+from nodes.ros.link_events import LineFollower
+from testbed.replay_cmd import replay_config
+from testbed.scenario.loader import load
+from testbed.supervisor import MIN_PROCESS_CORES, Supervisor, applied_cores
+
+REPO = Path(__file__).resolve().parents[1]
+DEFAULT = REPO / "scenarios" / "default.yaml"
+
+
+def test_node_settings_are_the_replays_settings_after_the_round_trip() -> None:
+    cfg = replay_config(load(DEFAULT))
+    data = json.loads(json.dumps(config_to_dict(cfg)))
+    assert config_from_dict(data) == cfg
+    assert cfg.splits == ("image", "conv3", "vehicle")  # the scenario's, not the defaults
+
+
+def test_node_settings_without_gate_and_with_stale_keys() -> None:
+    cfg = ReplayConfig(gate=None)
+    assert config_from_dict(config_to_dict(cfg)).gate is None
+    with pytest.raises(ValueError, match="unknown settings in node config: bogus"):
+        config_from_dict({**config_to_dict(cfg), "bogus": 1})
+
+
+def test_node_command_line_rejects_a_bad_settings_file(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    bad = tmp_path / "config.json"
+    bad.write_text("{not json")
+    with pytest.raises(SystemExit) as exc:
+        NodeArgs.parse(["--config", str(bad)], prog="fusion_node")
+    assert exc.value.code == 2
+    assert "cannot read node settings" in capsys.readouterr().err
+    good = tmp_path / "ok.json"
+    good.write_text(json.dumps(config_to_dict(ReplayConfig())))
+    with pytest.raises(SystemExit):
+        NodeArgs.parse(["--config", str(good), "--timeout", "0"], prog="inference_request")
+    args = NodeArgs.parse(["--config", str(good), "--vehicle", "av1", "--edge", "core1"])
+    assert (args.vehicle, args.edge, args.timeout_s) == ("av1", "core1", 1.0)
+
+
+def _drive(
+    est: VehicleEstimators, answers_every: int | None, latency_s: float, offset: float = 0.0
+) -> tuple[dict[str, np.ndarray], np.ndarray]:
+    """Feed 20 s of the synthetic drive; every `answers_every` frames a DNN answer equal to the
+    ground truth at its capture time (+ `offset` m in x) arrives `latency_s` later."""
+    ds = open_dataset("synthetic", seed=3, rate_hz=20.0, duration_s=20.0)
+    t, vo, gt = ds.timestamps, ds.vo_poses, ds.gt_poses
+    out: dict[str, list[np.ndarray]] = {m: [] for m in ("vo", "dnn", "kalman", "edgeloc")}
+    pending: list[tuple[float, int]] = []
+    for i in range(len(ds)):
+        while pending and pending[0][0] <= t[i]:
+            arrive, j = pending.pop(0)
+            answer = gt[j] + np.array([offset, 0.0, 0.0])
+            est.on_dnn(answer, float(t[j]), arrive)
+        for m, p in est.on_vo(vo[i], float(t[i])).items():
+            out[m].append(np.asarray(p))
+        if answers_every is not None and i % answers_every == 0:
+            pending.append((float(t[i]) + latency_s, i))
+    return {m: np.array(v) for m, v in out.items()}, gt
+
+
+def test_fresh_accurate_answers_pull_edgeloc_below_vo_drift() -> None:
+    est = VehicleEstimators(ReplayConfig(k_s=20.0, dt0_s=0.25, gate=None))
+    poses, gt = _drive(est, answers_every=2, latency_s=0.05)
+    vo_err = position_errors(poses["vo"], gt).sum()
+    edge_err = position_errors(poses["edgeloc"], gt).sum()
+    kalman_err = position_errors(poses["kalman"], gt).sum()
+    assert est.applied > 150 and est.weights and 0 < np.mean(est.weights) <= 1
+    assert edge_err < 0.5 * vo_err, (edge_err, vo_err)
+    assert kalman_err < vo_err
+    # The DNN-alone baseline shows VO until the first answer, then holds answers.
+    assert np.allclose(poses["dnn"][0], poses["vo"][0])
+
+
+def test_no_answers_leave_every_estimator_on_vo() -> None:
+    """The fault-tolerance case in miniature: no DNN answer ever arrives; each method still
+    gives a pose every frame (the VO dead-reckoning of the paper's thread 1)."""
+    est = VehicleEstimators(ReplayConfig())
+    poses, _ = _drive(est, answers_every=None, latency_s=0.05)
+    n = len(poses["vo"])
+    assert n == 400 and all(len(p) == n for p in poses.values())
+    assert est.applied == 0 and math.isnan(est.last_answer_age)
+    # Without answers, EdgeLoc is the VO track moved to the first pose (here the same one).
+    assert np.allclose(poses["edgeloc"][:, :2], poses["vo"][:, :2], atol=1e-9)
+
+
+def test_gate_rejects_a_far_answer_for_both_dnn_estimators() -> None:
+    est = VehicleEstimators(ReplayConfig(gate=GateSettings(radius_m=10.0)))
+    poses, gt = _drive(est, answers_every=2, latency_s=0.05, offset=500.0)
+    assert est.gated["edgeloc"] > 0 and est.gated["kalman"] > 0
+    # The gate held the fused pose on the road until the consistent 500 m story had been told
+    # `recover_after` times (its recovery rule; the 60th answer is accepted).
+    assert est.gated["edgeloc"] == GateSettings().recover_after - 1
+    held = np.abs(poses["edgeloc"][:100, 0] - gt[:100, 0]).max()
+    assert held < 1.0, held
+
+
+def test_line_follower_returns_whole_lines_once(tmp_path: Path) -> None:
+    path = tmp_path / "events.jsonl"
+    f = LineFollower(path)
+    assert f.lines() == []  # not there yet
+    path.write_text('{"a": 1}\n{"b":')
+    assert f.lines() == ['{"a": 1}']
+    with open(path, "a") as out:
+        out.write(' 2}\n\n{"c": 3}\n')
+    assert f.lines() == ['{"b": 2}', '{"c": 3}']
+    assert f.lines() == []
+
+
+def test_budget_floor_keeps_processes_alive_and_unlimited_stays_unlimited() -> None:
+    assert applied_cores(None) is None
+    assert applied_cores(0.01) == MIN_PROCESS_CORES
+    assert applied_cores(1.5) == 1.5
+
+
+def test_supervisor_plan_puts_each_node_in_its_namespace_with_its_peers(
+    tmp_path: Path,
+) -> None:
+    from testbed.topology import build
+
+    net = build(load(DEFAULT), dry_run=True, run_id="abc123", echo=lambda _line: None)
+    sup = Supervisor(net, tmp_path / "run", print)
+    plan = {n.name: n for n in sup.plan()}
+    assert set(plan) == {
+        "core1.edge",
+        "av1.fusion",
+        "av1.inference",
+        "av1.sensor",
+        "gnb1.link_events",
+    }
+    core_ip = str(net["core1"].address_towards("gnb1"))
+    av1_ip = str(net["av1"].address_towards("gnb1"))
+    assert plan["av1.inference"].host == "av1"
+    assert plan["av1.inference"].peers == [core_ip, "127.0.0.1"]
+    assert plan["core1.edge"].peers == [av1_ip, "127.0.0.1"]
+    assert plan["av1.inference"].module == "nodes.ros.inference_request"
+    argv = plan["av1.inference"].argv
+    assert argv[argv.index("--edge") + 1] == "core1"
+    assert plan["av1.fusion"].log == (tmp_path / "run" / "logs" / "av1.fusion.log").resolve()
+    no_edge = Supervisor(net, tmp_path / "run", print, edge=False).plan()
+    assert "core1.edge" not in {n.name for n in no_edge}
