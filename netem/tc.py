@@ -80,6 +80,7 @@ class ShapedInterface:
         self._text = TextExecutor(netns) if dry_run else None
         self._nl = None if dry_run else NetlinkExecutor(netns)
         self._planned: TreeState | None = None  # dry runs only: what the kernel would hold
+        self._known: TreeState | None = None  # the tree as this object last verified or set it
 
     # -- plumbing ---------------------------------------------------------------------------
 
@@ -155,7 +156,10 @@ class ShapedInterface:
         With no tree yet, a neutral one (unlimited, default pfifo) is installed to carry the
         cap; lifting the cap from a neutral tree removes the tree again.
         """
-        state = self.state()
+        # The tree this object last verified or changed stands in for a kernel read: a timeline
+        # `shape` must land within a few ms, and a read-back is two pyroute2 dumps. A tree this
+        # object has not seen (made by another process) is read from the kernel as usual.
+        state = self._known if self._known is not None else self.state()
         if state is None:
             if cap_bps is None:
                 return
@@ -165,17 +169,20 @@ class ShapedInterface:
             self._remove()
             return
         # Each class change is ACKed by the kernel (a refusal raises), so unlike an install
-        # there is no read-back here: a timeline `shape` must land within a few ms.
+        # there is no read-back here.
         self.run(plan_cap_change(self.ifname, state, cap_bps))
+        capped = TreeState(
+            cap=rate_bytes(cap_bps),
+            profile_rate=state.profile_rate,
+            leaf_handle=state.leaf_handle,
+            leaf=state.leaf,
+            leaf_kind=state.leaf_kind,
+            order_rate=state.order_rate,
+        )
         if self._nl is None:
-            self._planned = TreeState(
-                cap=rate_bytes(cap_bps),
-                profile_rate=state.profile_rate,
-                leaf_handle=state.leaf_handle,
-                leaf=state.leaf,
-                leaf_kind=state.leaf_kind,
-                order_rate=state.order_rate,
-            )
+            self._planned = capped
+        else:
+            self._known = capped
 
     def clear(self) -> None:
         """Remove the profile's shaping: the whole tree, or only the profile part if capped."""
@@ -238,6 +245,7 @@ class ShapedInterface:
         ]
 
     def _remove(self) -> None:
+        self._known = None
         self.run(plan_remove(self.ifname))
         if self._nl is None:
             self._planned = None
@@ -248,7 +256,7 @@ class ShapedInterface:
         if self._nl is None:
             self._planned = planned_state(profile, cap_bps, leaf_handle)
         else:
-            self.verify(profile, cap_bps)
+            self._known = self.verify(profile, cap_bps)
 
     def _leaf_problems(self, state: TreeState, profile: LinkProfile) -> list[str]:
         problems = []
