@@ -144,6 +144,21 @@ def quota_us(cores: float, period_us: int = DEFAULT_PERIOD_US) -> int:
     return quota
 
 
+MAX_PERIOD_US = 1_000_000
+"""The longest CFS period the kernel accepts (1 s)."""
+
+
+def period_for(cores: float) -> int:
+    """The CFS period (us) that lets a budget of `cores` have at least the kernel's 1 ms quota.
+
+    100 ms for budgets >= 0.01 cores; longer below (0.005 cores -> 200 ms), up to 1 s (so the
+    least budget is 0.001 cores). A longer period means burstier throttling, so it is only
+    stretched as far as the quota needs.
+    """
+    quota_us(cores, MAX_PERIOD_US)  # validates cores, and that 1 s is long enough
+    return max(DEFAULT_PERIOD_US, min(MAX_PERIOD_US, math.ceil(MIN_QUOTA_US / cores)))
+
+
 def _oserror_text(err: OSError) -> str:
     name = errno.errorcode.get(err.errno or 0, "")
     return f"{err.strerror or err}" + (f" ({name})" if name else "")
@@ -317,6 +332,33 @@ class CpuBudget:
             raise HostError(
                 f"cannot put pid {pid} into cgroup {self.path}: {_oserror_text(err)}"
             ) from None
+
+    def add_thread(self, tid: int) -> None:
+        """Put one thread (not its whole process) under this budget: cgroup v1 only.
+
+        v1's `tasks` file takes thread ids, so one thread of a process (say, the one running a
+        DNN head) can be throttled while its siblings are not. v2 only allows that in
+        "threaded" cgroups, whose domain must hold the whole process; that is not done here.
+        """
+        if self.controller.version != 1:
+            raise HostError(
+                f"cannot budget thread {tid} alone: {self.controller.describe()} needs threaded "
+                "cgroups for per-thread CPU budgets (only cgroup v1 is supported)"
+            )
+        try:
+            _write(self.path / "tasks", str(int(tid)))
+        except OSError as err:
+            raise HostError(
+                f"cannot put thread {tid} into cgroup {self.path}: {_oserror_text(err)}"
+            ) from None
+
+    def threads(self) -> list[int]:
+        """Thread ids now in the group (v1 `tasks`; v2 `cgroup.threads`)."""
+        name = "tasks" if self.controller.version == 1 else "cgroup.threads"
+        try:
+            return [int(x) for x in (self.path / name).read_text().split()]
+        except FileNotFoundError:
+            return []
 
     def pids(self) -> list[int]:
         """Processes (thread-group ids) now in the group."""

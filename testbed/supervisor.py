@@ -15,16 +15,19 @@ of one scenario use the same settings), a log `logs/<name>.log` and a stats file
 `nodes/<name>.json` it writes when stopped.
 
 CPU budgets: the processes of a vehicle share the cgroup `edgeloc/<run>/<vehicle>`, those of a
-core `edgeloc/<run>/<core>`. The scenario's `cpu`/`core_cpu` is a *replay-model* knob: in
-`testbed replay` it stretches the measured DNN compute (0.01 cores = a board 100x slower than
-this host). A real rclpy process cannot live on 0.01 cores (the kernel gives it 1 ms per 100 ms:
-one DDS message and the VO callback would miss their frame), and the three vehicle processes
-together use ~0.4 cores at 20 Hz here (with 0.5 cores they were throttled in 18% of the
-periods, adding latency the learner would have measured). So a real run applies
-`max(requested, MIN_PROCESS_CORES)` per namespace — the floor is recorded beside the request
-in run.json — and applies it only once every node has said it is ready (imports of torch and
-rclpy are not the workload). Emulating a slow vehicle DNN in a real run (a quota on the head's
-thread only) is not done yet.
+core `edgeloc/<run>/<core>`. A real rclpy process cannot live on the scenario's 0.01 cores (the
+kernel gives it 1 ms per 100 ms: one DDS message and the VO callback would miss their frame), and
+the three vehicle processes together use ~0.4 cores at 20 Hz here. So the namespace's group gets
+`max(requested, MIN_PROCESS_CORES)` — the floor is recorded beside the request in run.json —
+applied once every node has said it is ready (imports of torch and rclpy are not the workload).
+
+The scenario's `cpu` (vehicle) / `core_cpu` (core) is applied for real to the DNN stage alone:
+a second group `edgeloc/<run>/<host>.dnn` gets exactly that quota (period from
+`cgroups.period_for`: 100 ms, so 0.01 cores = 1 ms of CPU per 100 ms), and the inference node's
+head thread / the edge's tail thread joins it by thread id (`nodes.ros.common.ComputeThread`).
+That is a slow board doing the head, while the real-time VO/fusion stays unthrottled. Per-thread
+groups need cgroup v1 (`tasks` takes thread ids); on v2 the DNN stage runs unbudgeted and
+run.json says why (`compute_reason`).
 
 The watcher: `check()` raises `TestbedError` naming the node and its last log lines as soon as
 one process has exited while the run still needs it; `run.py` calls it every 0.2 s.
@@ -49,7 +52,7 @@ from nodes.ros.common import READY, config_to_dict
 from nodes.ros_env import RosEnv, domain_id_for
 from testbed import cgroups
 from testbed.cgroups import CpuBudget
-from testbed.errors import TestbedError
+from testbed.errors import BadInput, TestbedError
 from testbed.replay_cmd import replay_config
 from testbed.topology import Net
 
@@ -66,6 +69,8 @@ STOP_GRACE_S = 10.0
 #: Log lines quoted when a node dies.
 TAIL_LINES = 15
 LOOPBACK = "127.0.0.1"
+#: The least DNN-stage budget the kernel can enforce (1 ms quota per 1 s period).
+MIN_COMPUTE_CORES = 0.001
 
 
 @dataclass
@@ -108,15 +113,47 @@ class Budget:
     applied: float | None
     group: CpuBudget | None = None
     stats: dict[str, int] = field(default_factory=dict)
+    #: The DNN stage's own group (head or tail thread) with exactly the requested quota.
+    compute: CpuBudget | None = None
+    compute_reason: str = ""
+    compute_stats: dict[str, int] = field(default_factory=dict)
 
     def to_dict(self) -> dict[str, Any]:
+        c = self.compute
         return {
             "requested_cores": self.requested,
             "applied_cores": self.applied,
             "floor_cores": MIN_PROCESS_CORES,
             "cgroup": self.group.name if self.group is not None else None,
             "cpu_stat": self.stats,
+            "compute_cores": c.cores if c is not None else None,
+            "compute_period_us": c.period_us if c is not None else None,
+            "compute_cgroup": c.name if c is not None else None,
+            "compute_reason": self.compute_reason,
+            "compute_cpu_stat": self.compute_stats,
         }
+
+    def compute_group(self, run_id: str, version: int | None) -> None:
+        """Make the DNN stage's group with the requested quota, or record why there is none."""
+        if self.requested is None:
+            self.compute_reason = "no cpu budget requested"
+            return
+        if version != 1:
+            self.compute_reason = (
+                "per-thread CPU budgets need cgroup v1 (v2 would need threaded cgroups): "
+                "the DNN stage runs unbudgeted"
+                if version is not None
+                else "no cgroup CPU controller: the DNN stage runs unbudgeted"
+            )
+            return
+        cores = self.requested
+        try:
+            period = cgroups.period_for(cores)
+        except BadInput as err:
+            cores = MIN_COMPUTE_CORES
+            period = cgroups.MAX_PERIOD_US
+            self.compute_reason = f"raised to {cores:g} cores: {err}"
+        self.compute = CpuBudget(run_id, f"{self.host}.dnn", cores, period_us=period).create()
 
 
 def ros_available() -> tuple[bool, str]:
@@ -162,6 +199,9 @@ class Supervisor:
 
         def add(host: str, role: str, module: str, extra: list[str], peers: list[str]) -> None:
             name = f"{host}.{role}"
+            budget = self.budgets.get(host)
+            if role in ("edge", "inference") and budget is not None and budget.compute:
+                extra = [*extra, "--compute-cgroup", str(budget.compute.path)]
             out.append(
                 NodeProcess(
                     name=name,
@@ -202,13 +242,17 @@ class Supervisor:
         requests = {v.name: v.cpu for v in topo.vehicles}
         requests.update({c.core: c.core_cpu for c in topo.cells})
         ok, why = cgroups.available()
+        ctl = cgroups.find_controller() if ok else None
         for host, cpu in requests.items():
             budget = Budget(host, cpu, applied_cores(cpu))
+            self.budgets[host] = budget
             if ok:
                 group = CpuBudget(self.net.run_id, host, None)
                 self.net.record_cgroup(group.path)
                 budget.group = group.create()
-            self.budgets[host] = budget
+            budget.compute_group(self.net.run_id, ctl.version if ctl else None)
+            if budget.compute is not None:
+                self.net.record_cgroup(budget.compute.path)
         if not ok:
             self.progress(f"  warning: no CPU budgets ({why})")
 
@@ -256,7 +300,7 @@ class Supervisor:
                 b.group.set_cores(b.applied)
         shown = ", ".join(
             f"{b.host} {'unlimited' if b.applied is None else f'{b.applied:g}'}"
-            + ("" if b.requested == b.applied else f" (asked {b.requested:g})")
+            + ("" if b.compute is None else f" (DNN stage {b.compute.cores:g})")
             for b in self.budgets.values()
         )
         self.progress(f"  all ready in {time.monotonic() - t0:.1f} s; CPU cores: {shown}")
@@ -297,6 +341,10 @@ class Supervisor:
                 n.proc.wait(timeout=5)
             n.exit_code = n.proc.returncode
         for b in self.budgets.values():
+            if b.compute is not None and b.compute.exists:
+                with contextlib.suppress(OSError):
+                    b.compute_stats = b.compute.stats()
+                b.compute.remove()
             if b.group is not None and b.group.exists:
                 with contextlib.suppress(OSError):
                     b.stats = b.group.stats()

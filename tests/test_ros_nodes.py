@@ -15,7 +15,7 @@ from nodes.edgeloc.dataset import open_dataset
 from nodes.edgeloc.gate import GateSettings
 from nodes.edgeloc.metrics import position_errors
 from nodes.edgeloc.replay import ReplayConfig
-from nodes.ros.common import NodeArgs, config_from_dict, config_to_dict
+from nodes.ros.common import ComputeThread, NodeArgs, config_from_dict, config_to_dict
 from nodes.ros.fusion_node import VehicleEstimators
 from nodes.ros.link_events import LineFollower
 from testbed.replay_cmd import replay_config
@@ -158,3 +158,64 @@ def test_supervisor_plan_puts_each_node_in_its_namespace_with_its_peers(
     assert plan["av1.fusion"].log == (tmp_path / "run" / "logs" / "av1.fusion.log").resolve()
     no_edge = Supervisor(net, tmp_path / "run", print, edge=False).plan()
     assert "core1.edge" not in {n.name for n in no_edge}
+
+
+def test_compute_thread_joins_its_group_by_thread_id_and_runs_jobs_there(tmp_path: Path) -> None:
+    import threading
+
+    # A plain folder stands in for the cgroup: the thread must write its own id to `tasks`.
+    (tmp_path / "cpu.cfs_quota_us").write_text("1000\n")
+    (tmp_path / "cpu.cfs_period_us").write_text("100000\n")
+    (tmp_path / "tasks").write_text("")
+    worker = ComputeThread(tmp_path)
+    try:
+        tid, took = worker.run(threading.get_native_id)
+    finally:
+        worker.close()
+    assert tid != threading.get_native_id()  # not the caller's thread
+    assert (tmp_path / "tasks").read_text().split() == [str(tid)]
+    assert worker.budget == {
+        "cgroup": str(tmp_path),
+        "joined": True,
+        "tid": tid,
+        "cpu.cfs_quota_us": 1000,
+        "cpu.cfs_period_us": 100000,
+    }
+    assert took >= 0.0
+
+
+def test_compute_thread_without_a_group_runs_unbudgeted_and_says_why(tmp_path: Path) -> None:
+    worker = ComputeThread(None)
+    missing = ComputeThread(tmp_path / "gone")
+    try:
+        assert worker.run(lambda: 6 * 7)[0] == 42
+        assert missing.run(lambda: "ok")[0] == "ok"
+    finally:
+        worker.close()
+        missing.close()
+    assert not worker.budget["joined"] and "no compute cgroup" in worker.budget["reason"]
+    assert not missing.budget["joined"] and "cannot join" in missing.budget["reason"]
+
+
+def test_compute_period_gives_every_budget_at_least_the_kernels_minimum_quota() -> None:
+    from testbed import cgroups
+    from testbed.errors import BadInput
+
+    assert cgroups.period_for(0.5) == cgroups.DEFAULT_PERIOD_US
+    assert cgroups.period_for(0.01) == 100_000  # 1 ms per 100 ms
+    assert cgroups.period_for(0.005) == 200_000
+    assert cgroups.quota_us(0.005, cgroups.period_for(0.005)) == cgroups.MIN_QUOTA_US
+    with pytest.raises(BadInput, match="below the kernel's minimum"):
+        cgroups.period_for(0.0005)
+
+
+def test_supervisor_gives_the_dnn_stage_the_requested_budget_or_a_reason() -> None:
+    from testbed.supervisor import Budget
+
+    none = Budget("core1", None, None)
+    none.compute_group("abc123", 1)
+    assert none.compute is None and none.compute_reason == "no cpu budget requested"
+    v2 = Budget("av1", 0.01, applied_cores(0.01))
+    v2.compute_group("abc123", 2)
+    assert v2.compute is None and "cgroup v1" in v2.compute_reason
+    assert v2.to_dict()["compute_cores"] is None

@@ -13,6 +13,8 @@ stop flag; the node's loop ends; the executor thread is joined and the node dest
 from __future__ import annotations
 
 import argparse
+import concurrent.futures
+import contextlib
 import json
 import math
 import os
@@ -20,11 +22,11 @@ import signal
 import sys
 import threading
 import time
-from collections.abc import Iterator, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass, fields
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeVar
 
 from nodes.edgeloc.gate import GateSettings
 from nodes.edgeloc.replay import KalmanSettings, LearnerSettings, ReplayConfig
@@ -33,6 +35,8 @@ from nodes.edgeloc.replay import KalmanSettings, LearnerSettings, ReplayConfig
 DATASET_MARGIN_S = 60.0
 #: The line every node logs once it is ready; the supervisor waits for it.
 READY = "ready"
+
+T = TypeVar("T")
 
 
 def config_to_dict(config: ReplayConfig) -> dict[str, Any]:
@@ -71,6 +75,7 @@ class NodeArgs:
     stats: Path | None
     events: Path | None
     timeout_s: float
+    compute_cgroup: Path | None = None
 
     @classmethod
     def parse(cls, argv: Sequence[str] | None = None, prog: str = "") -> NodeArgs:
@@ -81,6 +86,11 @@ class NodeArgs:
         p.add_argument("--stats", default=None, help="write a stats JSON here at exit")
         p.add_argument("--events", default=None, help="timeline events.jsonl to follow")
         p.add_argument("--timeout", type=float, default=1.0, help="request timeout, seconds")
+        p.add_argument(
+            "--compute-cgroup",
+            default=None,
+            help="cgroup v1 directory whose `tasks` the DNN compute thread joins (its CPU budget)",
+        )
         a = p.parse_args(argv)
         try:
             config = config_from_dict(json.loads(Path(a.config).read_text()))
@@ -95,7 +105,56 @@ class NodeArgs:
             stats=Path(a.stats) if a.stats else None,
             events=Path(a.events) if a.events else None,
             timeout_s=a.timeout,
+            compute_cgroup=Path(a.compute_cgroup) if a.compute_cgroup else None,
         )
+
+
+class ComputeThread:
+    """The one thread a node runs its DNN stage on, so that stage alone can get a CPU budget.
+
+    Started with a cgroup v1 directory, the thread writes its own thread id into that group's
+    `tasks` file (v1 lets threads of one process sit in different cpu cgroups), so the CFS
+    quota there throttles the DNN head or tail and nothing else: the node's other threads (ROS
+    executor, the real-time VO/fusion processes) stay in the namespace's unthrottled group.
+    Without a group, or when joining fails, jobs run unbudgeted and `budget` says why.
+    """
+
+    def __init__(self, cgroup: Path | None, name: str = "dnn-compute") -> None:
+        self.cgroup = cgroup
+        self.budget: dict[str, Any] = {"cgroup": str(cgroup) if cgroup else None, "joined": False}
+        self._pool = concurrent.futures.ThreadPoolExecutor(
+            max_workers=1, thread_name_prefix=name, initializer=self._join
+        )
+        self._pool.submit(lambda: None).result()  # start it now: joining happens up front
+
+    def _join(self) -> None:
+        tid = threading.get_native_id()
+        self.budget["tid"] = tid
+        if self.cgroup is None:
+            self.budget["reason"] = "no compute cgroup given (no CPU budget for this node)"
+            return
+        try:
+            (self.cgroup / "tasks").write_text(f"{tid}\n")
+        except OSError as err:
+            self.budget["reason"] = f"cannot join {self.cgroup}/tasks: {err}"
+            return
+        self.budget["joined"] = True
+        for name in ("cpu.cfs_quota_us", "cpu.cfs_period_us"):
+            with contextlib.suppress(OSError, ValueError):
+                self.budget[name] = int((self.cgroup / name).read_text())
+
+    def run(self, fn: Callable[[], T]) -> tuple[T, float]:
+        """Run `fn` on the compute thread; (its result, wall seconds it took there)."""
+
+        def timed() -> tuple[T, float]:
+            t = time.perf_counter()
+            out = fn()
+            return out, time.perf_counter() - t
+
+        return self._pool.submit(timed).result()
+
+    def close(self) -> None:
+        self._pool.shutdown(wait=True)
 
 
 def emit(event: str, **values: Any) -> None:

@@ -18,7 +18,16 @@ import torch
 from nodes.edgeloc.codec import CodecError, decode
 from nodes.edgeloc.model import split_index, to_pose
 from nodes.edgeloc.train import load_model
-from nodes.ros.common import READY, NodeArgs, action_name, emit, ros_node, run_main, write_stats
+from nodes.ros.common import (
+    READY,
+    ComputeThread,
+    NodeArgs,
+    action_name,
+    emit,
+    ros_node,
+    run_main,
+    write_stats,
+)
 
 RESULT_TIMEOUT_S = 1  # seconds a finished goal's result is kept for the client
 
@@ -34,6 +43,11 @@ def main() -> int:
     per_vehicle: Counter[str] = Counter()
     compute: list[float] = []
     payload_bytes = [0]
+    # The tail runs on one thread that joins the core's compute cgroup (the scenario's
+    # core_cpu), so only the DNN stage is budgeted, not the action server's executor.
+    tail_thread = ComputeThread(args.compute_cgroup, name="dnn-tail")
+    tail_s: list[float] = []
+    stats["compute_budget"] = tail_thread.budget
 
     with ros_node(f"{args.edge}_edge_inference") as ros:
         node = ros.node
@@ -50,8 +64,13 @@ def main() -> int:
             try:
                 if split_index(goal.split_name) != goal.split_index:
                     raise ValueError(f"split {goal.split_name!r} is not index {goal.split_index}")
-                with torch.no_grad():
-                    pose = to_pose(model.tail(goal.split_name, decode(blob)))[0].tolist()
+
+                def tail() -> list[float]:
+                    with torch.no_grad():
+                        return to_pose(model.tail(goal.split_name, decode(blob)))[0].tolist()
+
+                pose, took = tail_thread.run(tail)
+                tail_s.append(took)
                 result.ok = True
                 stats["ok"] += 1
                 p = result.pose
@@ -85,7 +104,9 @@ def main() -> int:
         )
         emit(READY, node="edge_inference", action=action_name(args.edge))
         ros.stop.wait(1e9)
+    tail_thread.close()
     stats["per_vehicle"] = dict(per_vehicle)
+    stats["mean_tail_s"] = sum(tail_s) / len(tail_s) if tail_s else None
     stats["payload_bytes"] = payload_bytes[0]
     stats["mean_compute_s"] = sum(compute) / len(compute) if compute else None
     write_stats(args.stats, stats)

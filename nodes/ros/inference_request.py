@@ -32,6 +32,7 @@ from nodes.edgeloc.model import SPLITS, split_index
 from nodes.edgeloc.train import load_model
 from nodes.ros.common import (
     READY,
+    ComputeThread,
     NodeArgs,
     action_name,
     emit,
@@ -124,6 +125,11 @@ def main() -> int:
     from sensor_msgs.msg import Image
 
     latest = LatestFrame()
+    # The head (and its encoding) runs on its own thread, which joins the vehicle's compute
+    # cgroup: the scenario's vehicle `cpu` throttles exactly the work a slow board would do.
+    compute = ComputeThread(args.compute_cgroup, name="dnn-head")
+    head_s: dict[str, list[float]] = {k: [] for k in cfg.splits}
+    chosen: list[list[Any]] = []  # [wall time, split, cost charged]
     lat: dict[str, list[float]] = {k: [] for k in cfg.splits}
     played: Counter[str] = Counter()
     stats: dict[str, Any] = {
@@ -136,6 +142,7 @@ def main() -> int:
         "payload_bytes": 0,
         "no_server_s": 0.0,
         "resets": [],
+        "compute_budget": compute.budget,
     }
     with ros_node(f"{args.vehicle}_inference_request") as ros:
         node, stop = ros.node, ros.stop
@@ -171,10 +178,15 @@ def main() -> int:
             decisions.publish(
                 decision_msg(args.vehicle, learner, split, fixed, frame, last_latency)
             )
-            with torch.no_grad():
-                x = torch.from_numpy(image[None])
-                act = model.head(split, x)
-            blob = encode(act, cfg.codec)
+            chosen.append([round(start, 3), split, None])
+
+            def head(split: str = split, image: np.ndarray = image) -> tuple[Any, bytes]:
+                with torch.no_grad():
+                    act = model.head(split, torch.from_numpy(image[None]))
+                return act, encode(act, cfg.codec)
+
+            (act, blob), took = compute.run(head)
+            head_s[split].append(took)
             goal = SplitInference.Goal(vehicle=args.vehicle, frame_id=frame, split_name=split)
             goal.split_index = split_index(split)
             goal.capture_stamp = to_stamp(t0)
@@ -225,6 +237,7 @@ def main() -> int:
                         frame_id=frame,
                     )
                 )
+            chosen[-1][2] = round(cost, 4)
             if fixed:
                 continue
             event = learner.update(split, cost)
@@ -244,7 +257,15 @@ def main() -> int:
                     )
                 )
                 emit("reset", arm=event.arm, kl=event.kl)
+    compute.close()
     stats["end_s"] = time.time()
+    # Every decision [wall time, split, cost], so a reader can see which split each phase preferred.
+    stats["decisions"] = chosen
+    stats["head_s"] = {
+        k: {"n": len(v), "mean": float(np.mean(v)), "p50": float(np.median(v)), "max": max(v)}
+        for k, v in head_s.items()
+        if v
+    }
     stats["split_plays"] = {k: played[k] for k in cfg.splits}
     stats["mean_latency_s"] = {k: (float(np.mean(v)) if v else None) for k, v in lat.items()}
     stats["splits_known"] = list(SPLITS)
