@@ -84,6 +84,19 @@ class LearnerSettings:
     detector_window: int = 20
     detector_fit: Literal["mle", "robust"] = "robust"
 
+    def build(self, arms: list[str], seed: int) -> AdaptiveSplitLearner:
+        """The learner these settings describe (the replay and the ROS node both use this)."""
+        return AdaptiveSplitLearner.from_settings(
+            arms,
+            window=self.window,
+            detector=self.detector,
+            kl_threshold=self.kl_threshold,
+            consecutive=self.consecutive,
+            detector_window=self.detector_window,
+            rng_seed=seed,
+            detector_fit=self.detector_fit,
+        )
+
 
 @dataclass(frozen=True)
 class KalmanSettings:
@@ -453,17 +466,7 @@ class Replay:
     ) -> None:
         self.cfg, self.latency, self.ds = config, latency, dataset
         self.infer = cache or InferenceCache(model, dataset, config.codec)
-        lc = config.learner
-        self.learner = AdaptiveSplitLearner.from_settings(
-            list(config.splits),
-            window=lc.window,
-            detector=lc.detector,
-            kl_threshold=lc.kl_threshold,
-            consecutive=lc.consecutive,
-            detector_window=lc.detector_window,
-            rng_seed=config.seed,
-            detector_fit=lc.detector_fit,
-        )
+        self.learner = config.learner.build(list(config.splits), config.seed)
         self.rng = np.random.default_rng([config.seed, 4242])
         self.t = np.asarray(dataset.timestamps, dtype=np.float64)
         self.vo = np.asarray(dataset.vo_poses, dtype=np.float64)

@@ -109,16 +109,7 @@ def main() -> int:
     lc = cfg.learner
     torch.set_num_threads(1)  # the head is small; one thread keeps the budget honest
     model = load_model(cfg.weights)
-    learner = AdaptiveSplitLearner.from_settings(
-        list(cfg.splits),
-        window=lc.window,
-        detector=lc.detector,
-        kl_threshold=lc.kl_threshold,
-        consecutive=lc.consecutive,
-        detector_window=lc.detector_window,
-        rng_seed=cfg.seed,
-        detector_fit=lc.detector_fit,
-    )
+    learner = lc.build(list(cfg.splits), cfg.seed)
     from edgeloc_interfaces.action import SplitInference
     from edgeloc_interfaces.msg import DetectorEvent, PoseEstimate
     from rclpy.action import ActionClient
