@@ -223,3 +223,52 @@ def test_vehicle_keeps_publishing_fused_poses_when_the_edge_dies(
         f"requests {inference['requests']}, answers {inference['answers']}, "
         f"lost {inference['lost']}"
     )
+
+
+def test_ctrl_c_mid_run_tears_everything_down(
+    interfaces: None, state_dir: Path, tmp_path: Path
+) -> None:
+    """SIGINT to `testbed run` while the nodes run: exit 130, teardown in a few seconds, and
+    no namespace, relay, node process or state file left behind."""
+    import subprocess
+    import sys
+
+    from testbed import state as st
+    from testbed.net import list_netns
+
+    scenario = short_scenario(tmp_path, duration_s=60)
+    runs = tmp_path / "runs"
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "testbed.cli", "run", str(scenario), "--runs-dir", str(runs)],
+        cwd=REPO,
+        env={**os.environ, "CI": "1"},
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+    )
+    lines: list[str] = []
+    try:
+        assert proc.stdout is not None
+        for line in proc.stdout:  # wait until the nodes run and the timeline plays
+            lines.append(line)
+            if "playing the timeline" in line:
+                break
+        else:
+            pytest.fail("testbed run ended before its timeline started:\n" + "".join(lines))
+        (run_id,) = [r.run_id for r in st.list_runs()]
+        time.sleep(2)
+        t0 = time.monotonic()
+        proc.send_signal(signal.SIGINT)
+        rest, _ = proc.communicate(timeout=30)
+        took = time.monotonic() - t0
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    print(f"\nCtrl-C to exit: {took:.2f} s")
+    assert proc.returncode == 130, "".join(lines) + rest
+    assert took < 5, f"teardown took {took:.1f} s"
+    assert [n for n in list_netns() if n.startswith(f"el-{run_id}-")] == []
+    assert st.list_runs() == []
+    assert _processes_mentioning(f"el-{run_id}-") == []
+    assert _processes_mentioning(str(runs)) == []
