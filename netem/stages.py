@@ -209,9 +209,6 @@ class Outage(Gate):
     def stop(self) -> None:
         self.since = self.until = -math.inf
 
-    def active(self, now: float) -> bool:
-        return self.since <= now < self.until
-
     def verdict(self, packet: bytes, now: float) -> str | None:
         return "outage" if self.since <= now < self.until else None
 

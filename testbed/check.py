@@ -13,8 +13,6 @@ the throwaway namespace.
 from __future__ import annotations
 
 import contextlib
-import ctypes
-import ctypes.util
 import errno
 import fcntl
 import json
@@ -32,6 +30,7 @@ from pathlib import Path
 from types import TracebackType
 from typing import Any, Literal
 
+from netem.tun import in_netns
 from testbed import cgroups
 from testbed.errors import BadInput
 
@@ -44,7 +43,6 @@ REQUIRED = ("root", "netns", "veth", "tun", "qdisc htb", "qdisc pfifo")
 """Checks a run cannot do without; every other check informs (netem: userspace covers it)."""
 
 CAP_NET_ADMIN, CAP_SYS_ADMIN = 12, 21
-CLONE_NEWNET = 0x40000000
 TUNSETIFF = 0x400454CA
 IFF_TUN, IFF_NO_PI = 0x0001, 0x1000
 TC_H_ROOT, TC_H_INGRESS = 0xFFFFFFFF, 0xFFFFFFF1
@@ -309,27 +307,22 @@ def _open_tun_in_netns(ns_path: Path, ifname: str) -> int:
     result: dict[str, Any] = {}
 
     def worker() -> None:
-        libc = ctypes.CDLL(ctypes.util.find_library("c"), use_errno=True)
         try:
-            ns_fd = os.open(ns_path, os.O_RDONLY | os.O_CLOEXEC)
-            try:
-                if libc.setns(ns_fd, CLONE_NEWNET) != 0:
-                    err = ctypes.get_errno()
-                    raise OSError(err, f"setns into {ns_path.name}: {os.strerror(err)}")
+            with in_netns(str(ns_path)):
                 here = os.stat(f"/proc/self/task/{threading.get_native_id()}/ns/net")
-                if here.st_ino != os.fstat(ns_fd).st_ino:
+                if here.st_ino != os.stat(ns_path).st_ino:
                     raise OSError(errno.EINVAL, "setns did not move the thread")
-            finally:
-                os.close(ns_fd)
-            tun = os.open("/dev/net/tun", os.O_RDWR | os.O_CLOEXEC)
-            try:
-                fcntl.ioctl(
-                    tun, TUNSETIFF, struct.pack("16sH22x", ifname.encode(), IFF_TUN | IFF_NO_PI)
-                )
-            except OSError:
-                os.close(tun)
-                raise
-            result["fd"] = tun
+                tun = os.open("/dev/net/tun", os.O_RDWR | os.O_CLOEXEC)
+                try:
+                    fcntl.ioctl(
+                        tun,
+                        TUNSETIFF,
+                        struct.pack("16sH22x", ifname.encode(), IFF_TUN | IFF_NO_PI),
+                    )
+                except OSError:
+                    os.close(tun)
+                    raise
+                result["fd"] = tun
         except OSError as err:
             result["error"] = err
 

@@ -27,6 +27,7 @@ from typing import TYPE_CHECKING, Protocol
 
 from pyroute2 import IPRoute
 
+from netem.tun import in_netns, setns
 from testbed.errors import HostError, NetlinkError
 
 if TYPE_CHECKING:
@@ -54,37 +55,20 @@ def netns_path(name: str) -> Path:
     return NETNS_DIR / name
 
 
-def setns(fd: int) -> None:
-    """Move the calling thread into the network namespace open at `fd`."""
-    _check(_libc.setns(fd, CLONE_NEWNET), "setns")
-
-
 def require_root() -> None:
     """Namespaces need CAP_NET_ADMIN/CAP_SYS_ADMIN; say so before anything half-happens."""
     if os.geteuid() != 0:
         raise HostError("building or removing namespaces needs root: run it with sudo")
 
 
-@contextlib.contextmanager
-def inside(path: str | os.PathLike[str]) -> Iterator[None]:
+def inside(path: str | os.PathLike[str]) -> contextlib.AbstractContextManager[None]:
     """Run the calling thread inside the namespace at `path`, and always come back.
 
     Only this thread moves; other threads of the process stay where they are. Sockets opened
     inside stay bound to that namespace after we leave, which is how we talk to it cheaply.
+    (The one setns mechanism is `netem.tun.in_netns`; netem sits below testbed.)
     """
-    home = os.open("/proc/thread-self/ns/net", os.O_RDONLY)
-    try:
-        target = os.open(path, os.O_RDONLY)
-        try:
-            setns(target)
-        finally:
-            os.close(target)
-        try:
-            yield
-        finally:
-            setns(home)
-    finally:
-        os.close(home)
+    return in_netns(os.fspath(path))
 
 
 def _prepare_netns_dir() -> None:
