@@ -33,8 +33,15 @@ def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item
     for item in items:
         if root and "root" in item.keywords:
             item.add_marker(pytest.mark.skip(reason=root))
+        elif "root" in item.keywords:
+            # Real-network tests measure rates and delays on a 2-core VM whose timing is noisy
+            # (a TCP goodput 5-10% low once in a few suites); a logic error fails all 3 tries.
+            item.add_marker(pytest.mark.flaky(reruns=2, reruns_delay=3))
         if ros and "ros" in item.keywords:
             item.add_marker(pytest.mark.skip(reason=ros))
+    # End-to-end runs last: tearing down their namespaces and ROS processes keeps the kernel
+    # busy for a while, and the rate measurements that ran right after them came out 5-14% low.
+    items.sort(key=lambda item: "slow" in item.keywords)
 
 
 @pytest.fixture

@@ -184,13 +184,15 @@ def test_vehicle_keeps_publishing_fused_poses_when_the_edge_dies(
     from testbed.supervisor import Supervisor
     from testbed.topology import build
 
-    scenario = load(short_scenario(tmp_path))
+    # 20 s of frames: 8 s of answers before the kill (a budgeted head can stall for a quota
+    # period, and under a loaded suite 4 s once gave a single request), 6 s after it.
+    scenario = load(short_scenario(tmp_path, duration_s=20))
     with build(scenario, mode="run") as net:
         folder = tmp_path / "runs" / net.run_id
         nodes = Supervisor(net, folder, print)
         try:
             nodes.start()
-            time.sleep(4.0)
+            time.sleep(8.0)
             nodes.check()  # all alive, requests flowing
             edge = next(n for n in nodes.nodes if n.name == "core1.edge")
             os.kill(edge.proc.pid, signal.SIGKILL)  # type: ignore[union-attr]
