@@ -18,7 +18,7 @@ from typing import Any
 
 import pytest
 
-pytestmark = [pytest.mark.root, pytest.mark.ros, pytest.mark.slow]
+pytestmark = [pytest.mark.root, pytest.mark.ros, pytest.mark.slow, pytest.mark.e2e]
 
 REPO = Path(__file__).resolve().parents[1]
 DURATION_S = 15

@@ -188,7 +188,7 @@ def test_render_commands_for_a_link() -> None:
         "tc -n NS class add dev IF parent 1: classid 1:1 htb rate 100gbit ceil 100gbit "
         "burst 1612b cburst 1612b quantum 200000",
         "tc -n NS class add dev IF parent 1:1 classid 1:10 htb rate 50mbit ceil 50mbit "
-        "burst 1600b cburst 1600b quantum 200000",
+        "burst 26600b cburst 26600b quantum 200000",  # 4 ms of 50 Mbit/s + one mtu
         "tc -n NS qdisc add dev IF parent 1:10 handle 10: netem delay 8ms 2ms "
         "distribution normal loss 0.1% rate 10gbit limit 1042",
     ]
@@ -226,7 +226,7 @@ def test_change_plans_are_in_place() -> None:
         "tc -n N qdisc change dev IF parent 1:10 handle 10: netem delay 20ms 1ms "
         "distribution normal rate 10gbit limit 1009",  # 5 Mbit/s * 21 ms / 1514 B -> 9
         "tc -n N class change dev IF parent 1:1 classid 1:10 htb rate 5mbit ceil 5mbit "
-        "burst 1600b cburst 1600b quantum 62500",
+        "burst 4100b cburst 4100b quantum 62500",
     ]
     # another leaf kind is grafted at the other handle: never a delete + add
     ops = plan_profile_change("IF", state, LinkProfile(rate_bps=5e6))

@@ -80,7 +80,7 @@ def _remove_pair(pair: Pair) -> None:
 
 
 @pytest.fixture
-def pair() -> Iterator[Pair]:
+def pair(quiet_machine: float) -> Iterator[Pair]:
     p = _make_pair()
     try:
         yield p
