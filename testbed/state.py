@@ -19,12 +19,13 @@ from __future__ import annotations
 
 import contextlib
 import fcntl
+import itertools
 import json
 import os
 import re
 import secrets
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any, Literal
@@ -218,12 +219,20 @@ def list_runs() -> list[RunState]:
     return sorted(runs, key=lambda r: r.started)
 
 
-def fresh_run_id(taken: set[str]) -> str:
-    """6 lowercase hex chars that no state file and no `taken` id uses."""
-    while True:
+def fresh_run_id(taken: set[str], key: Callable[[str], object] | None = None) -> str:
+    """6 lowercase hex chars that no state file and no `taken` id uses.
+
+    With `key` (e.g. the ROS domain id of a run id) the new id also differs from every taken
+    id under `key`, as long as such an id exists (`key` values are tried for 10000 draws).
+    """
+    avoid = {key(t) for t in taken} if key is not None else set()
+    for attempt in itertools.count():
         run_id = secrets.token_hex(3)
-        if run_id not in taken and not (state_dir() / f"{run_id}.json").exists():
+        if run_id in taken or (state_dir() / f"{run_id}.json").exists():
+            continue
+        if key is None or key(run_id) not in avoid or attempt >= 10_000:
             return run_id
+    raise AssertionError("unreachable")
 
 
 @contextlib.contextmanager

@@ -37,6 +37,7 @@ from pyroute2 import IPRoute
 from pyroute2.netlink.exceptions import NetlinkError as PyNetlinkError
 
 from netem.profile import LinkProfile
+from nodes.ros_env import domain_id_for
 from testbed import cgroups, check, links
 from testbed import state as st
 from testbed.addressing import LinkAddresses, assign, choose_pool, host_networks
@@ -442,7 +443,9 @@ def build(
         runs = st.list_runs()
         in_use = _ids_in_use(runs)
         if run_id is None:
-            run_id = st.fresh_run_id(in_use)
+            # A ROS domain of its own too: runs are apart by namespaces already, but a stray
+            # process started with a run's environment must not meet another run's nodes.
+            run_id = st.fresh_run_id(in_use, key=domain_id_for)
         elif run_id in in_use:
             raise BadInput(f"run id {run_id} is already in use (testbed status lists runs)")
         pool = choose_pool(
