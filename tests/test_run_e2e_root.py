@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import os
 import signal
+import tempfile
 import time
 from pathlib import Path
 from typing import Any
@@ -80,18 +81,32 @@ def _ready_lines(log: Path) -> dict[str, Any]:
     raise AssertionError(f"no ready line in {log}")
 
 
+def _temp_entries() -> set[str]:
+    return set(os.listdir(tempfile.gettempdir()))
+
+
 def test_run_starts_every_node_and_leaves_nothing(
-    state_dir: Path, interfaces: None, tmp_path: Path
+    state_dir: Path, interfaces: None, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
     from testbed import cgroups
     from testbed.net import list_netns
     from testbed.run import run_scenario
     from testbed.scenario.loader import load
 
+    # Files only under the run folder: the working directory stays empty, and what the run
+    # keeps elsewhere while it lives (its state file, the relays' control sockets in a private
+    # temp dir) is gone afterwards.
+    cwd = tmp_path / "cwd"
+    cwd.mkdir()
+    monkeypatch.chdir(cwd)
+    temp_before = _temp_entries()
     lines: list[str] = []
     t0 = time.monotonic()
     result = run_scenario(load(short_scenario(tmp_path)), tmp_path / "runs", lines.append)
     wall = time.monotonic() - t0
+    assert list(cwd.iterdir()) == []
+    assert not [e for e in _temp_entries() - temp_before if e.startswith("netem-relay-")]
+    assert not list(state_dir.glob(f"{result.run_id}*"))
     folder = result.folder
     assert result.ok, "\n".join(lines)
     procs = result.nodes["processes"]

@@ -6,7 +6,8 @@ Runs the default scenario (its timeline, link self-test off) for `--minutes` in 
 samples the resident set size (VmRSS) of every process of the run every `--every` seconds: the
 EdgeLoc nodes (found by the run folder in their command line), the userspace link relays (by
 the run's namespaces in theirs) and this orchestrator. Printed per process: RSS at the end of
-warm-up, peak and last RSS after it, growth = (last - warm) / warm, against the target of 10%.
+warm-up (counted from the process's first sample), peak and last RSS after it, and
+growth = (last - warm) / warm, against the target of 10%.
 A process that grows steadily (a leak) shows as growth; a single allocation spike shows as a
 peak well above the last sample.
 
@@ -18,6 +19,7 @@ from __future__ import annotations
 
 import argparse
 import os
+import shutil
 import sys
 import tempfile
 import threading
@@ -44,7 +46,10 @@ class Series:
     samples: list[tuple[float, int]] = field(default_factory=list)
 
     def figures(self, warmup_s: float) -> tuple[int, int, int, float] | None:
-        after = [kb for t, kb in self.samples if t >= warmup_s]
+        # Warm-up counts from the process's own first sample: on a loaded host nodes take
+        # seconds to import torch and start, and that is start-up, not growth.
+        start = self.samples[0][0] if self.samples else 0.0
+        after = [kb for t, kb in self.samples if t - start >= warmup_s]
         if len(after) < 2:
             return None
         warm, last = after[0], after[-1]
@@ -133,6 +138,7 @@ def main() -> int:
     parser.add_argument("--minutes", type=float, default=10.0)
     parser.add_argument("--warmup", type=float, default=60.0, help="seconds before the baseline")
     parser.add_argument("--every", type=float, default=5.0, help="seconds between samples")
+    parser.add_argument("--keep", type=Path, help="copy the run folder here afterwards")
     args = parser.parse_args()
     if os.geteuid() != 0:
         print("needs root (network namespaces): sudo .venv/bin/python tests/bench/bench_soak.py")
@@ -156,7 +162,14 @@ def main() -> int:
         nodes = result.nodes.get("processes", {})
         failed = {n: p.get("exit_code") for n, p in nodes.items() if p.get("exit_code") != 0}
         if failed:
-            print(f"processes that failed: {failed}")
+            print(f"processes that failed (exit codes): {failed}")
+            for name in failed:
+                log = result.folder / nodes[name]["log"]
+                tail = log.read_text().splitlines()[-5:] if log.is_file() else ["(no log)"]
+                print(f"  {name}: " + "\n    ".join(tail))
+        if args.keep is not None:
+            shutil.copytree(result.folder, args.keep / result.run_id)
+            print(f"run folder kept: {args.keep / result.run_id}")
     print(
         f"\nRSS after a {args.warmup:g} s warm-up, sampled every {args.every:g} s "
         f"(target: growth <= {TARGET_GROWTH:.0%})"
