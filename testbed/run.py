@@ -7,26 +7,33 @@ play the timeline for the scenario's `duration` (`events.jsonl`, a progress line
 seconds) while the EdgeLoc nodes run (`testbed.supervisor`: started after the connectivity
 check, stopped before teardown, their stats and the links' byte counters go into run.json),
 tear everything down and write `run.json` (backend, link-test verdict, timeline lateness).
-Recording hangs on the same skeleton; teardown happens whatever a step does (Ctrl-C
-included). A link relay or node process that dies, or a timeline event that fails, fails the
-run within a second.
+Teardown happens whatever a step does (Ctrl-C included). A link relay or node process that
+dies, or a timeline event that fails, fails the run within a second.
+
+Recording (`testbed.recording`, when the scenario's `record.enabled`): the nodes record what
+they publish into `parts/`, this process records the link counters every 0.5 s
+(`/links/counters`), and whatever happens (success, failure, Ctrl-C) the parts are merged into
+`run.mcap` before `run_scenario` returns or raises. An exception it raises carries the run
+folder as `run_folder` (when the folder exists), so a caller can report on a failed run.
 """
 
 from __future__ import annotations
 
+import contextlib
 import json
 import shutil
+import sys
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from testbed import __version__
+from testbed import __version__, recording
 from testbed.connectivity import EchoResult, vehicles_reach_cores
 from testbed.errors import TestbedError
 from testbed.linktest import LinkTest, LinkTestReport
-from testbed.scenario.model import Scenario
+from testbed.scenario.model import Scenario, TraceEvent
 from testbed.supervisor import Supervisor, ros_available
 from testbed.timeline import AppliedEvent, TimelinePlayer
 from testbed.topology import Net, build
@@ -172,19 +179,230 @@ def node_line(nodes: dict[str, Any]) -> str:
     return "  nodes stopped; " + ("; ".join(parts) or "no stats")
 
 
-def run_scenario(scenario: Scenario, runs_dir: Path, progress: Progress) -> RunResult:
-    """Run `scenario`; everything it creates is gone when this returns or raises."""
-    t0 = time.perf_counter()
-    with build(scenario, mode="run") as net:
-        t_up = time.perf_counter() - t0
-        result = RunResult(net.run_id, runs_dir / net.run_id, net.backend_text())
-        result.folder.mkdir(parents=True, exist_ok=False)
-        if scenario.source is not None:
-            shutil.copyfile(scenario.source, result.folder / "scenario.yaml")
-        progress(
-            f"run {net.run_id}: {len(net.nodes)} namespaces, {len(net.links)} links up "
-            f"in {t_up * 1000:.0f} ms; link backend: {result.link_backend}"
+def links_config(net: Net, backend: str) -> dict[str, Any]:
+    """`links.json` of the run folder: per link and direction the applied profile, and how the
+    backend realises it (the relay's command line and stages, or the equivalent tc commands)."""
+    ctl = net.control
+    out: dict[str, Any] = {"backend": backend, "links": {}}
+    if ctl is None:
+        return out
+    for name, link in net.links.items():
+        entry: dict[str, Any] = {
+            "kind": link.kind,
+            "lower": link.lower.name,
+            "upper": link.upper.name,
+            "profiles": {d: ctl.profile(name, d).to_dict() for d in ("uplink", "downlink")},
+        }
+        relay = getattr(ctl, "relays", {}).get(name)
+        if relay is not None:
+            entry["relay_command"] = relay.command()
+            try:
+                counters = relay.counters()
+                entry["stages"] = {
+                    d: list(counters[d]["stages"]) for d in ("uplink", "downlink") if d in counters
+                }
+            except Exception as err:  # the configuration is still worth keeping
+                entry["stages"] = f"unavailable: {err}"
+        out["links"][name] = entry
+    if ctl.backend == "tc":
+        from testbed.links import TcController
+
+        try:  # the live controller keeps no text; a dry-run twin renders the same profiles
+            twin = TcController(net, dry_run=True)
+            twin.profiles = dict(ctl.profiles)  # type: ignore[attr-defined]
+            twin.apply()
+            out["tc_commands"] = twin.commands()
+            twin.close()
+        except Exception as err:
+            out["tc_commands"] = f"unavailable: {err}"
+    return out
+
+
+class Recording:
+    """The orchestrator's side of a run's recording (see the module doc): the manifest, its
+    own part with the link counters, and the final merge."""
+
+    def __init__(self, net: Net, folder: Path, backend: str, progress: Progress) -> None:
+        scenario = net.scenario
+        self.folder, self.progress, self.net = folder, progress, net
+        self.sampler: recording.CounterSampler | None = None
+        self.part: recording.PartWriter | None = None
+        self.counters_note = ""
+        reason = net.link_backend.reason if net.link_backend is not None else backend
+        recording.write_manifest(
+            folder,
+            {
+                "run_id": net.run_id,
+                "scenario": scenario.name,
+                "seed": scenario.seed,
+                "link_backend": backend,
+                "started": time.time(),
+                "compression": scenario.record.compression,
+                "images": scenario.record.images,
+                "versions": recording.software_versions(),
+                "host": recording.host_capabilities(reason),
+                "namespaces": {n.name: n.netns for n in net.nodes.values()},
+                "traces": sorted(
+                    {str(e.path) for e in scenario.timeline if isinstance(e, TraceEvent)}
+                ),
+                "timeline_events": len(scenario.timeline),
+            },
         )
+        recording.write_json(folder / "links.json", links_config(net, backend))
+
+    def start_counters(self, ros_ok: bool) -> None:
+        """Sample the link counters into `/links/counters` (userspace relays; the tc
+        backend's qdisc statistics are not read, as in run.json's link_counters)."""
+        counters = getattr(self.net.control, "counters", None)
+        if counters is None:
+            self.counters_note = "not recorded: the tc backend's qdisc counters are not read"
+            return
+        if not ros_ok:
+            self.counters_note = "not recorded: rclpy/edgeloc_interfaces not importable"
+            return
+        from edgeloc_interfaces.msg import LinkCounters
+        from rclpy.serialization import serialize_message
+
+        from nodes.ros.common import to_stamp
+
+        backend = self.net.control.backend  # type: ignore[union-attr]
+
+        def read() -> list[dict[str, Any]]:
+            return [
+                row
+                for link in self.net.links
+                for row in recording.counter_rows(link, counters(link))
+            ]
+
+        def encode(row: dict[str, Any], t: float) -> bytes:
+            return serialize_message(LinkCounters(stamp=to_stamp(t), backend=backend, **row))
+
+        self.part = recording.PartWriter(recording.part_path(self.folder, "orchestrator"))
+        self.sampler = recording.CounterSampler(self.part, read, encode)
+        self.sampler.sample()  # one sample now: the counters at the nodes' start
+        self.sampler.start()
+
+    def stop_counters(self) -> None:
+        """Stop sampling (before the links go away), close the part, and add the profiles the
+        timeline left on each link to links.json (`final_profiles`)."""
+        if self.sampler is not None:
+            self.sampler.stop()
+            self.sampler.sample()  # and one at the end
+            self.sampler = None
+            self._final_profiles()
+        if self.part is not None:
+            self.part.close()
+
+    def _final_profiles(self) -> None:
+        ctl, path = self.net.control, self.folder / "links.json"
+        if ctl is None:
+            return
+        try:
+            data = json.loads(path.read_text())
+            data["final_profiles"] = {
+                name: {d: ctl.profile(name, d).to_dict() for d in ("uplink", "downlink")}
+                for name in self.net.links
+            }
+            recording.write_json(path, data)
+        except (OSError, ValueError) as err:
+            self.progress(f"  warning: links.json not updated: {err}")
+
+    def finish(self, status: str, nodes: dict[str, Any] | None) -> None:
+        """Merge the parts into run.mcap (raises RecordingError if that fails)."""
+        try:
+            self.stop_counters()
+        except recording.RecordingError as err:
+            self.progress(f"  warning: {err}")
+        t = time.perf_counter()
+        notes = {"link_counters": self.counters_note} if self.counters_note else None
+        report = recording.finalise(self.folder, status, nodes=nodes, notes=notes)
+        size = report.path.stat().st_size
+        self.progress(
+            f"  recorded {report.messages} messages on {len(report.counts)} topics into "
+            f"{report.path} ({size / 1e6:.2f} MB) in {time.perf_counter() - t:.2f} s"
+            + (f"; link counters {self.counters_note}" if self.counters_note else "")
+        )
+
+
+def run_scenario(scenario: Scenario, runs_dir: Path, progress: Progress) -> RunResult:
+    """Run `scenario`; everything it creates is gone when this returns or raises. With
+    recording on, `run.mcap` is written either way; a raised exception carries `run_folder`
+    (once the folder exists)."""
+    run = _Run(scenario, runs_dir, progress)
+    status = "interrupted"
+    try:
+        result = run.run()
+        status = "ok" if result.ok else "failed: a vehicle could not reach its edge server"
+        return result
+    except BaseException as err:
+        if not isinstance(err, KeyboardInterrupt):
+            status = "failed: " + (str(err).strip().splitlines() or [type(err).__name__])[0]
+        if run.folder is not None:
+            with contextlib.suppress(AttributeError):
+                err.run_folder = run.folder  # type: ignore[attr-defined]
+        raise
+    finally:
+        if run.recording is not None:
+            failing = sys.exc_info()[0] is not None
+            try:
+                run.recording.finish(status, run.result.nodes if run.result else None)
+            except recording.RecordingError as err:
+                if not failing:
+                    raise
+                progress(f"  warning: {err}")  # the run's own error is the one to see
+
+
+class _Run:
+    """One run's steps; `folder`, `result` and `recording` stay readable after a failure."""
+
+    def __init__(self, scenario: Scenario, runs_dir: Path, progress: Progress) -> None:
+        self.scenario, self.runs_dir, self.progress = scenario, runs_dir, progress
+        self.folder: Path | None = None
+        self.result: RunResult | None = None
+        self.recording: Recording | None = None
+
+    def run(self) -> RunResult:
+        scenario, progress = self.scenario, self.progress
+        t0 = time.perf_counter()
+        with build(scenario, mode="run") as net:
+            t_up = time.perf_counter() - t0
+            result = RunResult(net.run_id, self.runs_dir / net.run_id, net.backend_text())
+            self.result = result
+            result.folder.mkdir(parents=True, exist_ok=False)
+            self.folder = result.folder
+            if net.state is not None:  # `testbed clean` finalises the recording from here
+                net.state.record_folder(result.folder)
+            if scenario.source is not None:
+                shutil.copyfile(scenario.source, result.folder / "scenario.yaml")
+            progress(
+                f"run {net.run_id}: {len(net.nodes)} namespaces, {len(net.links)} links up "
+                f"in {t_up * 1000:.0f} ms; link backend: {result.link_backend}"
+            )
+            if scenario.record.enabled:
+                self.recording = Recording(net, result.folder, result.link_backend, progress)
+            self._steps(net, result)
+            t1 = time.perf_counter()
+        result.timings_s = {
+            "up": t_up,
+            "down": time.perf_counter() - t1,
+            "total": time.perf_counter() - t0,
+        }
+        _write_json(result.folder / "connectivity.json", [r.to_dict() for r in result.connectivity])
+        _write_json(
+            result.folder / "run.json",
+            {
+                "scenario": scenario.name,
+                "source": str(scenario.source) if scenario.source else None,
+                "seed": scenario.seed,
+                "testbed_version": __version__,
+                **result.to_dict(),
+            },
+        )
+        return result
+
+    def _steps(self, net: Net, result: RunResult) -> None:
+        """Link test, connectivity, nodes + timeline (the network is up)."""
+        scenario, progress = self.scenario, self.progress
         watch = getattr(net.control, "watch", None)
         if watch is not None:
             watch()  # a relay that dies sets the failure `_check` raises within POLL_S
@@ -209,46 +427,34 @@ def run_scenario(scenario: Scenario, runs_dir: Path, progress: Progress) -> RunR
         if result.ok and not ros_ok:
             progress(f"  warning: EdgeLoc nodes not started: {ros_why}")
             result.nodes = {"skipped": ros_why}
-        if result.ok:
-            nodes = Supervisor(net, result.folder, progress)
-            before = link_counters(net)  # the link test's bytes are not the workload's
-            try:
-                if ros_ok:
-                    nodes.start()
-                _check(net)
-                player = play_timeline(net, result.folder, progress, watch=nodes.check)
-                result.timeline = {
-                    "events": len(scenario.timeline),
-                    "applied": len(player.applied),
-                    "lateness": player.lateness(),
-                    "file": "events.jsonl",
-                }
-            finally:
-                # Nodes stop before teardown (they write their stats); links still up.
-                if ros_ok:
-                    result.nodes = nodes.stop()
-                after = link_counters(net)
-                result.link_counters = {
-                    "since_link_creation": after,
-                    "during_nodes": counters_delta(before, after),
-                }
+        if not result.ok:
+            return
+        nodes = Supervisor(net, result.folder, progress)
+        before = link_counters(net)  # the link test's bytes are not the workload's
+        try:
             if ros_ok:
-                progress(node_line(result.nodes))
-        t1 = time.perf_counter()
-    result.timings_s = {
-        "up": t_up,
-        "down": time.perf_counter() - t1,
-        "total": time.perf_counter() - t0,
-    }
-    _write_json(result.folder / "connectivity.json", [r.to_dict() for r in result.connectivity])
-    _write_json(
-        result.folder / "run.json",
-        {
-            "scenario": scenario.name,
-            "source": str(scenario.source) if scenario.source else None,
-            "seed": scenario.seed,
-            "testbed_version": __version__,
-            **result.to_dict(),
-        },
-    )
-    return result
+                nodes.start()
+            _check(net)
+            if self.recording is not None:
+                self.recording.start_counters(ros_ok)
+            player = play_timeline(net, result.folder, progress, watch=nodes.check)
+            result.timeline = {
+                "events": len(scenario.timeline),
+                "applied": len(player.applied),
+                "lateness": player.lateness(),
+                "file": "events.jsonl",
+            }
+        finally:
+            # Nodes stop before teardown (they write their stats and close their MCAP
+            # parts); links still up for the last counters.
+            if ros_ok:
+                result.nodes = nodes.stop()
+            if self.recording is not None:
+                self.recording.stop_counters()
+            after = link_counters(net)
+            result.link_counters = {
+                "since_link_creation": after,
+                "during_nodes": counters_delta(before, after),
+            }
+        if ros_ok:
+            progress(node_line(result.nodes))

@@ -92,6 +92,8 @@ class RunState:
     pids: list[ProcessRef] = field(default_factory=list)
     cgroups: list[str] = field(default_factory=list)
     version: int = 1
+    #: The run's results folder (`runs/<id>`), once made: `clean` finalises its recording.
+    folder: str | None = None
 
     # ---- file --------------------------------------------------------------------------
 
@@ -120,6 +122,7 @@ class RunState:
             pids=[ProcessRef(**p) for p in d.get("pids", [])],
             cgroups=[str(c) for c in d.get("cgroups", [])],
             version=int(d.get("version", 1)),
+            folder=d.get("folder"),
         )
 
     def save(self) -> None:
@@ -149,6 +152,10 @@ class RunState:
         if path not in self.cgroups:
             self.cgroups.append(path)
             self.save()
+
+    def record_folder(self, folder: Path) -> None:
+        self.folder = str(Path(folder).resolve())
+        self.save()
 
     def set_phase(self, phase: Phase) -> None:
         self.phase = phase

@@ -11,8 +11,9 @@ Every process gets the run's ROS environment (`nodes.ros_env.RosEnv`: the run's 
 UDP-only Fast DDS with 4 MiB buffers, unicast peers beyond its gNB plus 127.0.0.1 for the
 participants of its own namespace), the run's node settings (`nodes/config.json`: the
 scenario's workload as `testbed.replay_cmd.replay_config` makes it, so a replay and a real run
-of one scenario use the same settings), a log `logs/<name>.log` and a stats file
-`nodes/<name>.json` it writes when stopped.
+of one scenario use the same settings), a log `logs/<name>.log`, a stats file
+`nodes/<name>.json` it writes when stopped and, when the scenario records, the MCAP part
+`parts/<name>.mcap` of everything it publishes (`testbed.recording`).
 
 CPU budgets: the processes of a vehicle share the cgroup `edgeloc/<run>/<vehicle>`, those of a
 core `edgeloc/<run>/<core>`. A real rclpy process cannot live on the scenario's 0.01 cores (the
@@ -50,7 +51,7 @@ from typing import Any
 
 from nodes.ros.common import READY, config_to_dict
 from nodes.ros_env import RosEnv, domain_id_for
-from testbed import cgroups
+from testbed import cgroups, recording
 from testbed.cgroups import CpuBudget
 from testbed.errors import BadInput, TestbedError
 from testbed.replay_cmd import replay_config
@@ -195,6 +196,7 @@ class Supervisor:
         topo = self.net.scenario.topology
         logs, stats = self.folder / "logs", self.folder / "nodes"
         base = ["--config", str(self.config_path), "--timeout", str(REQUEST_TIMEOUT_S)]
+        record = self.net.scenario.record
         out: list[NodeProcess] = []
 
         def add(host: str, role: str, module: str, extra: list[str], peers: list[str]) -> None:
@@ -202,6 +204,10 @@ class Supervisor:
             budget = self.budgets.get(host)
             if role in ("edge", "inference") and budget is not None and budget.compute:
                 extra = [*extra, "--compute-cgroup", str(budget.compute.path)]
+            if record.enabled and role != "edge":  # the edge serves an action, publishes nothing
+                extra = [*extra, "--record", str(recording.part_path(self.folder, name))]
+                if record.images:
+                    extra.append("--record-images")
             out.append(
                 NodeProcess(
                     name=name,

@@ -35,6 +35,8 @@ from nodes.edgeloc.replay import KalmanSettings, LearnerSettings, ReplayConfig
 DATASET_MARGIN_S = 60.0
 #: The line every node logs once it is ready; the supervisor waits for it.
 READY = "ready"
+#: Exit status of a node whose recording failed (the supervisor then fails the run).
+RECORDING_FAILED = 3
 
 T = TypeVar("T")
 
@@ -76,6 +78,10 @@ class NodeArgs:
     events: Path | None
     timeout_s: float
     compute_cgroup: Path | None = None
+    #: This process's MCAP part file (`testbed.recording`); None: record nothing.
+    record: Path | None = None
+    #: Also record camera frames (large; the scenario's `record.images`).
+    record_images: bool = False
 
     @classmethod
     def parse(cls, argv: Sequence[str] | None = None, prog: str = "") -> NodeArgs:
@@ -91,6 +97,12 @@ class NodeArgs:
             default=None,
             help="cgroup v1 directory whose `tasks` the DNN compute thread joins (its CPU budget)",
         )
+        p.add_argument(
+            "--record",
+            default=None,
+            help="record every message this node publishes into this MCAP part file",
+        )
+        p.add_argument("--record-images", action="store_true", help="also record camera frames")
         a = p.parse_args(argv)
         try:
             config = config_from_dict(json.loads(Path(a.config).read_text()))
@@ -106,6 +118,8 @@ class NodeArgs:
             events=Path(a.events) if a.events else None,
             timeout_s=a.timeout,
             compute_cgroup=Path(a.compute_cgroup) if a.compute_cgroup else None,
+            record=Path(a.record) if a.record else None,
+            record_images=a.record_images,
         )
 
 
@@ -223,12 +237,55 @@ class Stop:
         return self.event.wait(seconds)
 
 
-class RosContext:
-    """A running node: the rclpy node, the stop flag, and what to destroy before the node."""
+class RecordedPublisher:
+    """An rclpy publisher that also records each message it publishes (CDR bytes, logged at
+    publish time) into the process's MCAP part. Publisher-side recording: no subscription, so
+    recording adds no traffic to the emulated links."""
 
-    def __init__(self, node: Any, stop: Stop) -> None:
-        self.node, self.stop = node, stop
+    def __init__(self, publisher: Any, topic: str, msg_type: type, recorder: Any) -> None:
+        from rclpy.serialization import serialize_message
+
+        from testbed.recording import type_name_of
+
+        self._publisher, self.topic, self._recorder = publisher, topic, recorder
+        self.type_name = type_name_of(msg_type)
+        self._serialize = serialize_message
+
+    def publish(self, msg: Any) -> None:
+        self._publisher.publish(msg)
+        if self._recorder is None:
+            return
+        try:
+            self._recorder.write(self.topic, self.type_name, self._serialize(msg))
+        except Exception as err:
+            # Publishing may run on the executor thread, where an exception would only end
+            # that thread: exit now, so the supervisor fails the run quoting this line.
+            emit("error", message=f"recording {self.topic}: {err}")
+            os._exit(RECORDING_FAILED)
+
+    def get_subscription_count(self) -> int:
+        return self._publisher.get_subscription_count()
+
+
+class RosContext:
+    """A running node: the rclpy node, the stop flag, what to destroy before the node, and
+    the process's recorder (a `testbed.recording.PartWriter`, or None)."""
+
+    def __init__(self, node: Any, stop: Stop, recorder: Any = None) -> None:
+        self.node, self.stop, self.recorder = node, stop, recorder
         self._closers: list[Any] = []
+
+    def publisher(
+        self, msg_type: type, topic_name: str, depth: int, record: bool = True
+    ) -> RecordedPublisher:
+        """A publisher whose messages are recorded (unless `record` is False)."""
+        pub = self.node.create_publisher(msg_type, topic_name, depth)
+        return RecordedPublisher(pub, topic_name, msg_type, self.recorder if record else None)
+
+    @property
+    def recorded(self) -> dict[str, int]:
+        """Messages recorded per topic so far (for the node's stats file)."""
+        return dict(self.recorder.counts) if self.recorder is not None else {}
 
     def owns(self, entity: Any) -> Any:
         """Destroy `entity` (an action client/server) after the executor stopped; returns it."""
@@ -241,17 +298,21 @@ class RosContext:
 
 
 @contextmanager
-def ros_node(name: str, spin: bool = True) -> Iterator[RosContext]:
+def ros_node(name: str, spin: bool = True, record: Path | None = None) -> Iterator[RosContext]:
     """An initialised rclpy context with one node, spun by an executor thread (if `spin`), and
     torn down in the order Jazzy needs whatever the body does: stop flag, executor thread
-    joined, owned entities and the node destroyed, then `rclpy.shutdown()`."""
+    joined, owned entities and the node destroyed, then `rclpy.shutdown()`; last, the MCAP
+    part (`record`) is closed, after the last publish."""
     import rclpy
     from rclpy.executors import SingleThreadedExecutor
     from rclpy.signals import SignalHandlerOptions
 
+    from testbed.recording import PartWriter
+
+    recorder = PartWriter(record) if record is not None else None
     rclpy.init(signal_handler_options=SignalHandlerOptions.NO)
     stop = Stop()
-    ctx = RosContext(rclpy.create_node(name), stop)
+    ctx = RosContext(rclpy.create_node(name), stop, recorder)
     executor = SingleThreadedExecutor()
     executor.add_node(ctx.node)
     thread = None
@@ -274,6 +335,8 @@ def ros_node(name: str, spin: bool = True) -> Iterator[RosContext]:
         executor.shutdown()
         ctx.node.destroy_node()
         rclpy.shutdown()
+        if recorder is not None:
+            recorder.close()
 
 
 def run_main(main: Any) -> None:

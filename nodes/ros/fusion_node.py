@@ -140,9 +140,9 @@ def main() -> int:
 
     published: Counter[str] = Counter()
     stats: dict[str, Any] = {"node": "fusion_node", "vehicle": args.vehicle, "answers": 0}
-    with ros_node(f"{args.vehicle}_fusion") as ros:
+    with ros_node(f"{args.vehicle}_fusion", record=args.record) as ros:
         node = ros.node
-        out = node.create_publisher(PoseEstimate, topic(args.vehicle, "pose"), 100)
+        out = ros.publisher(PoseEstimate, topic(args.vehicle, "pose"), 100)
         first: list[float] = []
         per_second: list[int] = []
 
@@ -187,6 +187,7 @@ def main() -> int:
         ros.stop.wait(1e9)
         stats["first_pose_s"] = first[0] if first else None
     stats["published"] = dict(published)
+    stats["recorded"] = ros.recorded
     stats["frames_per_second"] = per_second
     stats["applied_edgeloc"] = est.applied
     stats["gated"] = dict(est.gated)

@@ -8,8 +8,10 @@ edge; wait for the result up to the timeout. An answer is published on `/<vehicl
 the learner is charged the request's own end-to-end time (loop start → answer), or the timeout
 when no answer came (a lost request brings no pose), as `nodes.edgeloc.replay` does.
 
-Also published: one SplitDecision per request (`/<vehicle>/split_decision`) and a
-DetectorEvent (`/<vehicle>/detector`) each time the KL change detector resets the learner.
+Also published: one SplitDecision per request (`/<vehicle>/split_decision`), one
+InferenceResult per request (`/<vehicle>/inference`: split, payload, head and edge compute time,
+latency, ok / timed out / error) and one DetectorEvent per update of the KL change detector
+(`/<vehicle>/detector`, `reset` true on the update that reset the learner).
 While no edge server has been discovered, no request is sent (counted as `no_server_s`): the
 fusion node goes on with VO alone, which is the paper's fault tolerance.
 """
@@ -28,6 +30,7 @@ import torch
 
 from nodes.edgeloc.bandit import AdaptiveSplitLearner
 from nodes.edgeloc.codec import encode
+from nodes.edgeloc.detector import ChangeEvent, KLChangeDetector
 from nodes.edgeloc.model import SPLITS, split_index
 from nodes.edgeloc.train import load_model
 from nodes.ros.common import (
@@ -103,6 +106,43 @@ def decision_msg(
     )
 
 
+def detector_msg(
+    vehicle: str,
+    det: KLChangeDetector,
+    arm: str,
+    event: ChangeEvent | None,
+    streaks: dict[str, int],
+    t: float,
+) -> Any:
+    """The DetectorEvent of the update `det` just made for `arm` (`event`: the reset it
+    confirmed, if any). `streaks` mirrors the detector's rule (KL above threshold on C updates
+    in a row) from its public figures; it is cleared with the detector on a reset."""
+    from edgeloc_interfaces.msg import DetectorEvent
+
+    if event is not None:
+        kl, consecutive = float(event.kl), det.consecutive
+        streaks.clear()
+        at_play = event.at_play
+    else:
+        last = det.last_kl(arm)
+        kl = math.nan if last is None else float(last)
+        if last is not None:  # the detector fitted both windows on this update
+            streaks[arm] = streaks.get(arm, 0) + 1 if last > det.threshold else 0
+        consecutive = streaks.get(arm, 0)
+        at_play = det.plays
+    return DetectorEvent(
+        stamp=to_stamp(t),
+        vehicle=vehicle,
+        arm=arm,
+        kl=kl,
+        threshold=det.threshold,
+        consecutive=consecutive,
+        required=det.consecutive,
+        reset=event is not None,
+        at_play=at_play,
+    )
+
+
 def main() -> int:
     args = NodeArgs.parse(prog="inference_request")
     cfg = args.config
@@ -133,9 +173,10 @@ def main() -> int:
         "payload_bytes": 0,
         "no_server_s": 0.0,
         "resets": [],
+        "detector_updates": 0,
         "compute_budget": compute.budget,
     }
-    with ros_node(f"{args.vehicle}_inference_request") as ros:
+    with ros_node(f"{args.vehicle}_inference_request", record=args.record) as ros:
         node, stop = ros.node, ros.stop
 
         def on_image(msg: Image) -> None:
@@ -144,11 +185,13 @@ def main() -> int:
             latest.put(int(msg.header.frame_id), from_stamp(msg.header.stamp), img)
 
         node.create_subscription(Image, topic(args.vehicle, "camera"), on_image, 10)
-        answers = node.create_publisher(PoseEstimate, topic(args.vehicle, "dnn_answer"), 50)
-        from edgeloc_interfaces.msg import SplitDecision
+        from edgeloc_interfaces.msg import InferenceResult, SplitDecision
 
-        decisions = node.create_publisher(SplitDecision, topic(args.vehicle, "split_decision"), 50)
-        detector = node.create_publisher(DetectorEvent, topic(args.vehicle, "detector"), 10)
+        answers = ros.publisher(PoseEstimate, topic(args.vehicle, "dnn_answer"), 50)
+        decisions = ros.publisher(SplitDecision, topic(args.vehicle, "split_decision"), 50)
+        detector = ros.publisher(DetectorEvent, topic(args.vehicle, "detector"), 50)
+        outcomes = ros.publisher(InferenceResult, topic(args.vehicle, "inference"), 50)
+        streaks: dict[str, int] = {}  # per arm: updates in a row with KL above threshold
         client = ros.owns(ActionClient(node, SplitInference, action_name(args.edge)))
         emit(READY, node="inference_request", action=action_name(args.edge))
         last_frame, last_latency = -1, math.nan
@@ -190,6 +233,7 @@ def main() -> int:
             played[split] += 1
             deadline = time.monotonic() + args.timeout_s
             pose, handle = None, None
+            edge_s, error, timed_out = math.nan, "", False
             sent = client.send_goal_async(goal)
             if _wait(sent, deadline, stop):
                 handle = sent.result()
@@ -197,15 +241,43 @@ def main() -> int:
                     res = handle.get_result_async()
                     if _wait(res, deadline, stop):
                         result = res.result().result
+                        edge_s = result.edge_compute_s
                         if result.ok:
                             p = result.pose.pose.pose
                             yaw = 2.0 * math.atan2(p.orientation.z, p.orientation.w)
                             pose = (p.position.x, p.position.y, yaw)
                         else:
+                            error = f"edge: {result.error}"
                             emit("edge-error", frame=frame, error=result.error)
+                    else:
+                        timed_out, error = True, "no result within the request timeout"
+                else:
+                    error = "goal rejected by the edge server"
+            else:
+                timed_out, error = True, "goal not acknowledged within the request timeout"
+            t_answer = time.time()
+
+            ok = pose is not None and not stop
+            if stop:  # every request gets its outcome, this one too (not charged, not fused)
+                error, timed_out = "node stopped before the answer was used", False
+            outcomes.publish(
+                InferenceResult(
+                    stamp=to_stamp(t_answer),
+                    vehicle=args.vehicle,
+                    frame_id=frame,
+                    split=split,
+                    split_index=goal.split_index,
+                    payload_bytes=len(blob),
+                    head_s=took,
+                    edge_compute_s=float(edge_s),
+                    latency_s=t_answer - t0 if ok else math.nan,
+                    ok=ok,
+                    timed_out=timed_out and not ok,
+                    error=error,
+                )
+            )
             if stop:
                 break
-            t_answer = time.time()
             if pose is None:
                 stats["lost"] += 1
                 cost = args.timeout_s
@@ -232,21 +304,14 @@ def main() -> int:
             if fixed:
                 continue
             event = learner.update(split, cost)
+            if learner.detector is not None:
+                # One DetectorEvent per detector update (a few per second), resets flagged.
+                detector.publish(
+                    detector_msg(args.vehicle, learner.detector, split, event, streaks, t_answer)
+                )
+                stats["detector_updates"] += 1
             if event is not None:
                 stats["resets"].append({"t": t_answer, "arm": event.arm, "kl": event.kl})
-                detector.publish(
-                    DetectorEvent(
-                        stamp=to_stamp(t_answer),
-                        vehicle=args.vehicle,
-                        arm=event.arm,
-                        kl=float(event.kl),
-                        threshold=lc.kl_threshold,
-                        consecutive=lc.consecutive,
-                        required=lc.consecutive,
-                        reset=True,
-                        at_play=event.at_play,
-                    )
-                )
                 emit("reset", arm=event.arm, kl=event.kl)
     compute.close()
     stats["end_s"] = time.time()
@@ -260,6 +325,7 @@ def main() -> int:
     stats["split_plays"] = {k: played[k] for k in cfg.splits}
     stats["mean_latency_s"] = {k: (float(np.mean(v)) if v else None) for k, v in lat.items()}
     stats["splits_known"] = list(SPLITS)
+    stats["recorded"] = ros.recorded
     write_stats(args.stats, stats)
     return 0
 

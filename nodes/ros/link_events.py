@@ -72,8 +72,8 @@ def main() -> int:
 
     follower = LineFollower(args.events)
     stats: dict[str, Any] = {"node": "link_events", "published": 0, "bad_lines": 0}
-    with ros_node("link_events", spin=False) as ros:
-        pub = ros.node.create_publisher(LinkEvent, "/links/events", 20)
+    with ros_node("link_events", spin=False, record=args.record) as ros:
+        pub = ros.publisher(LinkEvent, "/links/events", 20)
         emit(READY, node="link_events", file=str(args.events))
         while not ros.stop.wait(POLL_S):
             for line in follower.lines():
@@ -82,6 +82,7 @@ def main() -> int:
                     stats["published"] += 1
                 except (ValueError, TypeError):
                     stats["bad_lines"] += 1
+    stats["recorded"] = ros.recorded
     write_stats(args.stats, stats)
     return 0
 

@@ -62,11 +62,12 @@ def main() -> int:
     from sensor_msgs.msg import Image
 
     stats: dict[str, object] = {"node": "vehicle_sensor", "vehicle": args.vehicle, "frames": 0}
-    with ros_node(f"{args.vehicle}_sensor", spin=False) as ros:
-        node, stop = ros.node, ros.stop
-        camera = node.create_publisher(Image, topic(args.vehicle, "camera"), 10)
-        vo_pub = node.create_publisher(PoseEstimate, topic(args.vehicle, "vo"), 50)
-        gt_pub = node.create_publisher(PoseEstimate, topic(args.vehicle, "gt"), 50)
+    with ros_node(f"{args.vehicle}_sensor", spin=False, record=args.record) as ros:
+        stop = ros.stop
+        # Camera frames are recorded only when the scenario asks (`record.images`).
+        camera = ros.publisher(Image, topic(args.vehicle, "camera"), 10, args.record_images)
+        vo_pub = ros.publisher(PoseEstimate, topic(args.vehicle, "vo"), 50)
+        gt_pub = ros.publisher(PoseEstimate, topic(args.vehicle, "gt"), 50)
         emit(READY, node="vehicle_sensor", frames=len(dataset), rate_hz=dataset.rate_hz)
         deadline = time.monotonic() + WAIT_FOR_SUBSCRIBERS_S
         while not stop and time.monotonic() < deadline:
@@ -97,6 +98,7 @@ def main() -> int:
             stop.wait(1e9)  # stay up until stopped: the supervisor treats an exit as a failure
         stats["end_s"] = time.time()
         stats["max_lateness_s"] = late_max
+    stats["recorded"] = ros.recorded
     write_stats(args.stats, stats)
     return 0
 
