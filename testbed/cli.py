@@ -134,7 +134,10 @@ def run(
     """Run a scenario: build its network, check every vehicle reaches its edge server with real
     packets, run the EdgeLoc ROS 2 nodes in the namespaces while the timeline plays, tear down,
     and leave runs/<run-id>/ (run.json with node stats and link byte counters, logs/<node>.log,
-    nodes/<node>.json, connectivity.json, events.jsonl, scenario.yaml).
+    nodes/<node>.json, connectivity.json, events.jsonl, scenario.yaml, run.mcap) with the
+    report built from run.mcap (report.html, report.md, summary.json, plots/, trajectories/);
+    the last lines are the headline numbers and the report's path. A run that fails or is
+    interrupted still gets a (partial) report when anything was recorded.
 
     Example: testbed run scenarios/default.yaml
     """
@@ -147,19 +150,100 @@ def run(
         raise _fail(err) from None
     try:
         result = run_scenario(scenario, runs_dir, progress=con.plain)
-    except TestbedError as err:
+    except (TestbedError, KeyboardInterrupt) as err:
+        folder = getattr(err, "run_folder", None)
+        if folder is not None and scenario.report.enabled:
+            _report_after_run(Path(folder), scenario.report.formats, scenario.report.plots)
+        if isinstance(err, KeyboardInterrupt):
+            raise
         raise _fail(err) from None
     if not result.ok:
         con.error(
             f"run {result.run_id}: a vehicle could not reach its edge server "
             f"(see {result.folder / 'connectivity.json'})"
         )
+    else:
+        t = result.timings_s
+        con.ok(
+            f"run {result.run_id} ok: every vehicle reached its edge server; up "
+            f"{t['up'] * 1000:.0f} ms, down {t['down'] * 1000:.0f} ms; results in {result.folder}/"
+        )
+    if scenario.report.enabled:  # last: the headline numbers and where the report is
+        _report_after_run(result.folder, scenario.report.formats, scenario.report.plots)
+    if not result.ok:
         raise typer.Exit(EXIT_FAILED)
-    t = result.timings_s
-    con.ok(
-        f"run {result.run_id} ok: every vehicle reached its edge server; "
-        f"up {t['up'] * 1000:.0f} ms, down {t['down'] * 1000:.0f} ms; results in {result.folder}/"
-    )
+
+
+def _report_after_run(folder: Path, formats: tuple[str, ...], plots: bool) -> None:
+    """Build a run's report from its run.mcap and print the headline and the report's path.
+    A report that cannot be built is a warning: the run's own outcome decides the exit code."""
+    from reports.build import ReportInputError, build_report
+
+    if not (folder / "run.mcap").is_file():
+        con.warn(f"no report: {folder} has no run.mcap (record.enabled off, or nothing recorded)")
+        return
+    try:
+        built = build_report(folder, formats=formats, plots=plots)
+    except ReportInputError as err:
+        con.warn(f"no report: {err}")
+        return
+    except Exception as err:  # a report bug must not hide the run's result
+        con.warn(f"the report of {folder} could not be built: {type(err).__name__}: {err}")
+        return
+    con.plain(built.headline)
+    con.plain(f"report: {built.main_file}" + (" (partial)" if built.partial else ""))
+
+
+@app.command()
+def report(
+    run_folder: Annotated[
+        Path,
+        typer.Argument(
+            help="A run folder holding run.mcap (or a run id under runs/).", show_default=False
+        ),
+    ],
+    formats: Annotated[
+        str, typer.Option("--formats", help="Comma-separated: html, md, json.")
+    ] = "html,md,json",
+    no_plots: Annotated[bool, typer.Option("--no-plots", help="Skip the figures.")] = False,
+) -> None:
+    """Build a run's report from its run.mcap alone: report.html (self-contained, figures
+    embedded), report.md, summary.json, plots/*.png and trajectories/<vehicle>/*.tum (TUM, for
+    evo). Rebuilding gives the same summary.json; a recording cut short gives a partial report
+    that says so.
+
+    Examples:
+
+      testbed report runs/4a2cf3
+
+      testbed report 4a2cf3 --formats json      # just summary.json
+
+    Exits 2 when the folder has no readable run.mcap.
+    """
+    from reports.build import FORMATS, ReportInputError, build_report
+
+    folder = run_folder
+    if not folder.exists() and not folder.is_absolute() and (Path("runs") / folder).is_dir():
+        folder = Path("runs") / folder  # a bare run id
+    wanted = tuple(f.strip() for f in formats.split(",") if f.strip())
+    bad = [f for f in wanted if f not in FORMATS]
+    if bad or not wanted:
+        con.error(
+            f"--formats: unknown {', '.join(bad) or '(none given)'}; use {', '.join(FORMATS)}"
+        )
+        raise typer.Exit(EXIT_BAD_INPUT)
+    if not folder.is_dir():
+        con.error(f"{run_folder}: no such run folder")
+        raise typer.Exit(EXIT_BAD_INPUT)
+    try:
+        built = build_report(folder, formats=wanted, plots=not no_plots)
+    except ReportInputError as err:
+        con.error(str(err))
+        raise typer.Exit(EXIT_BAD_INPUT) from None
+    for line in built.summary["recording"]["problems"]:
+        con.warn(line)
+    con.plain(built.headline)
+    con.ok(f"report: {built.main_file}" + (" (partial)" if built.partial else ""))
 
 
 @app.command()
@@ -181,6 +265,67 @@ def replay(
     code = replay_command(file, runs_dir, json_out=json_out)
     if code:
         raise typer.Exit(code)
+
+
+@app.command()
+def sweep(
+    file: ScenarioFile,
+    sets: Annotated[
+        list[str],
+        typer.Option(
+            "--set",
+            help="KEY=V1,V2,...: a scenario field (dotted path) and its values; repeat for a "
+            "grid. Values are written as in the YAML (8ms, 20mbit, 0.5%, [image,conv3]).",
+            show_default=False,
+        ),
+    ],
+    real: Annotated[
+        bool, typer.Option("--real", help="Run each variant for real (testbed run; root).")
+    ] = False,
+    out: Annotated[
+        Path | None,
+        typer.Option("--out", help="Report folder (default: runs/sweep-<id>/).", file_okay=False),
+    ] = None,
+    duration: Annotated[
+        str | None,
+        typer.Option(
+            "--duration",
+            help="Shorten every variant to this length (e.g. 10s); timeline times and outage "
+            "lengths scale with it.",
+            show_default=False,
+        ),
+    ] = None,
+) -> None:
+    """Run a grid of variants of a scenario (offline replay, or real runs with --real) and
+    write one comparison: DIR/sweep.json, sweep.md (variant values -> per-method total and
+    mean error, EdgeLoc's reductions, split shares, mean latency) and sweep.png.
+
+    Keys: dotted paths into the scenario (workload.learner.window, links.air.uplink.delay,
+    topology.vehicles.av1.cpu, timeline[1].uplink); links.<link>.<direction>.<field> changes
+    one link (an entry of links.overrides). Every variant is checked like `testbed validate`
+    before anything runs.
+
+    Examples:
+
+      testbed sweep scenarios/latency_sweep.yaml --set links.air.uplink.delay=2ms,20ms,50ms
+
+      testbed sweep scenarios/default.yaml --set workload.learner.window=20,100
+      --set timeline[1].uplink=4mbit,8mbit --out runs/window-vs-squeeze
+
+      sudo testbed sweep scenarios/smoke.yaml --set links.av1-gnb1.uplink.loss=0%,2% --real
+    """
+    from testbed.sweep import run_sweep
+
+    try:
+        report = run_sweep(file, sets, out=out, real=real, progress=con.plain, duration=duration)
+    except TestbedError as err:
+        raise _fail(err) from None
+    for name in ("sweep.md", "sweep.json", "sweep.png"):
+        con.plain(f"wrote {report.out / name}")
+    if report.failed:
+        con.error(f"{len(report.failed)} variant row(s) failed (see sweep.md)")
+        raise typer.Exit(EXIT_FAILED)
+    con.ok(f"sweep done: {len({r.index for r in report.rows})} variant(s) in {report.wall_s:.1f} s")
 
 
 @app.command("link-test")
@@ -269,14 +414,25 @@ def clean(
     """Remove what dead runs left: namespaces, links, qdiscs, TUN devices, processes, cgroups.
 
     Only this project's resources are touched (names prefixed 'el-' and runs in its state dir).
+    A run whose orchestrator was killed gets its run.mcap: the parts its nodes recorded are
+    merged once they are stopped.
     """
+    from testbed.recording import finalise_orphans, unfinished_folders
     from testbed.topology import clean as clean_runs
 
     try:
+        folders = unfinished_folders(include_detached=all_runs)  # before state files go
         report = clean_runs(include_detached=all_runs)
     except TestbedError as err:
         raise _fail(err) from None
     con.ok(report)
+    failed = False
+    for line in finalise_orphans(folders):
+        bad = line.startswith("error: ")
+        failed |= bad
+        (con.error if bad else con.ok)(line.removeprefix("error: "))
+    if failed:
+        raise typer.Exit(EXIT_FAILED)
 
 
 @app.command()

@@ -1,0 +1,724 @@
+"""`build_report(run_folder)`: read runs/<id>/run.mcap and write the report beside it.
+
+Writes (formats as the scenario's `report.formats`, all by default): `summary.json` (keys in
+`reports.summary`), `report.md`, `report.html` (self-contained), `plots/*.png`, and
+`trajectories/<vehicle>/{gt,<method>}.tum` (TUM format, for evo: `evo_ape tum gt.tum
+edgeloc.tum`). Only the MCAP is read, so the report can be rebuilt anywhere from the file
+alone; a recording cut short gives a report that says it is partial, and anything not
+recorded is named as such rather than failing the build.
+"""
+
+from __future__ import annotations
+
+import shutil
+from collections.abc import Iterable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from nodes.edgeloc.metrics import write_tum
+from reports.document import Code, Document, Image, Para, Section, Table, to_markdown
+from reports.html import to_html
+from reports.mcapread import MCAP_NAME, ReportInputError, RunData, read_run
+from reports.plots import Plot, draw_all, safe
+from reports.summary import method_errors, summarize, summary_json
+
+FORMATS = ("html", "md", "json")
+
+
+@dataclass
+class Report:
+    """What `build_report` wrote, and the headline line `testbed run` prints last."""
+
+    folder: Path
+    headline: str
+    partial: bool
+    status: str
+    summary: dict[str, Any]
+    files: list[Path] = field(default_factory=list)
+
+    @property
+    def html(self) -> Path | None:
+        p = self.folder / "report.html"
+        return p if p in self.files else None
+
+    @property
+    def main_file(self) -> Path:
+        """The file to point a person at: the HTML report, else the Markdown, else the JSON."""
+        for name in ("report.html", "report.md", "summary.json"):
+            if self.folder / name in self.files:
+                return self.folder / name
+        return self.folder
+
+
+# ---- formatting -----------------------------------------------------------------------------
+
+
+def _f(x: Any, spec: str = "{:.3f}") -> str:
+    if x is None:
+        return "-"
+    if isinstance(x, bool):
+        return "yes" if x else "no"
+    if isinstance(x, float | int):
+        return spec.format(x)
+    return str(x)
+
+
+def _pct(x: Any) -> str:
+    return "-" if x is None else f"{100 * x:.0f}%"
+
+
+def _ms(x: Any) -> str:
+    return "-" if x is None else f"{x * 1e3:.1f}"
+
+
+def _not_recorded(what: str, why: str = "") -> Para:
+    return Para(f"Not recorded: {what}" + (f" ({why})." if why else "."), "note")
+
+
+# ---- sections -------------------------------------------------------------------------------
+
+
+def _overview(data: RunData, s: dict[str, Any]) -> Section:
+    sec = Section("Run")
+    if s["partial"]:
+        why = "; ".join(data.problems) or f"the run ended with status {s['status']!r}"
+        sec.add(
+            Para(
+                f"PARTIAL REPORT: the recording does not cover the whole run ({why}). Every "
+                "figure below covers only what was recorded.",
+                "warning",
+            )
+        )
+    if str(s["status"]).startswith("failed"):
+        why = str(s["status"]).removeprefix("failed").lstrip(": ") or "no reason recorded"
+        sec.add(Para(f"The run FAILED: {why}", "warning"))
+    run = s["run"]
+    keys = ["run_id", "scenario", "seed", "status", "link_backend", "started", "ended"]
+    keys += ["duration_s", "testbed_version", "python", "ros", "torch", "kernel"]
+    rows = [[k, _f(run.get(k), "{:g}")] for k in keys if k in run]
+    rows += [
+        [k, _f(v, "{:g}")]
+        for k, v in run.items()
+        if k not in keys and not isinstance(v, dict | list)
+    ]
+    if rows:
+        sec.add(Table(["field", "value"], rows))
+    else:
+        sec.add(_not_recorded("the run's metadata (edgeloc.run)"))
+    backend = run.get("link_backend")
+    sec.add(Para(f"Link backend that ran: {backend}" if backend else "Link backend: not recorded."))
+    for k, v in run.items():
+        if isinstance(v, dict | list) and v:
+            rows = [[str(a), _f(b, "{:g}")] for a, b in v.items()] if isinstance(v, dict) else []
+            if rows:
+                sec.add(Table([k, "value"], rows, caption=k.replace("_", " ")))
+            else:
+                sec.add(Code("\n".join(str(x) for x in v), caption=k))
+    return sec
+
+
+def _failures(s: dict[str, Any]) -> Section | None:
+    if not s["failures"]:
+        return None
+    # In a run that ended "ok", a non-zero exit is a node that had to be killed at the stop.
+    ok = s["status"] == "ok"
+    sec = Section("Nodes that did not exit cleanly" if ok else "Failed nodes")
+    for f in s["failures"]:
+        sec.add(
+            Para(
+                f"{f['process']} (namespace {f['namespace'] or '-'}) "
+                + (
+                    "has no exit code recorded"
+                    if f["exit_code"] is None
+                    else f"exited with code {f['exit_code']}"
+                )
+                + ".",
+                "warning",
+            )
+        )
+        if f["last_log_lines"]:
+            sec.add(
+                Code("\n".join(f["last_log_lines"]), caption=f"last log lines of {f['process']}")
+            )
+        else:
+            sec.add(_not_recorded(f"the log lines of {f['process']}"))
+    return sec
+
+
+def _method_table(methods: dict[str, Any], caption: str = "") -> Table:
+    rows = []
+    for m, b in methods.items():
+        p, h = b["position_m"] or {}, b["heading_deg"] or {}
+        rows.append(
+            [m, str(b["frames"]), str(b["missing_frames"])]
+            + [_f(p.get(k)) for k in ("total", "mean", "median", "rmse", "p95", "max")]
+            + [_f(h.get(k), "{:.2f}") for k in ("mean", "median", "rmse", "p95", "max")]
+        )
+    heads = ["method", "frames", "missing", "total m", "mean m", "median m", "RMSE m", "p95 m"]
+    heads += ["max m", "yaw mean°", "yaw median°", "yaw RMSE°", "yaw p95°", "yaw max°"]
+    return Table(heads, rows, caption)
+
+
+def _accuracy(s: dict[str, Any], plots: dict[str, Plot | None]) -> Section:
+    sec = Section("Accuracy per method")
+    if not s["methods"]:
+        return sec.add(
+            _not_recorded("poses with ground truth", "/<vehicle>/gt and /<vehicle>/pose")
+        )
+    sec.add(
+        Para(
+            "Errors per frame against ground truth on the same frame id (no alignment), "
+            "position in metres and heading in degrees; 'missing': ground-truth frames the "
+            "method published no pose for."
+        ),
+        _method_table(s["methods"], "all vehicles"),
+    )
+    if len(s["per_vehicle"]) > 1:
+        for v, pv in s["per_vehicle"].items():
+            sec.add(_method_table(pv["methods"], v))
+    for key in ("errors_over_time", "error_boxplot"):
+        if plots.get(key):
+            sec.add(Image(plots[key]))  # type: ignore[arg-type]
+    return sec
+
+
+def _paper(s: dict[str, Any]) -> Section:
+    pc = s["paper_comparison"]
+    sec = Section("Against the paper (Oxford RobotCar, total position error)")
+    sec.add(
+        Table(
+            ["method", "paper total m", "ours total m"],
+            [
+                [t["method"], _f(t["paper"], "{:.2f}"), _f(t["ours"], "{:.2f}")]
+                for t in pc["totals"]
+            ],
+        ),
+        Table(
+            ["EdgeLoc's reduction vs", "paper %", "ours %"],
+            [
+                [r["versus"], _f(r["paper_pct"], "{:.2f}"), _f(r["ours_pct"], "{:.2f}")]
+                for r in pc["reductions"]
+            ],
+        ),
+        Para(
+            "Totals are sums over different drives (the paper's RobotCar run, our synthetic "
+            "drive), so compare the reductions, not the totals."
+        ),
+    )
+    return sec
+
+
+def _trajectories(data: RunData, plots: dict[str, Plot | None], tum: list[Path]) -> Section:
+    sec = Section("Trajectories")
+    shown = False
+    for v in data.vehicles:
+        p = plots.get(f"trajectory:{v}")
+        if p:
+            sec.add(Image(p))
+            shown = True
+    if not shown:
+        sec.add(_not_recorded("poses"))
+    if tum:
+        names = ", ".join(str(p) for p in tum)
+        sec.add(
+            Para(
+                f"TUM files for evo: {names}. Example: evo_ape tum gt.tum edgeloc.tum "
+                "(in trajectories/<vehicle>/)."
+            )
+        )
+    return sec
+
+
+def _learner(data: RunData, s: dict[str, Any], plots: dict[str, Plot | None]) -> Section:
+    sec = Section("Split-point learner")
+    lr = s["learner"]
+    if not lr["decisions"]:
+        sec.add(_not_recorded("split decisions", "/<vehicle>/split_decision"))
+    else:
+        sec.add(
+            Para(
+                f"{lr['decisions']} decisions, {lr['switches']} split changes; rules: "
+                + ", ".join(f"{k} {v}" for k, v in lr["rules"].items())
+                + "."
+            ),
+            Table(
+                ["split", "share of decisions"],
+                [[k, f"{100 * v:.1f}%"] for k, v in lr["split_share"].items()],
+            ),
+        )
+    if lr["phases"]:
+        sec.add(
+            Table(
+                [
+                    "from s",
+                    "to s",
+                    "plays",
+                    "most played",
+                    "share",
+                    "fastest in hindsight",
+                    "its share",
+                    "in 2nd half",
+                    "mean latency per split ms",
+                ],
+                [
+                    [
+                        _f(ph["start_s"], "{:.2f}"),
+                        _f(ph["end_s"], "{:.2f}"),
+                        str(ph["plays"]),
+                        _f(ph["chosen"]),
+                        _pct(ph["share"].get(ph["chosen"])) if ph["chosen"] else "-",
+                        _f(ph["best_in_hindsight"]),
+                        _pct(ph["share_best"]),
+                        _pct(ph["share_best_second_half"]),
+                        ", ".join(f"{k} {v * 1e3:.1f}" for k, v in ph["mean_latency_s"].items()),
+                    ]
+                    for ph in lr["phases"]
+                ],
+                caption="per network phase (between applied timeline events), vehicles pooled",
+            )
+        )
+    for v in data.vehicles:
+        p = plots.get(f"split:{v}")
+        if p:
+            sec.add(Image(p))
+    if lr["detector_updates"] == 0 and not any(vd.detector for vd in data.vehicles.values()):
+        sec.add(_not_recorded("change-detector updates", "/<vehicle>/detector"))
+    elif lr["resets"]:
+        sec.add(
+            Table(
+                ["vehicle", "t (s)", "arm", "KL", "at play"],
+                [
+                    [
+                        r["vehicle"],
+                        _f(r["t_s"], "{:.2f}"),
+                        r["arm"],
+                        _f(r["kl"], "{:.3f}"),
+                        str(r["at_play"]),
+                    ]
+                    for r in lr["resets"]
+                ],
+                caption=f"detector resets ({lr['detector_updates']} detector updates)",
+            )
+        )
+    else:
+        sec.add(Para(f"No detector reset in {lr['detector_updates']} detector updates."))
+    return sec
+
+
+def _latency(s: dict[str, Any], plots: dict[str, Plot | None]) -> Section:
+    sec = Section("Latency per split")
+    lat = s["latency"]
+    if lat["source"] is None:
+        return sec.add(_not_recorded("inference results", "/<vehicle>/inference"))
+    rows = []
+    for k, b in lat["per_split"].items():
+        ls = b["latency_s"] or {}
+        rows.append(
+            [k, str(b["requests"]), str(b["answers"]), str(b["timed_out"]), str(b["errors"])]
+            + [_ms(ls.get(q)) for q in ("mean", "median", "p95", "max")]
+            + [
+                _f(b["mean_payload_bytes"], "{:.0f}"),
+                _ms(b["mean_head_s"]),
+                _ms(b["mean_edge_compute_s"]),
+            ]
+        )
+    sec.add(
+        Table(
+            [
+                "split",
+                "requests",
+                "answers",
+                "timed out",
+                "errors",
+                "mean ms",
+                "median ms",
+                "p95 ms",
+                "max ms",
+                "payload B",
+                "head ms",
+                "edge ms",
+            ],
+            rows,
+        )
+    )
+    if plots.get("latency_per_split"):
+        sec.add(Image(plots["latency_per_split"]))  # type: ignore[arg-type]
+    return sec
+
+
+def _acc_lat(s: dict[str, Any], plots: dict[str, Plot | None]) -> Section:
+    sec = Section("Accuracy against latency")
+    a = s["accuracy_vs_latency"]
+    if not a or not a["bins"]:
+        return sec.add(_not_recorded("EdgeLoc poses with a DNN answer age"))
+    sec.add(
+        Para(f"{a['frames']} EdgeLoc frames with a DNN answer; Pearson r = {_f(a['pearson_r'])}."),
+        Table(
+            ["answer age ms", "frames", "median error m", "mean error m"],
+            [
+                [
+                    f"{b['latency_lo_s'] * 1e3:.1f}-{b['latency_hi_s'] * 1e3:.1f}",
+                    str(b["frames"]),
+                    _f(b["median_error_m"]),
+                    _f(b["mean_error_m"]),
+                ]
+                for b in a["bins"]
+            ],
+            caption="quartiles of the answer age",
+        ),
+    )
+    if plots.get("accuracy_vs_latency"):
+        sec.add(Image(plots["accuracy_vs_latency"]))  # type: ignore[arg-type]
+    return sec
+
+
+def _realtime(s: dict[str, Any], plots: dict[str, Plot | None]) -> Section:
+    sec = Section("Real-time deadlines")
+    rt = s["realtime"]
+    if not rt["vehicles"]:
+        sec.add(_not_recorded("fused poses with ground-truth frames"))
+    else:
+        sec.add(
+            Para(
+                "A frame misses its deadline when its fused pose was never published, or was "
+                "published (its MCAP log time: the recorder writes on the publisher's side) "
+                "more than one frame period after the frame's capture."
+            ),
+            Table(
+                [
+                    "vehicle",
+                    "method",
+                    "rate Hz",
+                    "frames",
+                    "poses",
+                    "missing",
+                    "late",
+                    "miss %",
+                    "median delay ms",
+                    "p95 delay ms",
+                    "max delay ms",
+                    "longest interval ms",
+                ],
+                [
+                    [
+                        v,
+                        r["method"],
+                        _f(r["rate_hz"], "{:g}"),
+                        str(r["frames_expected"]),
+                        str(r["poses"]),
+                        str(r["missing"]),
+                        str(r["late"]),
+                        _f(r["miss_pct"], "{:.2f}"),
+                        _ms((r["delay_s"] or {}).get("median")),
+                        _ms((r["delay_s"] or {}).get("p95")),
+                        _ms((r["delay_s"] or {}).get("max")),
+                        _ms(r["max_interval_s"]),
+                    ]
+                    for v, r in rt["vehicles"].items()
+                ],
+            ),
+        )
+    for proc, figures in rt["reported_by_nodes"].items():
+        sec.add(
+            Table(
+                ["figure", "value"],
+                [[k, _f(v, "{:g}")] for k, v in figures.items()],
+                caption=f"reported by {proc}",
+            )
+        )
+    if plots.get("realtime"):
+        sec.add(Image(plots["realtime"]))  # type: ignore[arg-type]
+    return sec
+
+
+def _gaps(s: dict[str, Any]) -> Section:
+    sec = Section("Gaps in DNN answers")
+    if not s["dnn_gaps"]:
+        return sec.add(_not_recorded("DNN answers", "/<vehicle>/dnn_answer"))
+    for v, g in s["dnn_gaps"].items():
+        if not g["gaps"]:
+            sec.add(
+                Para(f"{v}: {g['answers']} answers, no gap longer than {g['threshold_s']:.2f} s.")
+            )
+            continue
+        sec.add(
+            Table(
+                ["where", "from s", "to s", "length s", "fused poses meanwhile"],
+                [
+                    [
+                        x["where"],
+                        _f(x["start_s"], "{:.2f}"),
+                        _f(x["end_s"], "{:.2f}"),
+                        _f(x["duration_s"], "{:.2f}"),
+                        str(x["fused_poses"]),
+                    ]
+                    for x in g["gaps"]
+                ],
+                caption=(
+                    f"{v}: {g['answers']} answers; spans over {g['threshold_s']:.2f} s without "
+                    "one (EdgeLoc ran on VO alone meanwhile)"
+                ),
+            )
+        )
+    return sec
+
+
+def _linktest_rows(lt: dict[str, Any]) -> list[list[str]]:
+    rows = []
+    for link in lt.get("links", []):
+        rtt = f"{_f(link.get('rtt_median_ms'), '{:.2f}')}/{_f(link.get('rtt_p99_ms'), '{:.2f}')}"
+        for d in link.get("directions", []):
+            checks = "; ".join(
+                f"{v.get('what')} {_f(v.get('measured'), '{:.3g}')} vs "
+                f"{_f(v.get('expected'), '{:.3g}')} ({v.get('tolerance')})"
+                + ("" if v.get("ok") else " OUT")
+                for v in d.get("verdicts", [])
+            )
+            rows.append(
+                [
+                    str(link.get("link")),
+                    str(d.get("direction")),
+                    rtt,
+                    _f(d.get("baseline_ms")),
+                    f"{_f(d.get('owd_median_ms'))}/{_f(d.get('owd_p99_ms'), '{:.2f}')}",
+                    _f(d.get("jitter_sd_ms"), "{:.2f}"),
+                    _f(d.get("tcp_mbit"), "{:.2f}"),
+                    _f(d.get("udp_mbit"), "{:.2f}"),
+                    f"{_f(d.get('loss_pct'), '{:.2f}')} of {d.get('loss_packets', '-')}",
+                    "ok" if d.get("ok") else "OUT",
+                    checks,
+                ]
+            )
+    return rows
+
+
+def _links(s: dict[str, Any], plots: dict[str, Plot | None]) -> Section:
+    sec = Section("Links")
+    ls = s["links"]
+    sec.add(Para(f"Link backend: {ls['backend'] or 'not recorded'}."))
+    tl = ls.get("timeline") or {}
+    if tl:
+        late = tl.get("lateness") if isinstance(tl.get("lateness"), dict) else {}
+        sec.add(
+            Para(
+                f"Timeline: {tl.get('events', '-')} event(s) in the scenario, "
+                f"{tl.get('applied', '-')} applied, {tl.get('failed', '-')} failed; lateness "
+                f"median {_f(late.get('median_ms'), '{:.2f}')} ms, p99 "
+                f"{_f(late.get('p99_ms'), '{:.2f}')} ms, max {_f(late.get('max_ms'), '{:.2f}')} ms."
+            )
+        )
+    if ls["events"]:
+        sec.add(
+            Table(
+                ["t s", "scheduled s", "late ms", "action", "target", "direction", "changes"],
+                [
+                    [
+                        _f(e["t_s"], "{:.2f}"),
+                        _f(e["scheduled_s"], "{:.2f}"),
+                        _ms(e["lateness_s"]),
+                        e["action"],
+                        e["target"],
+                        e["direction"],
+                        ", ".join(f"{k}={v}" for k, v in e["changes"].items()),
+                    ]
+                    for e in ls["events"]
+                ],
+                caption="timeline events applied to the links",
+            )
+        )
+    else:
+        sec.add(_not_recorded("link events", "/links/events"))
+    if ls["rates"]:
+        sec.add(
+            Table(
+                [
+                    "link",
+                    "dir",
+                    "backend",
+                    "samples",
+                    "mean Mbit/s",
+                    "max Mbit/s",
+                    "bytes",
+                    "dropped pkts",
+                ],
+                [
+                    [
+                        r["link"],
+                        r["direction"],
+                        r["backend"],
+                        str(r["samples"]),
+                        _f(r["mean_mbit"], "{:.3f}"),
+                        _f(r["max_mbit"], "{:.3f}"),
+                        _f(r["bytes_out"], "{:.0f}"),
+                        _f(r["packets_dropped"], "{:.0f}"),
+                    ]
+                    for r in ls["rates"]
+                ],
+                caption="delivered traffic per link direction (counter differences)",
+            )
+        )
+        if plots.get("link_rates"):
+            sec.add(Image(plots["link_rates"]))  # type: ignore[arg-type]
+    else:
+        sec.add(_not_recorded("link counters", "/links/counters"))
+    lt = ls["linktest"]
+    if lt:
+        verdict = "every link within tolerance" if lt.get("ok") else "a link is OUT of tolerance"
+        sec.add(
+            Table(
+                [
+                    "link",
+                    "dir",
+                    "rtt ms med/p99",
+                    "base ms",
+                    "owd ms med/p99",
+                    "sd ms",
+                    "tcp Mbit/s",
+                    "udp Mbit/s",
+                    "loss %",
+                    "ok",
+                    "checks",
+                ],
+                _linktest_rows(lt),
+                caption=f"link self-test ({verdict}; backend {lt.get('backend', '-')})",
+            )
+        )
+    elif str(ls.get("linktest_ran")).lower() == "false":
+        sec.add(Para("The link self-test did not run (the scenario's report.link_test is off)."))
+    else:
+        sec.add(_not_recorded("the link self-test", "no linktest.json attachment"))
+    return sec
+
+
+def _nodes(s: dict[str, Any]) -> Section:
+    sec = Section("Nodes")
+    nodes = s["nodes"]
+    if not nodes:
+        return sec.add(_not_recorded("node processes", "metadata edgeloc.nodes"))
+    from reports.summary import exit_code_of
+
+    rows = []
+    for proc, info in nodes.items():
+        info = info if isinstance(info, dict) else {}
+        stats = info.get("stats") if isinstance(info.get("stats"), dict) else {}
+        brief = ", ".join(
+            f"{k}={_f(v, '{:.4g}') if isinstance(v, float) else v}"
+            for k, v in stats.items()
+            if isinstance(v, int | float | str) and k != "node"
+        )
+        rows.append([proc, str(info.get("namespace", "-")), _f(exit_code_of(info), "{}"), brief])
+    return sec.add(Table(["process", "namespace", "exit code", "stats"], rows))
+
+
+def _recording(data: RunData, s: dict[str, Any]) -> Section:
+    sec = Section("Recording")
+    rec = s["recording"]
+    sec.add(
+        Para(
+            f"{rec['file']}: {'complete' if rec['complete'] else 'INCOMPLETE'}, "
+            f"{sum(rec['messages'].values())} messages decoded, {rec['decode_errors']} not."
+        )
+    )
+    for p in rec["problems"]:
+        sec.add(Para(p, "warning"))
+    sec.add(
+        Table(
+            ["topic", "type", "messages"],
+            [[t, rec["schemas"].get(t, "-"), str(n)] for t, n in rec["messages"].items()],
+        )
+    )
+    if s["not_recorded"]:
+        sec.add(Para("Not recorded: " + ", ".join(s["not_recorded"]) + ".", "note"))
+    if data.attachments:
+        sec.add(Para("Attachments: " + ", ".join(sorted(data.attachments)) + "."))
+    return sec
+
+
+def document(
+    data: RunData, s: dict[str, Any], plots: dict[str, Plot | None], tum: list[Path]
+) -> Document:
+    run_id = s["run"].get("run_id", data.path.parent.name)
+    scen = s["run"].get("scenario")
+    title = f"EdgeLoc run {run_id}" + (f" — {scen}" if scen else "")
+    if s["partial"]:
+        title += " (partial)"
+    sections = [_overview(data, s), _failures(s), _accuracy(s, plots), _paper(s)]
+    sections += [_trajectories(data, plots, tum), _learner(data, s, plots), _latency(s, plots)]
+    sections += [_acc_lat(s, plots), _realtime(s, plots), _gaps(s), _links(s, plots)]
+    sections += [_nodes(s), _recording(data, s)]
+    return Document(title, s["headline"], [x for x in sections if x is not None])
+
+
+# ---- files --------------------------------------------------------------------------------
+
+
+def write_trajectories(data: RunData, folder: Path) -> list[Path]:
+    """trajectories/<vehicle>/{gt,<method>}.tum; returns the paths relative to `folder`."""
+    out = []
+    for v, vd in data.vehicles.items():
+        for name in ["gt", *vd.methods()]:
+            tr = vd.tracks.get(name)
+            if tr is None:
+                continue
+            ok = np.isfinite(tr.stamp) & np.isfinite(tr.pose).all(axis=1)
+            if not ok.any():
+                continue
+            rel = Path("trajectories") / safe(v) / f"{safe(name)}.tum"
+            (folder / rel).parent.mkdir(parents=True, exist_ok=True)
+            write_tum(folder / rel, tr.stamp[ok], tr.pose[ok])
+            out.append(rel)
+    return out
+
+
+def build_report(
+    run_folder: Path | str, formats: Iterable[str] = FORMATS, plots: bool = True
+) -> Report:
+    """Read `run_folder`/run.mcap and write the report files into `run_folder`.
+
+    Raises ReportInputError when there is no readable MCAP; anything else the recording
+    lacks shows in the report as not recorded."""
+    folder = Path(run_folder)
+    if not (folder / MCAP_NAME).is_file() and (folder / "parts").is_dir():
+        raise ReportInputError(
+            f"{folder}: the recording was never merged into {MCAP_NAME} (the run was killed?); "
+            "`testbed clean` finalises it from the parts in parts/"
+        )
+    if not (folder / MCAP_NAME).is_file():
+        raise ReportInputError(
+            f"{folder}: no {MCAP_NAME} here (is it a run folder of `testbed run` with "
+            "record.enabled?)"
+        )
+    fmts = set(formats)
+    unknown = fmts - set(FORMATS)
+    if unknown:
+        raise ReportInputError(f"unknown report format(s) {sorted(unknown)}; use {list(FORMATS)}")
+    data = read_run(folder / MCAP_NAME)
+    s = summarize(data)
+    errs = method_errors(data)
+    files: list[Path] = []
+    tum = write_trajectories(data, folder)
+    files += [folder / p for p in tum]
+    plot_dir = folder / "plots"
+    drawn: dict[str, Plot | None] = {}
+    if plots and fmts & {"html", "md"}:
+        if plot_dir.exists():
+            shutil.rmtree(plot_dir)  # figures of an earlier build must not linger
+        drawn = draw_all(data, errs, s, plot_dir)
+        files += [plot_dir / p.file for p in drawn.values() if p is not None]
+    if "json" in fmts:
+        (folder / "summary.json").write_text(summary_json(s), encoding="utf-8")
+        files.append(folder / "summary.json")
+    doc = document(data, s, drawn, tum)
+    if "md" in fmts:
+        (folder / "report.md").write_text(to_markdown(doc), encoding="utf-8")
+        files.append(folder / "report.md")
+    if "html" in fmts:
+        (folder / "report.html").write_text(to_html(doc, plot_dir), encoding="utf-8")
+        files.append(folder / "report.html")
+    return Report(folder, s["headline"], s["partial"], s["status"], s, files)
+
+
+__all__ = ["FORMATS", "Report", "ReportInputError", "build_report"]

@@ -1,0 +1,432 @@
+"""The report's figures (matplotlib, drawn off-screen), each from `RunData` and the summary.
+
+Every function writes one PNG into the plots folder and returns a `Plot` (file name, title,
+caption), or None when the recording holds nothing to draw it from — the report then says
+that part was not recorded. Figures are made with `matplotlib.figure.Figure` directly, not
+pyplot, so no global state or display backend is involved.
+"""
+
+from __future__ import annotations
+
+import itertools
+import re
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from matplotlib.figure import Figure
+from matplotlib.ticker import FuncFormatter, SymmetricalLogLocator
+
+from reports.mcapread import RunData, VehicleData
+from reports.summary import FrameErrors, fused_method, split_order
+
+#: Per-vehicle figures are drawn for at most this many vehicles (the tables cover all).
+MAX_VEHICLE_FIGURES = 6
+DPI = 100
+METHOD_COLORS = {
+    "gt": "black",
+    "vo": "#7f7f7f",
+    "dnn": "#ff7f0e",
+    "kalman": "#1f77b4",
+    "edgeloc": "#2ca02c",
+}
+EXTRA_COLORS = ("#9467bd", "#8c564b", "#e377c2", "#17becf", "#bcbd22", "#d62728")
+
+
+@dataclass(frozen=True)
+class Plot:
+    file: str  # name inside the plots folder
+    title: str
+    caption: str
+
+
+def color(method: str, order: list[str]) -> str:
+    if method in METHOD_COLORS:
+        return METHOD_COLORS[method]
+    extras = [m for m in order if m not in METHOD_COLORS]
+    return EXTRA_COLORS[extras.index(method) % len(EXTRA_COLORS)] if method in extras else "k"
+
+
+def safe(name: str) -> str:
+    """A file-name-safe form of a vehicle or link name."""
+    return re.sub(r"[^A-Za-z0-9_.-]+", "_", name) or "_"
+
+
+def _save(fig: Figure, folder: Path, name: str) -> str:
+    fig.tight_layout()
+    # No "Software" text chunk: the same data then gives the same bytes on any matplotlib.
+    fig.savefig(folder / name, dpi=DPI, metadata={"Software": None})
+    return name
+
+
+def _symlog(ax: Any) -> None:
+    """Linear up to 1, logarithmic above, with plain tick labels (0.5, 1, 2, 5, 10 ...): DNN
+    outliers of 100 m must not flatten errors of a metre."""
+    ax.set_yscale("symlog", linthresh=1.0)
+    ax.yaxis.set_major_locator(SymmetricalLogLocator(linthresh=1.0, base=10, subs=[1, 2, 5]))
+    ax.yaxis.set_major_formatter(FuncFormatter(lambda v, _pos: f"{v:g}"))
+
+
+def _shade(ax: Any, summary: dict[str, Any], vehicle: str, t_label: bool = True) -> None:
+    """DNN-answer gaps as grey spans, detector resets as red lines (shared by time plots)."""
+    first = True
+    for g in summary.get("dnn_gaps", {}).get(vehicle, {}).get("gaps", []):
+        ax.axvspan(
+            g["start_s"],
+            g["end_s"],
+            color="0.85",
+            zorder=0,
+            label="no DNN answers" if first and t_label else None,
+        )
+        first = False
+    first = True
+    for r in summary.get("learner", {}).get("resets", []):
+        if r["vehicle"] == vehicle and r["t_s"] is not None:
+            ax.axvline(
+                r["t_s"],
+                color="red",
+                lw=0.8,
+                ls="--",
+                label="detector reset" if first and t_label else None,
+            )
+            first = False
+
+
+def errors_over_time(
+    data: RunData, errs: dict[str, dict[str, FrameErrors]], summary: dict[str, Any], out: Path
+) -> Plot | None:
+    vehicles = [v for v in data.vehicles if any(v in e for e in errs.values())]
+    if not vehicles:
+        return None
+    shown = vehicles[:MAX_VEHICLE_FIGURES]
+    order = list(errs)
+    fig = Figure(figsize=(11, 3.2 * len(shown)))
+    for i, v in enumerate(shown):
+        ax = fig.add_subplot(len(shown), 1, i + 1)
+        for m in order:
+            fe = errs[m].get(v)
+            if fe is not None and len(fe.t):
+                ax.plot(fe.t - data.t0, fe.position_m, lw=1, color=color(m, order), label=m)
+        _shade(ax, summary, v)
+        ax.set_title(f"{v}: position error per frame")
+        ax.set_xlabel("run time (s)")
+        _symlog(ax)
+        ax.set_ylabel("error (m, log above 1)")
+        ax.grid(alpha=0.3)
+        ax.legend(loc="upper left", fontsize=8, ncol=3)
+    note = "" if len(shown) == len(vehicles) else f" (first {len(shown)} vehicles)"
+    return Plot(
+        _save(fig, out, "errors_over_time.png"),
+        "Position error over time",
+        "Per frame, against ground truth; grey spans: no DNN answers arrived; red dashes: "
+        f"change-detector resets{note}.",
+    )
+
+
+def error_boxplots(errs: dict[str, dict[str, FrameErrors]], out: Path) -> Plot | None:
+    methods = [m for m in errs if any(len(fe.t) for fe in errs[m].values())]
+    if not methods:
+        return None
+    fig = Figure(figsize=(11, 4))
+    for j, (key, label) in enumerate(
+        (("position_m", "position error (m)"), ("heading_deg", "heading error (deg)"))
+    ):
+        ax = fig.add_subplot(1, 2, j + 1)
+        series = [np.concatenate([getattr(fe, key) for fe in errs[m].values()]) for m in methods]
+        box = ax.boxplot(
+            series,
+            tick_labels=methods,
+            showfliers=True,
+            patch_artist=True,
+            medianprops={"color": "black"},
+        )
+        for patch, m in zip(box["boxes"], methods, strict=True):
+            patch.set_facecolor(color(m, methods))
+            patch.set_alpha(0.6)
+        ax.set_ylabel(label + (", log above 1" if key == "position_m" else ""))
+        if key == "position_m":
+            _symlog(ax)
+        ax.grid(alpha=0.3, axis="y")
+    return Plot(
+        _save(fig, out, "error_boxplot.png"),
+        "Error distribution per method",
+        "Boxes: quartiles; whiskers: 1.5 IQR; circles: frames beyond (all vehicles pooled).",
+    )
+
+
+def trajectory(data: RunData, vd: VehicleData, out: Path) -> Plot | None:
+    names = [n for n in ["gt", *vd.methods()] if n in vd.tracks and len(vd.tracks[n])]
+    if not names:
+        return None
+    order = vd.methods()
+    fig = Figure(figsize=(7, 6))
+    ax = fig.add_subplot(1, 1, 1)
+    for n in names:
+        p = vd.tracks[n].pose
+        ax.plot(
+            p[:, 0],
+            p[:, 1],
+            lw=2.0 if n == "gt" else 1.0,
+            color=color(n, order),
+            label="ground truth" if n == "gt" else n,
+            ls="--" if n == "gt" else "-",
+        )
+    gt = vd.tracks.get("gt")
+    clipped = ""
+    if gt is not None and len(gt):
+        # Frame the ground truth: a DNN outlier 200 m off would shrink the drive to a dot.
+        lo, hi = gt.pose[:, :2].min(axis=0), gt.pose[:, :2].max(axis=0)
+        pad = max(10.0, 0.15 * float((hi - lo).max()))
+        ax.set_xlim(lo[0] - pad, hi[0] + pad)
+        ax.set_ylim(lo[1] - pad, hi[1] + pad)
+        clipped = " Axes frame the ground truth; estimates further off run out of the frame."
+    ax.set_aspect("equal", adjustable="box")
+    ax.set_xlabel("x (m)")
+    ax.set_ylabel("y (m)")
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=8)
+    ax.set_title(f"{vd.name}: trajectories")
+    return Plot(
+        _save(fig, out, f"trajectory_{safe(vd.name)}.png"),
+        f"Trajectories of {vd.name}",
+        "Every method's pose per frame in the map frame, ground truth dashed." + clipped,
+    )
+
+
+def vehicle_uplink_rates(data: RunData, vehicle: str) -> list[tuple[str, Any, Any]]:
+    """(label, t, Mbit/s) of the uplink of every link that has `vehicle` as an end."""
+    out = []
+    for c in data.counters:
+        if c.direction == "up" and vehicle in c.link.split("-"):
+            t, r = c.rate_mbit()
+            if len(t):
+                out.append((f"{c.link} uplink", t - data.t0, r))
+    return out
+
+
+def split_over_time(
+    data: RunData, vd: VehicleData, summary: dict[str, Any], out: Path
+) -> Plot | None:
+    if not vd.decisions:
+        return None
+    order = split_order(data)
+    t = np.array([d.t for d in vd.decisions]) - data.t0
+    idx = np.array([order.index(d.chosen) for d in vd.decisions])
+    fig = Figure(figsize=(11, 4.6))
+    ax = fig.add_subplot(1, 1, 1)
+    ax.plot(t, idx, drawstyle="steps-post", lw=0.6, color="#2ca02c", alpha=0.6)
+    ax.scatter(t, idx, s=6, color="#2ca02c", label="chosen split", zorder=3)
+    ax.set_yticks(range(len(order)), order)
+    ax.set_ylim(-0.5, len(order) - 0.5)
+    ax.set_xlabel("run time (s)")
+    ax.set_ylabel("split point")
+    _shade(ax, summary, vd.name)
+    first = True
+    for e in data.link_events:
+        ax.axvline(
+            e.t - data.t0,
+            color="0.4",
+            lw=0.8,
+            ls=":",
+            label="link event" if first else None,
+        )
+        first = False
+    ax.grid(alpha=0.3)
+    links = summary.get("links", {})
+    first = True
+    for o in links.get("outages", []):
+        if vd.name in str(o["link"]).split("-") and o["start_s"] is not None:
+            ax.axvspan(
+                o["start_s"],
+                o["end_s"],
+                color="#f4b6b6",
+                zorder=0,
+                label="link outage" if first else None,
+            )
+            first = False
+    # The workload's span: link counters go on being sampled after the nodes stopped.
+    fused = fused_method(vd)
+    end = float(t.max())
+    if fused is not None and len(vd.tracks[fused]):
+        end = max(end, float(vd.tracks[fused].stamp.max() - data.t0))
+    ax.set_xlim(min(0.0, float(t.min())), end + 0.5)
+    rates = vehicle_uplink_rates(data, vd.name)
+    caps = list(links.get("caps", {}).get(vd.name, []))
+    handles, labels = ax.get_legend_handles_labels()
+    if rates or caps:
+        ax2 = ax.twinx()
+        for label, rt, r in rates:
+            ax2.plot(rt, r, color="#1f77b4", lw=1.0, label=f"{label} delivered")
+        if caps:
+            ct = [c["t_s"] for c in caps] + [end + 0.5]
+            cv = [np.nan if c["uplink_mbit"] is None else c["uplink_mbit"] for c in caps]
+            ax2.step(
+                ct,
+                [*cv, cv[-1]],
+                where="post",
+                color="#9467bd",
+                lw=2,
+                ls="--",
+                label="uplink cap (timeline)",
+            )
+        ax2.set_ylabel("uplink (Mbit/s, log)")
+        ax2.set_yscale("log")
+        h2, l2 = ax2.get_legend_handles_labels()
+        handles, labels = handles + h2, labels + l2
+    # Below the axes: inside, it would hide the dots and the cap line.
+    ax.legend(handles, labels, loc="upper center", bbox_to_anchor=(0.5, -0.16), fontsize=8, ncol=4)
+    ax.set_title(f"{vd.name}: split chosen per request")
+    rate_note = (
+        "blue: delivered uplink rate from the link counters, purple dashes: the timeline's "
+        "uplink cap"
+        if rates or caps
+        else "link rate not recorded"
+    )
+    return Plot(
+        _save(fig, out, f"split_{safe(vd.name)}.png"),
+        f"Split point over time, {vd.name}",
+        f"One dot per request; {rate_note}; red dashes: detector resets; dotted: timeline "
+        "events applied to the links; grey spans: no DNN answers; red spans: link outages.",
+    )
+
+
+def latency_per_split(data: RunData, out: Path) -> Plot | None:
+    reqs = [i for vd in data.vehicles.values() for i in vd.inference]
+    order = [s for s in split_order(data) if any(i.split == s for i in reqs)]
+    series = [[i.latency_s * 1e3 for i in reqs if i.split == s and i.ok] for s in order]
+    if not any(series):
+        return None
+    keep = [k for k, s in enumerate(series) if s]
+    fig = Figure(figsize=(9, 4))
+    ax = fig.add_subplot(1, 1, 1)
+    ax.boxplot([series[k] for k in keep], tick_labels=[order[k] for k in keep])
+    for pos, k in enumerate(keep, start=1):
+        lost = sum(1 for i in reqs if i.split == order[k] and not i.ok)
+        ax.annotate(
+            f"n={len(series[k])}" + (f", {lost} lost" if lost else ""),
+            (pos, 1),
+            xycoords=("data", "axes fraction"),
+            xytext=(0, -12),
+            textcoords="offset points",
+            ha="center",
+            fontsize=8,
+        )
+    ax.set_xlabel("split point")
+    ax.set_ylabel("end-to-end latency (ms)")
+    ax.grid(alpha=0.3, axis="y")
+    ax.set_title("Latency per split (answered requests)")
+    return Plot(
+        _save(fig, out, "latency_per_split.png"),
+        "Latency per split",
+        "End-to-end time from capture to answer, per request; requests without an answer "
+        "(timeout or error) are counted as lost.",
+    )
+
+
+def accuracy_vs_latency(errs: dict[str, FrameErrors] | None, out: Path) -> Plot | None:
+    if not errs:
+        return None
+    lat = np.concatenate([e.latency_s for e in errs.values()])
+    err = np.concatenate([e.position_m for e in errs.values()])
+    ok = np.isfinite(lat)
+    if ok.sum() < 2:
+        return None
+    lat, err = lat[ok] * 1e3, err[ok]
+    fig = Figure(figsize=(8, 4.5))
+    ax = fig.add_subplot(1, 1, 1)
+    ax.scatter(lat, err, s=4, alpha=0.35, color="#2ca02c", label="frame")
+    edges = np.unique(np.percentile(lat, np.linspace(0, 100, 11)))
+    if len(edges) > 2:
+        mids, meds = [], []
+        for lo, hi in itertools.pairwise(edges):
+            sel = (lat >= lo) & (lat <= hi)
+            if sel.any():
+                mids.append((lo + hi) / 2)
+                meds.append(float(np.median(err[sel])))
+        ax.plot(mids, meds, color="black", marker="o", lw=1.2, label="median per decile")
+    ax.set_xlabel("age of the DNN answer used (ms)")
+    ax.set_ylabel("EdgeLoc position error (m)")
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=8)
+    return Plot(
+        _save(fig, out, "accuracy_vs_latency.png"),
+        "Accuracy against latency",
+        "EdgeLoc's error per frame against the latency of the newest DNN answer it fused.",
+    )
+
+
+def link_rates(data: RunData, out: Path) -> Plot | None:
+    series = [(c, *c.rate_mbit()) for c in data.counters]
+    series = [s for s in series if len(s[1])]
+    if not series:
+        return None
+    fig = Figure(figsize=(11, 4))
+    ax = fig.add_subplot(1, 1, 1)
+    for c, t, r in series:
+        ax.plot(t - data.t0, r, lw=1, label=f"{c.link} {c.direction}")
+    for e in data.link_events:
+        ax.axvline(e.t - data.t0, color="0.4", lw=0.8, ls=":")
+    ax.set_xlabel("run time (s)")
+    ax.set_ylabel("delivered (Mbit/s)")
+    ax.set_yscale("symlog", linthresh=0.1)
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=8, ncol=2)
+    return Plot(
+        _save(fig, out, "link_rates.png"),
+        "Traffic on the emulated links",
+        "Delivered rate per link direction from the backends' byte counters (differences of "
+        "consecutive samples); dotted: timeline events.",
+    )
+
+
+def realtime(data: RunData, summary: dict[str, Any], out: Path) -> Plot | None:
+    rt = summary.get("realtime", {}).get("vehicles", {})
+    shown = [v for v in data.vehicles if v in rt][:MAX_VEHICLE_FIGURES]
+    if not shown:
+        return None
+    fig = Figure(figsize=(11, 3.5))
+    ax = fig.add_subplot(1, 1, 1)
+    period = None
+    for v in shown:
+        m = fused_method(data.vehicles[v])
+        if m is None:
+            continue
+        tr = data.vehicles[v].tracks[m]
+        ax.plot(tr.stamp - data.t0, (tr.log_time - tr.stamp) * 1e3, lw=0.8, label=f"{v} {m}")
+        period = rt[v]["period_s"]
+    if period is not None:
+        ax.axhline(period * 1e3, color="red", ls="--", lw=1, label="deadline (one period)")
+    ax.set_xlabel("run time (s)")
+    ax.set_ylabel("capture to publish (ms)")
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=8)
+    return Plot(
+        _save(fig, out, "realtime.png"),
+        "Real-time thread: fused pose delay",
+        "Time from a frame's capture to the publishing of its fused pose (MCAP log time); "
+        "above the red line the pose missed its deadline.",
+    )
+
+
+def draw_all(
+    data: RunData, errs: dict[str, dict[str, FrameErrors]], summary: dict[str, Any], out: Path
+) -> dict[str, Plot | None]:
+    """Every figure, keyed by what it shows (None: not recorded)."""
+    out.mkdir(parents=True, exist_ok=True)
+    plots: dict[str, Plot | None] = {
+        "errors_over_time": errors_over_time(data, errs, summary, out),
+        "error_boxplot": error_boxplots(errs, out),
+        "latency_per_split": latency_per_split(data, out),
+        "accuracy_vs_latency": accuracy_vs_latency(errs.get("edgeloc"), out),
+        "link_rates": link_rates(data, out),
+        "realtime": realtime(data, summary, out),
+    }
+    for v in list(data.vehicles)[:MAX_VEHICLE_FIGURES]:
+        vd = data.vehicles[v]
+        plots[f"split:{v}"] = split_over_time(data, vd, summary, out)
+        plots[f"trajectory:{v}"] = trajectory(data, vd, out)
+    return plots
+
+
+__all__ = ["MAX_VEHICLE_FIGURES", "Plot", "draw_all"]

@@ -1,0 +1,116 @@
+"""Synthetic run.mcap files for the report tests, written the way the recorder writes them:
+profile ros2, CDR messages, `ros2msg` schemas built from nodes/edgeloc_interfaces/msg (with
+builtin_interfaces/Time appended rosbag2-style), metadata values JSON-encoded, attachments."""
+
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from mcap.writer import CompressionType
+from mcap_ros2.writer import Writer
+
+MSG_DIR = Path(__file__).resolve().parents[1] / "nodes" / "edgeloc_interfaces" / "msg"
+PKG = "edgeloc_interfaces"
+SEP = "=" * 80
+TIME_MSG = "int32 sec\nuint32 nanosec\n"
+
+# The InferenceResult fields the report reads, for as long as the interfaces package does not
+# carry the .msg yet (the recorder's contract names these fields).
+INFERENCE_RESULT_FALLBACK = """builtin_interfaces/Time stamp
+string vehicle
+uint32 frame_id
+string split
+uint8 split_index
+uint64 payload_bytes
+float64 head_s
+float64 edge_compute_s
+float64 latency_s
+bool ok
+bool timed_out
+string error
+"""
+
+
+def schema_text(name: str) -> str:
+    """The ros2msg schema text of edgeloc_interfaces/msg/<name> with its dependencies."""
+    path = MSG_DIR / f"{name}.msg"
+    if path.is_file():
+        text = path.read_text()
+    elif name == "InferenceResult":
+        text = INFERENCE_RESULT_FALLBACK
+    else:
+        raise FileNotFoundError(path)
+    return f"{text.rstrip()}\n{SEP}\nMSG: builtin_interfaces/Time\n{TIME_MSG}"
+
+
+def stamp(t: float) -> dict[str, int]:
+    sec = math.floor(t)
+    return {"sec": int(sec), "nanosec": round((t - sec) * 1e9)}
+
+
+@dataclass
+class SynthRun:
+    """Messages, metadata and attachments of one synthetic recording."""
+
+    messages: list[tuple[float, str, str, dict[str, Any]]] = field(default_factory=list)
+    metadata: dict[str, dict[str, Any]] = field(default_factory=dict)
+    attachments: dict[str, bytes] = field(default_factory=dict)
+
+    def add(self, log_t: float, topic: str, msg_type: str, msg: dict[str, Any]) -> None:
+        self.messages.append((log_t, topic, msg_type, msg))
+
+    def pose(
+        self,
+        topic: str,
+        t: float,
+        frame: int,
+        method: str,
+        x: float,
+        y: float,
+        yaw: float = 0.0,
+        latency: float = math.nan,
+        log_t: float | None = None,
+        vehicle: str = "av1",
+    ) -> None:
+        self.add(
+            t + 0.001 if log_t is None else log_t,
+            topic,
+            "PoseEstimate",
+            {
+                "stamp": stamp(t),
+                "vehicle": vehicle,
+                "method": method,
+                "x": x,
+                "y": y,
+                "yaw": yaw,
+                "latency_s": latency,
+                "frame_id": frame,
+            },
+        )
+
+    def write(self, path: Path, chunk_size: int = 1024 * 1024, finish: bool = True) -> Path:
+        """Write the file; `finish=False` leaves it as a killed recorder would (no footer)."""
+        f = open(path, "wb")  # noqa: SIM115 - left unfinished on purpose when finish=False
+        w = Writer(f, chunk_size=chunk_size, compression=CompressionType.ZSTD)
+        schemas: dict[str, Any] = {}
+        for log_t, topic, msg_type, msg in sorted(self.messages, key=lambda m: m[0]):
+            if msg_type not in schemas:
+                schemas[msg_type] = w.register_msgdef(
+                    f"{PKG}/msg/{msg_type}", schema_text(msg_type)
+                )
+            ns = round(log_t * 1e9)
+            w.write_message(topic, schemas[msg_type], msg, log_time=ns, publish_time=ns)
+        for name, data in self.metadata.items():
+            w.add_metadata(
+                name, {k: v if isinstance(v, str) else json.dumps(v) for k, v in data.items()}
+            )
+        for name, data in self.attachments.items():
+            w.add_attachment(0, 0, name, "application/octet-stream", data)
+        if finish:
+            w.finish()
+        f.close()
+        return path

@@ -1,0 +1,681 @@
+"""The report (`reports/`, `testbed report`) from synthetic run.mcap files written like the
+recorder's: figures checked against values computed by hand, partial and damaged files,
+missing channels, a failed node, a silent edge server, rebuilds and the CLI's exit codes."""
+
+from __future__ import annotations
+
+import json
+import math
+import shutil
+from pathlib import Path
+from types import SimpleNamespace
+
+import pytest
+from report_synth import SynthRun, stamp
+from typer.testing import CliRunner
+
+from reports.build import build_report
+from reports.mcapread import ReportInputError, read_run
+from reports.summary import summarize
+from testbed.cli import app
+
+T0 = 1_700_000_000.0
+runner = CliRunner()
+
+LINKTEST = {
+    "backend": "userspace (test)",
+    "quick": True,
+    "ok": True,
+    "seconds": 3.5,
+    "tolerances": {"delay_ms": 0.5, "rate_fraction": 0.05, "loss_pp": 0.5},
+    "links": [
+        {
+            "link": "av1-gnb1",
+            "rtt_median_ms": 16.2,
+            "rtt_p99_ms": 19.9,
+            "directions": [
+                {
+                    "link": "av1-gnb1",
+                    "direction": "uplink",
+                    "src": "av1",
+                    "dst": "gnb1",
+                    "profile": {"rate_mbit": 50.0, "delay_ms": 8.0},
+                    "baseline_ms": 0.1,
+                    "owd_median_ms": 8.11,
+                    "owd_p99_ms": 12.5,
+                    "jitter_sd_ms": 2.0,
+                    "loss_pct": 0.1,
+                    "loss_packets": 10000,
+                    "tcp_mbit": 47.5,
+                    "udp_mbit": None,
+                    "verdicts": [
+                        {
+                            "what": "delay ms",
+                            "measured": 8.11,
+                            "expected": 8.1,
+                            "tolerance": "±0.5 ms",
+                            "ok": True,
+                        }
+                    ],
+                    "ok": True,
+                }
+            ],
+            "ok": True,
+        }
+    ],
+}
+
+
+def small_run(status: str = "ok") -> SynthRun:
+    """10 frames at 10 Hz of one vehicle; every figure below is worked out by hand.
+
+    Ground truth x = frame, y = 0. Position errors: vo 1.0 (and 2° of heading), dnn 0.5,
+    kalman 0.4, edgeloc 0.1·frame with frame 7 never published. EdgeLoc's pose of frame 5 is
+    published 0.25 s after capture (late at 10 Hz). Requests: image 50 ms and 70 ms, conv3
+    30 ms and a timeout. One detector reset at 0.5 s."""
+    s = SynthRun()
+    for f in range(10):
+        t = T0 + 0.1 * f
+        s.pose("/av1/gt", t, f, "gt", f, 0.0, log_t=t + 0.001)
+        s.pose("/av1/vo", t, f, "vo", f, 1.0, math.radians(2.0), log_t=t + 0.002)
+        s.pose("/av1/pose", t, f, "vo", f, 1.0, math.radians(2.0), log_t=t + 0.01)
+        s.pose("/av1/pose", t, f, "dnn", f + 0.5, 0.0, latency=0.05, log_t=t + 0.01)
+        s.pose("/av1/pose", t, f, "kalman", f, -0.4, latency=0.05, log_t=t + 0.01)
+        if f != 7:
+            late = 0.25 if f == 5 else 0.01
+            lat = 0.04 if f < 5 else 0.08
+            s.pose("/av1/pose", t, f, "edgeloc", f, 0.1 * f, latency=lat, log_t=t + late)
+    for k in range(1, 10):
+        s.pose("/av1/dnn_answer", T0 + 0.1 * k - 0.05, k, "dnn", k, 0.5, latency=0.05)
+    arms = ["image", "conv3", "vehicle"]
+    reqs = [
+        ("image", 0.05, True, False, 1000),
+        ("image", 0.07, True, False, 1000),
+        ("conv3", 0.03, True, False, 500),
+        ("conv3", math.nan, False, True, 700),
+    ]
+    for k, (split, lat, ok, timed_out, size) in enumerate(reqs):
+        t = T0 + 0.2 * k
+        s.add(
+            t,
+            "/av1/split_decision",
+            "SplitDecision",
+            {
+                "stamp": stamp(t),
+                "vehicle": "av1",
+                "frame_id": 2 * k,
+                "chosen": split,
+                "chosen_index": arms.index(split),
+                "rule": "explore" if k < 2 else "ucb",
+                "arm_names": arms,
+                "arm_n": [0, 0, 0],
+                "arm_mean": [math.nan] * 3,
+                "arm_var": [math.nan] * 3,
+                "arm_index": [-math.inf] * 3,
+                "last_latency_s": math.nan,
+                "plays": k,
+                "plays_total": k,
+            },
+        )
+        s.add(
+            t + 0.1,
+            "/av1/inference",
+            "InferenceResult",
+            {
+                "stamp": stamp(t + 0.1),
+                "vehicle": "av1",
+                "frame_id": 2 * k,
+                "split": split,
+                "split_index": arms.index(split),
+                "payload_bytes": size,
+                "head_s": 0.002,
+                "edge_compute_s": 0.001 if ok else math.nan,
+                "latency_s": lat,
+                "ok": ok,
+                "timed_out": timed_out,
+                "error": "" if ok else "timeout after 0.5 s",
+            },
+        )
+    for k, reset in ((1, False), (2, True)):
+        t = T0 + 0.25 * k
+        s.add(
+            t,
+            "/av1/detector",
+            "DetectorEvent",
+            {
+                "stamp": stamp(t),
+                "vehicle": "av1",
+                "arm": "conv3",
+                "kl": 2.5 if reset else 0.2,
+                "threshold": 1.0,
+                "consecutive": 3 if reset else 0,
+                "required": 3,
+                "reset": reset,
+                "at_play": k,
+            },
+        )
+    for k in range(3):
+        t = T0 + 0.5 * k
+        s.add(
+            t,
+            "/links/counters",
+            "LinkCounters",
+            {
+                "stamp": stamp(t),
+                "link": "av1-gnb1",
+                "direction": "up",
+                "backend": "userspace",
+                "packets_in": 100 * k,
+                "bytes_in": 125_000 * k,
+                "packets_out": 100 * k,
+                "bytes_out": 125_000 * k,  # 1 Mbit per 0.5 s: 2 Mbit/s
+                "packets_dropped": k,
+                "bytes_dropped": 1000 * k,
+                "queue_packets": 0,
+            },
+        )
+    s.add(
+        T0 + 0.3,
+        "/links/events",
+        "LinkEvent",
+        {
+            "stamp": stamp(T0 + 0.3),
+            "scheduled_s": 0.3,
+            "lateness_s": 0.002,
+            "action": "shape",
+            "target": "av1",
+            "direction": "up",
+            "keys": ["detail"],  # as nodes/ros/link_events.py publishes it
+            "values": ["uplink 8 Mbit/s"],
+        },
+    )
+    s.add(
+        T0 + 0.6,
+        "/links/events",
+        "LinkEvent",
+        {
+            "stamp": stamp(T0 + 0.6),
+            "scheduled_s": 0.6,
+            "lateness_s": 0.001,
+            "action": "outage",
+            "target": "av1-gnb1",
+            "direction": "both",
+            "keys": ["detail"],
+            "values": ["for 2 s"],
+        },
+    )
+    s.metadata["edgeloc.run"] = {
+        "run_id": "123456",  # digits only: must stay a string
+        "scenario": "synthetic",
+        "seed": "1",
+        "link_backend": "userspace (test)",
+        "status": status,
+        "duration_s": "1.000",
+        "host": json.dumps({"netem": False}),
+    }
+    s.metadata["edgeloc.nodes"] = {
+        "av1.fusion": {"namespace": "el-x-av1", "exit_code": 0, "stats": {"answers": 9}},
+        "core1.edge": {"namespace": "el-x-core1", "exit_code": 0, "stats": {"goals": 4}},
+    }
+    s.metadata["edgeloc.linktest"] = {"ran": "true", "ok": "true", "file": "linktest.json"}
+    s.attachments["linktest.json"] = json.dumps(LINKTEST).encode()
+    s.attachments["scenario.yaml"] = b"name: synthetic\nworkload:\n  rate_hz: 10\n"
+    return s
+
+
+def write_run(tmp_path: Path, synth: SynthRun, name: str = "run", **kw: object) -> Path:
+    folder = tmp_path / name
+    folder.mkdir()
+    synth.write(folder / "run.mcap", **kw)  # type: ignore[arg-type]
+    return folder
+
+
+# ---- figures by hand ------------------------------------------------------------------------
+
+
+def test_summary_matches_hand_computed_figures(tmp_path: Path) -> None:
+    s = summarize(read_run(write_run(tmp_path, small_run())))
+    assert s["partial"] is False and s["status"] == "ok"
+    assert s["run"]["run_id"] == "123456"
+    m = s["methods"]
+    assert list(m) == ["vo", "dnn", "kalman", "edgeloc"]
+    assert m["vo"]["position_m"]["total"] == pytest.approx(10.0)
+    assert m["vo"]["heading_deg"]["mean"] == pytest.approx(2.0)
+    assert m["dnn"]["position_m"]["total"] == pytest.approx(5.0)
+    assert m["kalman"]["position_m"]["rmse"] == pytest.approx(0.4)
+    e = m["edgeloc"]
+    errs = [0.0, 0.1, 0.2, 0.3, 0.4, 0.5, 0.6, 0.8, 0.9]  # frame 7 missing
+    assert e["frames"] == 9 and e["missing_frames"] == 1
+    p = e["position_m"]
+    assert p["total"] == pytest.approx(3.8)
+    assert p["mean"] == pytest.approx(3.8 / 9)
+    assert p["median"] == pytest.approx(0.4)
+    assert p["rmse"] == pytest.approx(math.sqrt(sum(x * x for x in errs) / 9))
+    assert p["p95"] == pytest.approx(0.8 + 0.6 * 0.1)  # rank 0.95 * 8 = 7.6
+    assert p["max"] == pytest.approx(0.9)
+    red = {r["versus"]: r["ours_pct"] for r in s["paper_comparison"]["reductions"]}
+    assert red == pytest.approx({"vo": 62.0, "dnn": 24.0, "kalman": 5.0})
+    paper = {t["method"]: t["paper"] for t in s["paper_comparison"]["totals"]}
+    assert paper["edgeloc"] == 2676.35
+    assert s["headline"].startswith("run 123456: EdgeLoc total error 3.8 m; reduction 62.00% vs VO")
+
+    lat = s["latency"]["per_split"]
+    assert list(lat) == ["image", "conv3"]
+    assert lat["image"]["requests"] == 2 and lat["image"]["answers"] == 2
+    assert lat["image"]["latency_s"]["mean"] == pytest.approx(0.06)
+    assert lat["image"]["latency_s"]["max"] == pytest.approx(0.07)
+    assert lat["conv3"]["answers"] == 1 and lat["conv3"]["timed_out"] == 1
+    assert lat["conv3"]["errors"] == 1
+    assert lat["conv3"]["mean_payload_bytes"] == pytest.approx(600.0)
+
+    lr = s["learner"]
+    assert lr["decisions"] == 4 and lr["switches"] == 1
+    assert lr["split_share"] == {"image": 0.5, "conv3": 0.5}
+    assert lr["rules"] == {"explore": 2, "ucb": 2}
+    assert lr["detector_updates"] == 2
+    assert [(r["t_s"], r["arm"], r["kl"]) for r in lr["resets"]] == [(0.5, "conv3", 2.5)]
+
+    rt = s["realtime"]["vehicles"]["av1"]
+    assert rt["rate_hz"] == 10.0 and rt["rate_source"] == "scenario"
+    assert (rt["frames_expected"], rt["poses"], rt["missing"], rt["late"]) == (10, 9, 1, 1)
+    assert rt["miss_pct"] == pytest.approx(20.0)
+    assert rt["delay_s"]["max"] == pytest.approx(0.25, abs=1e-6)
+
+    acc = s["accuracy_vs_latency"]
+    assert acc["frames"] == 9
+    # Quartile edges 0.04, 0.04, 0.08, 0.08, 0.08 collapse to one bin [0.04, 0.08]: all frames.
+    assert [b["frames"] for b in acc["bins"]] == [9]
+    assert acc["pearson_r"] > 0.8  # later frames: older answers and larger errors
+
+    links = s["links"]
+    assert links["backend"] == "userspace (test)"
+    (rate,) = links["rates"]
+    assert rate["mean_mbit"] == pytest.approx(2.0) and rate["packets_dropped"] == 2
+    assert links["events"][0]["changes"] == {"detail": "uplink 8 Mbit/s"}
+    assert links["events"][0]["t_s"] == pytest.approx(0.3)
+    assert links["caps"] == {"av1": [{"t_s": 0.3, "uplink_mbit": 8.0, "downlink_mbit": None}]}
+    assert links["outages"] == [{"link": "av1-gnb1", "start_s": 0.6, "end_s": 2.6}]
+    assert links["linktest"]["links"][0]["link"] == "av1-gnb1"
+    assert s["dnn_gaps"]["av1"]["gaps"] == []
+    assert s["failures"] == []
+    assert s["not_recorded"] == []
+
+
+def test_report_files_and_contents(tmp_path: Path) -> None:
+    folder = write_run(tmp_path, small_run())
+    rep = build_report(folder)
+    names = {p.relative_to(folder).as_posix() for p in rep.files}
+    assert {"summary.json", "report.md", "report.html"} <= names
+    for tum in ("gt", "vo", "dnn", "kalman", "edgeloc"):
+        assert f"trajectories/av1/{tum}.tum" in names
+    plots = sorted(n for n in names if n.startswith("plots/"))
+    assert plots == [
+        "plots/accuracy_vs_latency.png",
+        "plots/error_boxplot.png",
+        "plots/errors_over_time.png",
+        "plots/latency_per_split.png",
+        "plots/link_rates.png",
+        "plots/realtime.png",
+        "plots/split_av1.png",
+        "plots/trajectory_av1.png",
+    ]
+    for p in plots:
+        assert (folder / p).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    html = (folder / "report.html").read_text()
+    # Self-contained: every figure inline, nothing fetched from elsewhere.
+    assert html.count('src="data:image/png;base64,') == len(plots)
+    assert "http://" not in html and "https://" not in html and "<script" not in html
+    md = (folder / "report.md").read_text()
+    for text in (
+        "EdgeLoc total error 3.8 m",
+        "| edgeloc | 9 | 1 | 3.800 |",  # frames, missing, total
+        "| vo | 67.75 | 62.00 |",  # reduction beside the paper's
+        "Link backend that ran: userspace (test)",
+        "link self-test (every link within tolerance",
+        "| av1-gnb1 | uplink | 16.20/19.90 |",
+        "| av1 | edgeloc | 10 | 10 | 9 | 1 | 1 | 20.00 |",
+        "![Split point over time, av1](plots/split_av1.png)",
+    ):
+        assert text in md, text
+    assert "PARTIAL" not in md
+    # The TUM file round-trips the edgeloc poses (evo reads the same format).
+    from nodes.edgeloc.metrics import read_tum
+
+    stamps, poses = read_tum(folder / "trajectories/av1/edgeloc.tum")
+    assert len(stamps) == 9 and poses[9 - 1][1] == pytest.approx(0.9)
+
+
+def test_rebuild_gives_identical_summary(tmp_path: Path) -> None:
+    folder = write_run(tmp_path, small_run())
+    first = build_report(folder)
+    before = (folder / "summary.json").read_bytes()
+    copy = tmp_path / "elsewhere"
+    copy.mkdir()
+    shutil.copyfile(folder / "run.mcap", copy / "run.mcap")  # from the MCAP alone
+    second = build_report(copy, plots=False)  # figures do not feed the summary
+    assert (copy / "summary.json").read_bytes() == before
+    assert second.headline == first.headline
+    build_report(folder, plots=False)
+    assert (folder / "summary.json").read_bytes() == before
+    json.loads(before)  # strict JSON: no NaN
+
+
+# ---- damaged, partial, missing -----------------------------------------------------------------
+
+
+def long_run(frames: int = 400) -> SynthRun:
+    s = SynthRun()
+    for f in range(frames):
+        t = T0 + 0.05 * f
+        s.pose("/av1/gt", t, f, "gt", f, 0.0)
+        for m in ("vo", "dnn", "kalman", "edgeloc"):
+            s.pose("/av1/pose", t, f, m, f, 0.2, latency=0.05)
+    s.metadata["edgeloc.run"] = {"run_id": "long", "status": "ok"}
+    return s
+
+
+def test_unfinished_recording_gives_a_partial_report(tmp_path: Path) -> None:
+    # A recorder killed mid-run: chunks written so far, no summary, no footer.
+    folder = write_run(tmp_path, long_run(), chunk_size=4096, finish=False)
+    data = read_run(folder / "run.mcap")
+    assert not data.complete and data.partial
+    assert "no MCAP footer" in data.problems[0]
+    n = len(data.vehicles["av1"].tracks["gt"])
+    assert 0 < n < 400
+    rep = build_report(folder, plots=False)
+    assert rep.partial and rep.headline.endswith("[partial]")
+    assert rep.summary["methods"]["edgeloc"]["frames"] <= n
+    assert "PARTIAL REPORT" in (folder / "report.html").read_text()
+    assert "PARTIAL REPORT" in (folder / "report.md").read_text()
+
+
+def test_truncated_file_gives_a_partial_report(tmp_path: Path) -> None:
+    folder = write_run(tmp_path, long_run(), chunk_size=4096)
+    path = folder / "run.mcap"
+    raw = path.read_bytes()
+    path.write_bytes(raw[: len(raw) // 2])  # cut inside a chunk
+    rep = build_report(folder, plots=False)
+    s = rep.summary
+    assert s["partial"] and not s["recording"]["complete"]
+    assert any("ends early" in p for p in s["recording"]["problems"])
+    assert 0 < s["methods"]["vo"]["frames"] < 400
+
+
+def test_interrupted_run_is_partial_even_with_a_complete_file(tmp_path: Path) -> None:
+    rep = build_report(write_run(tmp_path, small_run(status="interrupted")), plots=False)
+    assert rep.partial and rep.summary["recording"]["complete"]
+
+
+def test_missing_channels_are_named_not_fatal(tmp_path: Path) -> None:
+    s = SynthRun()
+    for f in range(5):
+        s.pose("/av1/gt", T0 + f, f, "gt", f, 0.0)
+        s.pose("/av1/pose", T0 + f, f, "edgeloc", f, 0.3)
+    folder = write_run(tmp_path, s)  # no metadata, no learner, links or inference topics
+    rep = build_report(folder, plots=False)
+    sm = rep.summary
+    assert sm["methods"]["edgeloc"]["position_m"]["total"] == pytest.approx(1.5)
+    assert {r["versus"]: r["ours_pct"] for r in sm["paper_comparison"]["reductions"]} == {
+        "vo": None,
+        "dnn": None,
+        "kalman": None,
+    }
+    for topic in ("/av1/inference", "/av1/split_decision", "/links/events", "/links/counters"):
+        assert topic in sm["not_recorded"]
+    assert "metadata edgeloc.run" in sm["not_recorded"]
+    assert sm["latency"] == {"source": None, "per_split": {}}
+    md = (folder / "report.md").read_text()
+    assert "Not recorded: inference results (/<vehicle>/inference)." in md
+    assert "Not recorded: split decisions" in md
+    assert "Link backend: not recorded." in md
+
+
+def test_empty_recording_still_builds(tmp_path: Path) -> None:
+    s = SynthRun()
+    s.metadata["edgeloc.run"] = {"run_id": "e", "status": "failed: nothing ran"}
+    rep = build_report(write_run(tmp_path, s), plots=False)
+    assert rep.summary["methods"] == {}
+    assert "EdgeLoc total error n/a" in rep.headline
+    assert "The run FAILED: nothing ran" in (rep.folder / "report.md").read_text()
+
+
+def test_not_an_mcap_is_refused(tmp_path: Path) -> None:
+    (tmp_path / "run.mcap").write_text("hello")
+    with pytest.raises(ReportInputError, match="not an MCAP file"):
+        build_report(tmp_path)
+    with pytest.raises(ReportInputError, match=r"no run\.mcap"):
+        build_report(tmp_path / "nothing")
+
+
+# ---- what issue #8 asks the report to show ---------------------------------------------------
+
+
+def test_failed_node_is_named_with_its_last_log_lines(tmp_path: Path) -> None:
+    s = small_run(status="failed: node av1.fusion exited with code 1")
+    s.metadata["edgeloc.nodes"]["av1.fusion"] = {
+        "namespace": "el-x-av1",
+        "exit_code": 1,
+        "stats": {},
+        "log_tail": ["starting", "Traceback (most recent call last):", "ZeroDivisionError: boom"],
+    }
+    folder = write_run(tmp_path, s)
+    rep = build_report(folder, plots=False)
+    (fail,) = rep.summary["failures"]
+    assert fail["process"] == "av1.fusion" and fail["exit_code"] == 1
+    md = (folder / "report.md").read_text()
+    assert "## Failed nodes" in md
+    assert "av1.fusion (namespace el-x-av1) exited with code 1." in md
+    assert "ZeroDivisionError: boom" in md
+    assert "ZeroDivisionError: boom" in (folder / "report.html").read_text()
+
+
+def test_silent_edge_server_shows_as_a_gap_while_poses_continue(tmp_path: Path) -> None:
+    s = SynthRun()
+    for f in range(100):  # 5 s at 20 Hz, fused poses throughout
+        t = T0 + 0.05 * f
+        s.pose("/av1/gt", t, f, "gt", f, 0.0, log_t=t)
+        s.pose("/av1/pose", t, f, "edgeloc", f, 0.1, latency=0.05, log_t=t + 0.01)
+    for k in [*range(20), *range(35, 50)]:  # answers every 0.1 s, none from 1.95 s to 3.55 s
+        t = T0 + 0.05 + 0.1 * k
+        s.pose("/av1/dnn_answer", t - 0.04, k, "dnn", k, 0.0, latency=0.04, log_t=t)
+    rep = build_report(write_run(tmp_path, s), plots=False)
+    g = rep.summary["dnn_gaps"]["av1"]
+    assert g["answers"] == 35
+    (gap,) = g["gaps"]
+    assert gap["where"] == "middle"
+    assert gap["start_s"] == pytest.approx(1.95) and gap["end_s"] == pytest.approx(3.55)
+    # Fused poses published at 0.05·f + 0.01 s strictly inside the gap: f = 39 … 70.
+    assert gap["fused_poses"] == 32
+    md = (rep.folder / "report.md").read_text()
+    assert "| middle | 1.95 | 3.55 | 1.60 | 32 |" in md
+
+
+# ---- the CLI --------------------------------------------------------------------------------
+
+
+def test_cli_report_builds_and_prints_the_headline(tmp_path: Path) -> None:
+    folder = write_run(tmp_path, small_run())
+    result = runner.invoke(app, ["report", str(folder), "--no-plots"])
+    assert result.exit_code == 0, result.output
+    assert "run 123456: EdgeLoc total error 3.8 m" in result.output
+    assert f"report: {folder / 'report.html'}" in result.output
+    only_json = runner.invoke(app, ["report", str(folder), "--formats", "json"])
+    assert only_json.exit_code == 0, only_json.output
+    assert f"report: {folder / 'summary.json'}" in only_json.output
+
+
+def test_cli_report_exit_codes(tmp_path: Path) -> None:
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    result = runner.invoke(app, ["report", str(empty)])
+    assert result.exit_code == 2
+    assert "no run.mcap here" in result.output
+    assert runner.invoke(app, ["report", str(tmp_path / "nope")]).exit_code == 2
+    (empty / "parts").mkdir()  # a run whose orchestrator was killed before the merge
+    unmerged = runner.invoke(app, ["report", str(empty)])
+    assert unmerged.exit_code == 2 and "testbed clean" in unmerged.output
+    folder = write_run(tmp_path, small_run())
+    bad = runner.invoke(app, ["report", str(folder), "--formats", "pdf"])
+    assert bad.exit_code == 2 and "unknown pdf" in bad.output
+    helped = runner.invoke(app, ["report", "--help"])
+    assert helped.exit_code == 0 and "testbed report runs/" in helped.output
+
+
+# ---- `testbed run` ends with the report ---------------------------------------------------------
+
+SMOKE = Path(__file__).resolve().parent.parent / "scenarios" / "smoke.yaml"
+
+
+def _fake_run(folder: Path, outcome: BaseException | None) -> object:
+    """A stand-in for `testbed.run.run_scenario` that leaves `folder` with its run.mcap."""
+
+    def run_scenario(scenario: object, runs_dir: Path, progress: object) -> object:
+        if outcome is not None:
+            outcome.run_folder = folder  # type: ignore[attr-defined]
+            raise outcome
+        return SimpleNamespace(
+            run_id="123456", folder=folder, ok=True, timings_s={"up": 0.2, "down": 0.1}
+        )
+
+    return run_scenario
+
+
+def test_run_ends_with_the_headline_and_the_report_path(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    import testbed.run
+
+    folder = write_run(tmp_path, small_run())
+    monkeypatch.setattr(testbed.run, "run_scenario", _fake_run(folder, None))
+    result = runner.invoke(app, ["run", str(SMOKE), "--runs-dir", str(tmp_path)])
+    assert result.exit_code == 0, result.output
+    *_, headline, path = result.output.strip().splitlines()
+    assert headline.startswith("run 123456: EdgeLoc total error 3.8 m")
+    assert path.startswith(f"report: {folder}/report.") and "(partial)" not in path
+    assert (folder / "summary.json").is_file()
+
+
+def test_failed_run_still_reports_and_exits_1(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    import testbed.run
+    from testbed.errors import TestbedError
+
+    s = small_run(status="failed: node av1.fusion exited with code 1")
+    s.metadata["edgeloc.nodes"]["av1.fusion"] = {"exit_code": 1, "log_tail": ["boom"]}
+    folder = write_run(tmp_path, s)
+    err = TestbedError("run 123456 failed: node av1.fusion exited with code 1")
+    monkeypatch.setattr(testbed.run, "run_scenario", _fake_run(folder, err))
+    result = runner.invoke(app, ["run", str(SMOKE), "--runs-dir", str(tmp_path)])
+    assert result.exit_code == 1
+    assert "node av1.fusion exited with code 1" in result.output
+    assert f"report: {folder}/report." in result.output
+    assert "## Failed nodes" in (folder / "report.md").read_text()
+
+
+def test_interrupted_run_gets_a_partial_report_and_exits_130(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    import testbed.run
+
+    folder = write_run(tmp_path, long_run(), chunk_size=4096, finish=False)
+    monkeypatch.setattr(testbed.run, "run_scenario", _fake_run(folder, KeyboardInterrupt()))
+    result = runner.invoke(app, ["run", str(SMOKE), "--runs-dir", str(tmp_path)])
+    assert result.exit_code == 130
+    assert f"report: {folder}/report." in result.output and "(partial)" in result.output
+    assert json.loads((folder / "summary.json").read_text())["partial"] is True
+
+
+def test_every_summary_key_is_documented(tmp_path: Path) -> None:
+    import reports.summary
+
+    s = summarize(read_run(write_run(tmp_path, small_run())))
+    doc = reports.summary.__doc__ or ""
+    undocumented = [k for k in s if f"`{k}`" not in doc]
+    assert not undocumented, (
+        f"document these summary.json keys in reports/summary.py: {undocumented}"
+    )
+
+
+def test_vehicles_are_pooled_and_kept_apart(tmp_path: Path) -> None:
+    s = SynthRun()
+    for v, err in (("av1", 0.2), ("av2", 0.4)):
+        for f in range(5):
+            t = T0 + 0.05 * f
+            s.pose(f"/{v}/gt", t, f, "gt", f, 0.0, vehicle=v)
+            s.pose(f"/{v}/pose", t, f, "vo", f, 1.0, vehicle=v)
+            s.pose(f"/{v}/pose", t, f, "edgeloc", f, err, vehicle=v)
+    rep = build_report(write_run(tmp_path, s), plots=False)
+    sm = rep.summary
+    assert sm["vehicles"] == ["av1", "av2"]
+    assert sm["methods"]["edgeloc"]["position_m"]["total"] == pytest.approx(3.0)
+    assert sm["methods"]["edgeloc"]["frames"] == 10
+    per = sm["per_vehicle"]
+    assert per["av1"]["methods"]["edgeloc"]["position_m"]["total"] == pytest.approx(1.0)
+    assert per["av2"]["methods"]["edgeloc"]["position_m"]["max"] == pytest.approx(0.4)
+    red = {r["versus"]: r["ours_pct"] for r in sm["paper_comparison"]["reductions"]}
+    assert red["vo"] == pytest.approx(70.0)
+    md = (rep.folder / "report.md").read_text()
+    assert "*av1*" in md and "*av2*" in md  # one table per vehicle besides the pooled one
+
+
+def test_a_topic_of_another_type_is_counted_not_fatal(tmp_path: Path) -> None:
+    s = long_run(frames=5)
+    event = {"stamp": stamp(T0), "action": "shape", "target": "av1", "keys": [], "values": []}
+    s.add(T0 + 0.5, "/av2/pose", "LinkEvent", event)  # a LinkEvent where poses are expected
+    rep = build_report(write_run(tmp_path, s), plots=False)
+    rec = rep.summary["recording"]
+    assert rec["decode_errors"] == 1
+    assert "/av2/pose: 1 message(s) could not be decoded" in rec["problems"]
+    assert rep.summary["methods"]["edgeloc"]["frames"] == 5
+
+
+def test_learner_phases_between_timeline_events(tmp_path: Path) -> None:
+    s = SynthRun()
+    s.pose("/av1/gt", T0, 0, "gt", 0.0, 0.0)  # run time starts here
+    arms = ["image", "conv3"]
+    plays = [(0.1, "image"), (0.2, "image"), (0.3, "conv3"), (0.4, "image")]
+    plays += [(1.1 + 0.1 * k, "conv3") for k in range(4)]
+    for t, split in plays:
+        s.add(
+            T0 + t,
+            "/av1/split_decision",
+            "SplitDecision",
+            {"stamp": stamp(T0 + t), "chosen": split, "arm_names": arms, "rule": "ucb"},
+        )
+    answers = [(0.15, "image", 0.05), (0.25, "image", 0.06), (0.35, "conv3", 0.02)]
+    answers += [(0.45, "image", 0.07), (0.5, "conv3", 0.04)]  # phase 1: conv3 fastest
+    answers += [(1.15, "conv3", 0.08), (1.25, "conv3", 0.1), (1.3, "image", 0.05)]
+    answers += [(1.45, "image", 0.05)]  # phase 2: image fastest
+    for t, split, lat in answers:
+        s.add(
+            T0 + t,
+            "/av1/inference",
+            "InferenceResult",
+            {"stamp": stamp(T0 + t), "split": split, "latency_s": lat, "ok": True},
+        )
+    s.add(
+        T0 + 1.0,
+        "/links/events",
+        "LinkEvent",
+        {"stamp": stamp(T0 + 1.0), "action": "shape", "target": "av1", "keys": [], "values": []},
+    )
+    first, second = summarize(read_run(write_run(tmp_path, s)))["learner"]["phases"]
+    assert (first["start_s"], first["end_s"], second["end_s"]) == pytest.approx((0, 1.0, 1.45))
+    assert first["plays"] == 4 and first["chosen"] == "image"
+    assert first["share"] == {"image": 0.75, "conv3": 0.25}
+    assert first["best_in_hindsight"] == "conv3"
+    assert first["mean_latency_s"] == pytest.approx({"image": 0.06, "conv3": 0.03})
+    assert first["share_best"] == 0.25 and first["share_best_second_half"] == 0.5
+    assert second["chosen"] == "conv3" and second["best_in_hindsight"] == "image"
+    assert second["share_best"] == 0.0
+
+
+def test_evo_reads_the_trajectories(tmp_path: Path) -> None:
+    file_interface = pytest.importorskip("evo.tools.file_interface")
+    folder = write_run(tmp_path, small_run())
+    build_report(folder, formats=("json",))
+    gt = file_interface.read_tum_trajectory_file(str(folder / "trajectories/av1/gt.tum"))
+    est = file_interface.read_tum_trajectory_file(str(folder / "trajectories/av1/edgeloc.tum"))
+    assert gt.num_poses == 10 and est.num_poses == 9
+    assert est.positions_xyz[-1] == pytest.approx([9.0, 0.9, 0.0])

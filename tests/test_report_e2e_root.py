@@ -1,0 +1,71 @@
+"""A real (short) run ends with its report, and `testbed report` rebuilds the same summary.json
+from run.mcap alone, anywhere.
+
+Runs the real `testbed` executable on the smoke scenario shortened to 4 s, with every report
+format and the figures on, in a private state directory (EDGELOC_STATE_DIR)."""
+
+from __future__ import annotations
+
+import json
+import os
+import re
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+pytestmark = [pytest.mark.root, pytest.mark.ros, pytest.mark.e2e, pytest.mark.slow]
+
+REPO = Path(__file__).resolve().parents[1]
+TESTBED = [sys.executable, "-m", "testbed.cli"]
+
+
+def _testbed(*args: str, timeout: float = 300) -> subprocess.CompletedProcess[str]:
+    return subprocess.run(
+        [*TESTBED, *args],
+        capture_output=True,
+        text=True,
+        timeout=timeout,
+        cwd=REPO,
+        env={**os.environ, "CI": "1"},
+    )
+
+
+def test_run_reports_and_the_report_rebuilds_identically(state_dir: Path, tmp_path: Path) -> None:
+    text = (REPO / "scenarios/smoke.yaml").read_text()
+    text = text.replace("duration: 20s", "duration: 4s").replace("at: 10s", "at: 2s")
+    text, n = re.subn(
+        r"(?m)^report:.*$",
+        "report: {enabled: true, formats: [html, md, json], plots: true, link_test: false}",
+        text,
+    )
+    assert n == 1, "scenarios/smoke.yaml has no one-line `report:` to override"
+    short = tmp_path / "smoke-report.yaml"
+    short.write_text(text)
+    runs = tmp_path / "runs"
+
+    result = _testbed("run", str(short), "--runs-dir", str(runs))
+    assert result.returncode == 0, result.stdout[-3000:] + result.stderr[-3000:]
+    (folder,) = runs.iterdir()
+    *_, headline, where = result.stdout.strip().splitlines()
+    assert headline.startswith(f"run {folder.name}: EdgeLoc total error "), result.stdout[-2000:]
+    assert where == f"report: {folder / 'report.html'}"
+
+    summary = json.loads((folder / "summary.json").read_text())
+    assert summary["status"] == "ok" and summary["partial"] is False
+    assert summary["headline"] == headline
+    for method in ("vo", "dnn", "kalman", "edgeloc"):
+        assert summary["methods"][method]["frames"] > 0, method
+    assert summary["links"]["backend"], "the report must say which link backend ran"
+    html = (folder / "report.html").read_text()
+    assert html.count('src="data:image/png;base64,') >= 6
+
+    # Rebuilt elsewhere from the MCAP alone: the same bytes.
+    again = tmp_path / "again"
+    again.mkdir()
+    shutil.copyfile(folder / "run.mcap", again / "run.mcap")
+    rebuilt = _testbed("report", str(again), "--formats", "json")
+    assert rebuilt.returncode == 0, rebuilt.stdout + rebuilt.stderr
+    assert (again / "summary.json").read_bytes() == (folder / "summary.json").read_bytes()
