@@ -224,10 +224,13 @@ class Stop:
 
     def __init__(self) -> None:
         self.event = threading.Event()
+        self.since = math.nan  # monotonic time of the signal
         for sig in (signal.SIGTERM, signal.SIGINT):
             signal.signal(sig, self._on_signal)
 
     def _on_signal(self, signum: int, frame: object) -> None:
+        if not self.event.is_set():
+            self.since = time.monotonic()
         self.event.set()
 
     def __bool__(self) -> bool:
@@ -327,16 +330,34 @@ def ros_node(name: str, spin: bool = True, record: Path | None = None) -> Iterat
     try:
         yield ctx
     finally:
+        # Each step is timed into the log: the supervisor kills a node that takes longer than
+        # its grace to exit, and these figures say which step it was stuck in.
+        steps: dict[str, float] = {}
+        if math.isfinite(stop.since):  # signalled: how long the body took to notice
+            steps["body"] = round(time.monotonic() - stop.since, 4)
+        t = time.monotonic()
+
+        def step(what: str) -> None:
+            nonlocal t
+            now = time.monotonic()
+            steps[what] = round(now - t, 4)
+            t = now
+
         stop.event.set()
         if thread is not None:
             thread.join(timeout=5)
+        step("executor")
         ctx.close_entities()
         executor.remove_node(ctx.node)
         executor.shutdown()
         ctx.node.destroy_node()
+        step("destroy")
         rclpy.shutdown()
+        step("rclpy_shutdown")
         if recorder is not None:
             recorder.close()
+            step("recording")
+        emit("exit", seconds=steps)
 
 
 def run_main(main: Any) -> None:
