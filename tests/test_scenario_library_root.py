@@ -1,0 +1,177 @@
+"""The scenario library for real: every file's network comes up and goes down through the CLI
+(namespaces, links with their profiles, nothing left behind), the smoke scenario runs end to
+end as CI runs it (`testbed run scenarios/smoke.yaml`, timed: < 90 s wall), and the
+multi-vehicle scenario runs shortened with both vehicles served by the one edge server.
+
+Runs write into a temp runs dir (`--runs-dir`) and a private state dir (EDGELOC_STATE_DIR, the
+`state_dir` fixture), so the repository is not littered and only this test's runs are seen.
+Figures are printed with `-s`.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import re
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+import yaml
+
+from testbed import state as st
+from testbed.net import list_netns
+from testbed.sweep import read_tree, shorten
+
+pytestmark = [pytest.mark.root, pytest.mark.ros, pytest.mark.slow, pytest.mark.e2e]
+
+REPO = Path(__file__).resolve().parents[1]
+LIBRARY = sorted((REPO / "scenarios").glob("*.yaml"))
+TESTBED = [sys.executable, "-m", "testbed.cli"]
+#: Issue #7: the smoke scenario alone in under 90 s of wall time (CI, 2 cores).
+SMOKE_WALL_S = 90.0
+#: A shortened multi-vehicle run must fit in this (or it is not worth its place in `make test`).
+MULTI_WALL_S = 60.0
+MULTI_SHORT_S = 12.0
+
+
+def _testbed(*args: str, timeout: float = 120) -> subprocess.CompletedProcess[str]:
+    return subprocess.run(
+        [*TESTBED, *args],
+        capture_output=True,
+        text=True,
+        timeout=timeout,
+        cwd=REPO,
+        env={**os.environ, "CI": "1"},
+    )
+
+
+def _ours(run_id: str) -> list[str]:
+    return [n for n in list_netns() if n.startswith(f"el-{run_id}-")]
+
+
+def _processes_mentioning(text: str) -> list[int]:
+    found = []
+    for entry in os.listdir("/proc"):
+        if not entry.isdigit() or int(entry) == os.getpid():
+            continue
+        try:
+            cmd = Path(f"/proc/{entry}/cmdline").read_bytes().replace(b"\0", b" ").decode()
+        except OSError:
+            continue
+        if text in cmd:
+            found.append(int(entry))
+    return found
+
+
+@pytest.fixture(scope="module")
+def interfaces() -> None:
+    from nodes.ros_build import BuildError, ensure_built
+
+    try:
+        ensure_built()
+    except BuildError as err:
+        pytest.fail(f"edgeloc_interfaces could not be built: {err}")
+
+
+@pytest.mark.parametrize("file", LIBRARY, ids=[p.stem for p in LIBRARY])
+def test_up_and_down_of_every_library_scenario(file: Path, state_dir: Path) -> None:
+    from testbed.scenario import load
+
+    scenario = load(file)
+    links_before = os.listdir("/sys/class/net")
+    up = _testbed("up", str(file.relative_to(REPO)))
+    assert up.returncode == 0, up.stdout + up.stderr
+    run_id = re.search(r"run ([0-9a-f]{6}) is up", up.stdout).group(1)  # type: ignore[union-attr]
+    try:
+        nodes = scenario.topology.node_names()
+        assert sorted(_ours(run_id)) == sorted(f"el-{run_id}-{n}" for n in nodes)
+        assert f"{len(nodes)} namespaces, {len(scenario.links.links)} links" in up.stdout
+        assert re.search(r"link backend: (userspace|tc) \(auto: ", up.stdout), up.stdout
+        assert os.listdir("/sys/class/net") == links_before  # nothing in the host namespace
+    finally:
+        down = _testbed("down", run_id)
+    assert down.returncode == 0, down.stdout + down.stderr
+    assert _ours(run_id) == []
+    assert st.list_runs() == []
+    assert _processes_mentioning(f"el-{run_id}-") == []
+    assert os.listdir("/sys/class/net") == links_before
+
+
+def test_smoke_scenario_runs_end_to_end_through_the_cli(
+    interfaces: None, state_dir: Path, tmp_path: Path
+) -> None:
+    runs = tmp_path / "runs"
+    t0 = time.monotonic()
+    r = _testbed("run", "scenarios/smoke.yaml", "--runs-dir", str(runs), timeout=300)
+    wall = time.monotonic() - t0
+    assert r.returncode == 0, r.stdout[-4000:] + r.stderr[-4000:]
+    (folder,) = [p for p in runs.iterdir() if p.is_dir()]
+    run = json.loads((folder / "run.json").read_text())
+    assert run["ok"] and run["scenario"] == "smoke"
+    procs = run["nodes"]["processes"]
+    assert all(p["stats"] for p in procs.values()), procs  # every node ran and reported
+    fusion, inference = procs["av1.fusion"]["stats"], procs["av1.inference"]["stats"]
+    assert fusion["published"]["edgeloc"] >= 0.8 * 20 * 20, fusion["published"]
+    assert inference["answers"] >= 20, inference
+    assert run["timeline"]["applied"] == 2
+    assert _ours(run["run_id"]) == [] and st.list_runs() == []
+    print(
+        f"\nsmoke: testbed run wall {wall:.1f} s (up {run['timings_s']['up'] * 1000:.0f} ms, "
+        f"node exit codes {sorted({p['exit_code'] for p in procs.values()})}, "
+        f"down {run['timings_s']['down'] * 1000:.0f} ms); {fusion['published']['edgeloc']} "
+        f"fused poses, {inference['requests']} requests, {inference['answers']} answers; "
+        f"errors {fusion['errors']}"
+    )
+    assert wall < SMOKE_WALL_S, f"the smoke scenario took {wall:.1f} s (bar: {SMOKE_WALL_S:g} s)"
+
+
+def test_multi_vehicle_shortened_run_serves_both_vehicles(
+    interfaces: None, state_dir: Path, tmp_path: Path
+) -> None:
+    from testbed.run import run_scenario
+    from testbed.scenario import load
+
+    file = REPO / "scenarios" / "multi_vehicle.yaml"
+    short = tmp_path / "multi_vehicle.yaml"
+    short.write_text(yaml.safe_dump(shorten(read_tree(file), MULTI_SHORT_S), sort_keys=False))
+    scenario = load(short)
+    lines: list[str] = []
+    t0 = time.monotonic()
+    result = run_scenario(scenario, tmp_path / "runs", lines.append)
+    wall = time.monotonic() - t0
+    assert result.ok, "\n".join(lines)
+    procs = result.nodes["processes"]
+    assert set(procs) == {
+        "core1.edge",
+        "gnb1.link_events",
+        *(f"{v}.{n}" for v in ("av1", "av2") for n in ("fusion", "inference", "sensor")),
+    }
+    # Every node did its work and wrote its statistics when stopped. (Clean exit codes are
+    # test_run_e2e_root's subject; here a node that is slow to shut down after writing its
+    # stats is killed by the supervisor's grace timer, which says nothing about several
+    # vehicles sharing a cell.)
+    assert all(p["stats"] for p in procs.values()), {n: bool(p["stats"]) for n, p in procs.items()}
+    exits = {n: p["exit_code"] for n, p in procs.items()}
+    edge = procs["core1.edge"]["stats"]
+    for v in ("av1", "av2"):
+        fusion, inference = procs[f"{v}.fusion"]["stats"], procs[f"{v}.inference"]["stats"]
+        assert fusion["published"]["edgeloc"] >= 0.8 * 20 * MULTI_SHORT_S, (v, fusion)
+        assert inference["answers"] >= 5, (v, inference)
+        # One edge server answered both vehicles.
+        assert edge["per_vehicle"].get(v, 0) >= inference["answers"], (v, edge["per_vehicle"])
+    # The shape hit av2 only (one timeline event, applied).
+    assert result.timeline["applied"] == 1
+    assert _ours(result.run_id) == [] and st.list_runs() == []
+    print(
+        f"\nmulti_vehicle ({MULTI_SHORT_S:g} s): wall {wall:.1f} s; exit codes {exits}; "
+        f"edge per vehicle {edge['per_vehicle']}; "
+        + "; ".join(
+            f"{v}: {procs[f'{v}.inference']['stats']['answers']} answers, splits "
+            f"{procs[f'{v}.inference']['stats']['split_plays']}"
+            for v in ("av1", "av2")
+        )
+    )
+    assert wall < MULTI_WALL_S, f"the shortened multi-vehicle run took {wall:.1f} s"
