@@ -222,3 +222,46 @@ def test_robust_detector_fit_ignores_a_lone_spike_but_sees_a_shift() -> None:
     assert any(det.update("image", c) is not None for c in shifted)
     with pytest.raises(ValueError, match="detector fit"):
         KLChangeDetector(fit="median")
+
+
+# ---- robust fit (beyond the paper; the replay's and the ROS node's learner use it) ----------
+
+
+def _fill(bandit: SlidingWindowUCB1Normal, costs: dict[str, list[float]]) -> None:
+    for i in range(max(len(v) for v in costs.values())):
+        for arm, v in costs.items():
+            if i < len(v):
+                bandit.update(arm, v[i])
+
+
+def test_robust_fit_ignores_one_retransmission_spike() -> None:
+    """One +200 ms retransmission in the slow arm's window must not make it look promising:
+    with mean/variance its index drops below the fast arm's; with median/MAD it does not."""
+    rng = np.random.default_rng(3)
+    fast = list(0.089 + rng.normal(0, 0.004, 40))
+    slow = list(0.107 + rng.normal(0, 0.004, 6))
+    slow[2] += 0.2  # one lost packet, retransmitted after Linux's minimum RTO
+    picks = {}
+    for fit in ("mle", "robust"):
+        b = SlidingWindowUCB1Normal(["fast", "slow"], window=100, rng_seed=None, fit=fit)
+        _fill(b, {"fast": fast, "slow": slow})
+        picks[fit] = b.select()
+    assert picks == {"mle": "slow", "robust": "fast"}
+
+
+def test_robust_fit_equals_mean_and_std_for_gaussian_costs() -> None:
+    rng = np.random.default_rng(5)
+    costs = list(0.05 + rng.normal(0, 0.003, 2000))
+    b = SlidingWindowUCB1Normal(["a", "b"], window=None, fit="robust")
+    _fill(b, {"a": costs, "b": [1.0, 1.1]})
+    st = b.stats()[0]
+    assert st.mean == pytest.approx(np.mean(costs), abs=2e-4)
+    assert math.sqrt(st.var) == pytest.approx(np.std(costs), rel=0.05)
+
+
+def test_fit_is_checked_and_reaches_the_bandit() -> None:
+    with pytest.raises(ValueError, match="learner fit must be one of"):
+        SlidingWindowUCB1Normal(["a", "b"], fit="median")
+    learner = AdaptiveSplitLearner.from_settings(["a", "b"], window=10, fit="robust")
+    assert learner.bandit.fit == "robust"
+    assert SlidingWindowUCB1Normal(["a", "b"]).fit == "mle"  # the paper's, by default

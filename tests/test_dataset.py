@@ -14,6 +14,7 @@ from nodes.edgeloc.dataset import (
     SyntheticDataset,
     export,
 )
+from nodes.edgeloc.model import IMAGE_SHAPE
 
 
 @pytest.fixture(scope="module")
@@ -25,7 +26,7 @@ def test_synthetic_dataset_is_a_dataset(short: SyntheticDataset) -> None:
     assert isinstance(short, Dataset)
     assert len(short) == 60 and short.rate_hz == 20.0
     assert short.timestamp(59) == pytest.approx(2.95)
-    assert short.image(0).shape == short.image_shape == (48, 64, 3)
+    assert short.image(0).shape == short.image_shape == IMAGE_SHAPE  # the DNN's camera
     assert short.gt_pose(0).shape == (3,) and np.array_equal(short.vo_pose(0), short.gt_pose(0))
     with pytest.raises(IndexError, match="60 frames"):
         short.image(60)

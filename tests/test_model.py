@@ -11,7 +11,7 @@ import torch
 
 from nodes.edgeloc import codec
 from nodes.edgeloc.dataset import SyntheticDataset
-from nodes.edgeloc.model import IMAGE_SHAPE, SPLITS, LocNet, split_index, to_pose
+from nodes.edgeloc.model import IMAGE_SHAPE, INPUT_POOL, SPLITS, LocNet, split_index, to_pose
 from nodes.edgeloc.train import (
     HELD_OUT_SEEDS,
     METRICS_FILE,
@@ -38,9 +38,11 @@ def test_split_points_are_named_and_sized(net: LocNet) -> None:
     assert len(SPLITS) >= 5 and SPLITS[0] == "image" and SPLITS[-1] == "vehicle"
     sizes = [int(np.prod(net.activation_shape(s))) for s in SPLITS]
     image = int(np.prod(IMAGE_SHAPE))
+    net_input = image // INPUT_POOL**2  # the first stage averages INPUT_POOL² pixel blocks
     assert sizes[0] == image and sizes[-1] == 4
-    assert any(s > image for s in sizes[1:-1])  # an early conv bigger than the image
-    assert any(s < image / 4 for s in sizes[1:-1])  # later ones much smaller
+    assert any(s > net_input for s in sizes[1:-1])  # an early conv bigger than its input
+    assert all(s < image for s in sizes[1:-1])  # but every activation smaller than the frame
+    assert any(s < image / 16 for s in sizes[1:-1])  # later ones much smaller
     assert split_index("conv2") == 2 and split_index(3) == 3
     with pytest.raises(ValueError, match="unknown split point 'conv9'"):
         split_index("conv9")
@@ -162,3 +164,28 @@ def test_missing_weights_say_how_to_make_them(tmp_path: Path) -> None:
 def test_to_pose_gives_yaw() -> None:
     out = torch.tensor([[1.0, 2.0, 0.0, 1.0]])
     assert torch.allclose(to_pose(out), torch.tensor([[1.0, 2.0, np.pi / 2]]))
+
+
+def test_first_stage_averages_the_camera_down_to_the_network_input() -> None:
+    net = LocNet(seed=1).eval()
+    assert net.pool == INPUT_POOL and IMAGE_SHAPE[0] % (16 * INPUT_POOL) == 0
+    x = torch.randint(0, 256, (2, *IMAGE_SHAPE), dtype=torch.uint8)
+    with torch.no_grad():
+        pooled = net.stages[0][0](x)
+        full = net.stages[0][0].__class__(1)(x)
+    h, w = IMAGE_SHAPE[0] // INPUT_POOL, IMAGE_SHAPE[1] // INPUT_POOL
+    assert pooled.shape == (2, 3, h, w)
+    assert torch.allclose(pooled, torch.nn.functional.avg_pool2d(full, INPUT_POOL))
+    with pytest.raises(ValueError, match="multiples of 32"):
+        LocNet((48, 64, 3), pool=2)  # 24x32 after pooling cannot take four stride-2 convs
+    LocNet((48, 64, 3), pool=1)  # the same network on a camera of its input size
+
+
+def test_camera_frame_travels_stored_activations_compressed(frames: np.ndarray) -> None:
+    """The raw frame is sent without compression (zlib saves little on a noisy frame and the
+    vehicle's slow CPU would pay for it); activations are compressed as before."""
+    blob = codec.encode(torch.from_numpy(frames[:1]), "fp16-zlib")
+    assert frames[:1].nbytes < len(blob) <= frames[:1].nbytes + 64
+    assert torch.equal(codec.decode(blob), torch.from_numpy(frames[:1]))
+    a = torch.zeros((1, 48, 6, 8))
+    assert len(codec.encode(a, "fp16-zlib")) < a.numel() * 2 / 10

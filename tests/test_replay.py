@@ -13,6 +13,7 @@ import pytest
 from nodes.edgeloc.gate import GateSettings, PlausibilityGate
 from nodes.edgeloc.latency import (
     ComputeProfile,
+    Exchange,
     LatencyModel,
     PathSchedule,
     PathState,
@@ -20,17 +21,18 @@ from nodes.edgeloc.latency import (
 )
 from nodes.edgeloc.metrics import read_tum
 from nodes.edgeloc.model import SPLITS
-from nodes.edgeloc.replay import ReplayConfig, run_replay
+from nodes.edgeloc.replay import ReplayConfig, convergence, run_replay
 from testbed.replay_cmd import latency_model, replay_command, replay_config, replay_scenario
 from testbed.scenario import load
 
 ROOT = Path(__file__).resolve().parents[1]
-# A fixed compute profile (about what this machine measures) keeps the tests deterministic.
+# A fixed compute profile (about the committed reference, weights/compute.json) keeps the
+# tests deterministic whatever the reference becomes.
 COMPUTE = ComputeProfile(
     splits=SPLITS,
-    stage_s=(1.2e-4, 6e-5, 5e-5, 4.5e-5, 3e-5, 9e-5),
-    encode_s=(6e-5, 1.2e-4, 8e-5, 5e-5, 4e-5, 3e-5, 1e-5),
-    decode_s=(3e-5, 5e-5, 3e-5, 2e-5, 2e-5, 1e-5, 5e-6),
+    stage_s=(2.2e-4, 6e-5, 5e-5, 4.5e-5, 3e-5, 9e-5),
+    encode_s=(2e-5, 2.5e-4, 1.2e-4, 5.5e-5, 3.3e-5, 1.5e-5, 7e-6),
+    decode_s=(2e-5, 8e-5, 4.5e-5, 2.3e-5, 1.4e-5, 8e-6, 6.5e-6),
 )
 
 
@@ -135,7 +137,7 @@ def test_default_scenario_path_follows_the_timeline() -> None:
     sc = load(ROOT / "scenarios" / "default.yaml")
     lm = latency_model(sc, COMPUTE)
     assert lm.uplink.times == (0.0, 30.0, 60.0)
-    assert [s.rate_bps for s in lm.uplink.states] == [40e6, 8e6, 20e6]
+    assert [s.rate_bps for s in lm.uplink.states] == [40e6, 4e6, 20e6]
     up = lm.uplink.states[0]
     assert up.delay_s == pytest.approx(0.009)  # air 8 ms + backhaul 1 ms
     assert up.jitter_s == pytest.approx(0.002)
@@ -144,10 +146,11 @@ def test_default_scenario_path_follows_the_timeline() -> None:
     cfg = replay_config(sc)
     assert cfg.phases == (0.0, 30.0, 60.0)
     assert cfg.splits == ("image", "conv3", "vehicle")
-    assert cfg.learner.window == 100 and cfg.learner.detector_window == 30
-    assert cfg.k_s == 20.0 and cfg.dt0_s == -0.15
-    assert cfg.learner.detector_fit == "robust"
-    assert lm.compute.vehicle_cpu == 0.01  # the whole network takes ~40 ms on the vehicle
+    assert cfg.learner.window == 50 and cfg.learner.detector_window == 30
+    assert cfg.k_s == 10.0 and cfg.dt0_s == -0.22
+    assert cfg.learner.detector_fit == "robust" and cfg.learner.bandit_fit == "robust"
+    assert lm.compute.vehicle_cpu == 0.007  # the whole network takes ~71 ms on the vehicle
+    assert lm.exchange.handshakes == 1  # the ROS nodes' SplitInference action
 
 
 def test_outage_and_set_events_change_the_path() -> None:
@@ -206,8 +209,10 @@ def test_default_replay_edgeloc_beats_every_baseline_and_the_learner_holds_the_b
     EdgeLoc beats VO and DNN by at least the paper's margins and the Kalman baseline (fixed
     Q/R of the scenario) by a clear margin, though below the paper's 30.26% (see the bench for
     the figures and for Kalman filters with other R). The learner: per bandwidth phase the
-    split it played most is the best in hindsight, with >= 90% of the plays in the phase's
-    second half (the ceiling of the paper's exploration rule is 96% for K = 3, W = 100)."""
+    split it played most is the best in hindsight, with >= 80% of the plays in the phase's
+    second half (the ceiling of the paper's exploration rule is 92% for K = 3, W = 50; in the
+    4 Mbit/s phase the best split leads the next by ~10 ms, 2.5 times the std of a request's
+    four jittered messages, so UCB1-normal keeps sampling the runner-up more)."""
     sc = load(ROOT / "scenarios" / "default.yaml")
     _, _, summary = replay_scenario(sc, tmp_path, COMPUTE)
     red = {r["versus"]: r for r in summary["paper_comparison"]["reductions"]}
@@ -216,7 +221,7 @@ def test_default_replay_edgeloc_beats_every_baseline_and_the_learner_holds_the_b
     assert red["kalman"]["ours_pct"] >= 10.0
     for ph in summary["learner"]["phases"]:
         assert ph["chosen"] == ph["best_in_hindsight"] == ph["expected_best"]
-        assert ph["share_best_second_half"] >= 0.9
+        assert ph["share_best_second_half"] >= 0.8
     # the robust detector does not reset on every lost packet: a few resets in 90 s, not ~15
     assert len(summary["learner"]["resets"]) <= 5
 
@@ -258,7 +263,7 @@ def test_more_latency_means_more_error_at_the_extremes() -> None:
 def test_slow_vehicle_makes_the_split_move_with_bandwidth(smoke_run) -> None:
     sc = load(ROOT / "scenarios" / "smoke.yaml")
     slow = replace(
-        sc, topology=replace(sc.topology, vehicles=(replace(sc.topology.vehicles[0], cpu=0.05),))
+        sc, topology=replace(sc.topology, vehicles=(replace(sc.topology.vehicles[0], cpu=0.02),))
     )
     res = run_replay(replay_config(slow), latency_model(slow, COMPUTE))
     phases = res.phase_summaries()
@@ -287,3 +292,77 @@ def test_command_prints_table_and_headline(tmp_path: Path, monkeypatch) -> None:
     assert "(paper 67.75%)" in lines[-1] and "(paper 30.26%)" in lines[-1]
     assert any(line.startswith("phase 0-10 s") for line in lines)
     assert math.isfinite(float(lines[4].split()[1]))  # edgeloc's total
+
+
+# ---- the request protocol, the reference compute profile, re-convergence ------------------------
+
+
+def _quiet_model(exchange: Exchange, tail_s: float = 0.0) -> LatencyModel:
+    compute = ComputeProfile(
+        splits=("image", "vehicle"),
+        stage_s=(tail_s,),
+        encode_s=(0.0, 0.0),
+        decode_s=(0.0, 0.0),
+    )
+    up = PathSchedule.constant(PathState(rate_bps=8e6, delay_s=0.009))
+    down = PathSchedule.constant(PathState(rate_bps=200e6, delay_s=0.009))
+    return LatencyModel(compute, up, down, exchange=exchange)
+
+
+def test_action_handshake_adds_one_round_trip_and_the_fixed_overhead() -> None:
+    rng = np.random.default_rng(0)
+    plain = _quiet_model(Exchange()).timing("image", 0.0, 10_000, rng)
+    action = _quiet_model(Exchange(handshakes=1, overhead_s=0.01)).timing("image", 0.0, 10_000, rng)
+    small = 8.0 * wire_bytes(Exchange().handshake_payload)
+    shake = small / 200e6 + 0.009 + small / 8e6 + 0.009
+    assert action.latency_s - plain.latency_s == pytest.approx(shake + 0.01)
+    assert action.exchange_s == pytest.approx(shake + 0.01) and plain.exchange_s == 0.0
+    # the noise-free model agrees with a jitter- and loss-free request
+    lm = _quiet_model(Exchange(handshakes=1, overhead_s=0.01))
+    assert lm.expected_s("image", 0.0, 10_000) == pytest.approx(action.latency_s)
+
+
+def test_handshake_overlaps_the_edge_compute() -> None:
+    """The edge runs the goal as soon as it accepts it: a tail longer than the handshake hides
+    it, a shorter one is hidden by it."""
+    rng = np.random.default_rng(0)
+    ex = Exchange(handshakes=1)
+    long_tail = _quiet_model(ex, tail_s=0.1).timing("image", 0.0, 1000, rng)
+    long_plain = _quiet_model(Exchange(), tail_s=0.1).timing("image", 0.0, 1000, rng)
+    assert long_tail.latency_s == pytest.approx(long_plain.latency_s)
+    with pytest.raises(ValueError, match="handshakes and overhead_s"):
+        Exchange(handshakes=-1)
+
+
+def test_compute_profile_json_round_trip_and_committed_reference() -> None:
+    assert ComputeProfile.from_json(COMPUTE.to_json()) == COMPUTE
+    ref = ComputeProfile.reference()
+    assert ref is not None and ref.splits == SPLITS and ref.source.startswith("reference")
+    assert all(0 < s < 0.01 for s in ref.stage_s)  # a small network: well under 10 ms a stage
+    assert ComputeProfile.reference(ROOT / "no-such-profile.json") is None
+
+
+def test_measure_reference_keeps_the_fastest_round(monkeypatch) -> None:
+    rounds = iter(
+        [
+            replace(COMPUTE, stage_s=tuple(2 * s for s in COMPUTE.stage_s)),
+            COMPUTE,
+            replace(COMPUTE, encode_s=tuple(3 * s for s in COMPUTE.encode_s)),
+        ]
+    )
+    monkeypatch.setattr(ComputeProfile, "measure", classmethod(lambda cls, *a, **k: next(rounds)))
+    ref = ComputeProfile.measure_reference(None, np.zeros((1,)), "fp16-zlib", rounds=3)
+    assert (ref.stage_s, ref.encode_s, ref.decode_s) == (
+        COMPUTE.stage_s,
+        COMPUTE.encode_s,
+        COMPUTE.decode_s,
+    )
+
+
+def test_convergence_finds_the_first_window_the_best_arm_holds() -> None:
+    plays = ["a"] * 30 + ["b", "a", "b", "b", "b"] + ["b"] * 40
+    at = convergence(plays, "b", window=20, share=0.8)
+    assert at == 27  # plays 27-46: three a's, then one more among b's: 16 of 20 are b
+    assert plays[at : at + 20].count("b") >= 16
+    assert all(plays[i : i + 20].count("b") < 16 for i in range(at))
+    assert convergence(["a"] * 50, "b") is None and convergence(["b"] * 5, "b") is None

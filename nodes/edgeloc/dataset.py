@@ -147,8 +147,8 @@ class SyntheticDataset(_PoseArrays):
         duration_s: float = 90.0,
         *,
         town_seed: int = DEFAULT_TOWN_SEED,
-        width: int = 64,
-        height: int = 48,
+        width: int = 128,  # the camera the committed DNN expects (model.IMAGE_SHAPE)
+        height: int = 96,
         corruption: float = 0.0,
         vo_noise: VoNoise | None = None,
     ) -> None:

@@ -2,17 +2,25 @@
 
 The paper regresses the vehicle's absolute pose from one camera image with an end-to-end DNN
 (PoseNet) and splits it between the vehicle (layers [0:k]) and the RSU (layers [k:]). `LocNet`
-is that network sized for a 64x48 camera: a stack of stages, and a split point between every two
+is that network for a 128x96 camera: a stack of stages, and a split point between every two
 stages. Each split point has a name and an activation of its own size:
 
-    split     runs on the vehicle            sends to the edge (64x48 input)
-    image     nothing                        the raw uint8 image (3x48x64 = 9216 values)
-    conv1     5x5/2 conv                     16x24x32 floats (12288: larger than the image)
+    split     runs on the vehicle            sends to the edge (128x96 camera)
+    image     nothing                        the raw uint8 frame (3x96x128 = 36864 values)
+    conv1     2x2 mean (to 64x48), 5x5/2 conv 16x24x32 floats (12288: more than the 64x48
+                                             network input, as PoseNet's first layers)
     conv2     + 3x3/2 conv                   32x12x16 (6144)
     conv3     + 3x3/2 conv                   48x6x8   (2304)
     conv4     + 3x3/2 conv                   64x3x4   (768)
     fc        + fully connected              256
     vehicle   everything                     the pose itself (4 values): nothing for the edge
+
+Why the camera is larger than the network input: PoseNet resizes each camera frame to its input
+size as the first step of inference; here the first stage averages 2x2 pixel blocks. The camera
+frame is what the `image` split must send, and its size sets the uplink cost of offloading
+everything: at 128x96 it is 36.9 kB, about what one compressed HD frame or one raw low-resolution
+frame weighs, so the cost ordering of splits flips within the 8-40 Mbit/s of a loaded 5G uplink
+(a 64x48 frame, 9.2 kB, made sending the image the cheapest choice down to ~2 Mbit/s).
 
 `head(k, x)` runs stages [0:k] and `tail(k, a)` runs [k:], so `tail(k, head(k, x))` is exactly
 `forward(x)`. The input is the camera image as uint8 (N, H, W, 3), so the `image` split sends
@@ -29,7 +37,8 @@ import torch
 from torch import nn
 
 SPLITS: tuple[str, ...] = ("image", "conv1", "conv2", "conv3", "conv4", "fc", "vehicle")
-IMAGE_SHAPE = (48, 64, 3)  # H, W, C of the camera the committed weights expect
+IMAGE_SHAPE = (96, 128, 3)  # H, W, C of the camera the committed weights expect
+INPUT_POOL = 2  # the first stage averages INPUT_POOL x INPUT_POOL pixel blocks (PoseNet's resize)
 DEFAULT_ROADS = tuple(-200.0 + 80.0 * i for i in range(6))  # road grid of the default town
 
 
@@ -45,10 +54,16 @@ def split_index(split: int | str) -> int:
 
 
 class _ToFloat(nn.Module):
-    """uint8 (N, H, W, 3) camera image -> float (N, 3, H, W) centred on zero."""
+    """uint8 (N, H, W, 3) camera image -> float (N, 3, H/p, W/p) centred on zero, where each
+    output pixel is the mean of a p x p block (the resize to the network's input size)."""
+
+    def __init__(self, pool: int = 1) -> None:
+        super().__init__()
+        self.pool = int(pool)
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
-        return x.permute(0, 3, 1, 2).to(torch.float32) / 127.5 - 1.0
+        x = x.permute(0, 3, 1, 2).to(torch.float32) / 127.5 - 1.0
+        return nn.functional.avg_pool2d(x, self.pool) if self.pool > 1 else x
 
 
 class _PoseOut(nn.Module):
@@ -116,24 +131,29 @@ class LocNet(nn.Module):
         anchors: torch.Tensor | None = None,
         spacing: float = 15.0,
         seed: int = 0,
+        pool: int = INPUT_POOL,
     ) -> None:
         super().__init__()
         h, w, c = image_shape
-        if c != 3 or h % 16 or w % 16:
-            raise ValueError(f"image shape must be (H, W, 3) with H, W multiples of 16: {h, w, c}")
+        m = 16 * pool  # four stride-2 convolutions after the pooling
+        if pool < 1 or c != 3 or h % m or w % m:
+            raise ValueError(
+                f"image shape must be (H, W, 3) with H, W multiples of {m} (pool {pool}): {h, w, c}"
+            )
         self.image_shape = (h, w, c)
+        self.pool = pool
         if anchors is None:  # the default town's streets (the committed weights' anchors)
             anchors = street_anchors(DEFAULT_ROADS, spacing, margin=spacing)
         with torch.random.fork_rng(devices=[]):  # deterministic init, global RNG untouched
             torch.manual_seed(seed)
             self.stages = nn.ModuleList(
                 [
-                    nn.Sequential(_ToFloat(), *_conv(3, 16, 5, stride=2)),  # -> conv1
+                    nn.Sequential(_ToFloat(pool), *_conv(3, 16, 5, stride=2)),  # -> conv1
                     nn.Sequential(*_conv(16, 32, 3, stride=2)),  # -> conv2
                     nn.Sequential(*_conv(32, 48, 3, stride=2)),  # -> conv3
                     nn.Sequential(*_conv(48, 64, 3, stride=2)),  # -> conv4
                     nn.Sequential(
-                        nn.Flatten(), nn.Linear(64 * (h // 16) * (w // 16), 256), nn.ReLU()
+                        nn.Flatten(), nn.Linear(64 * (h // m) * (w // m), 256), nn.ReLU()
                     ),  # -> fc
                     _PoseOut(256, anchors, spacing),  # -> vehicle (the pose)
                 ]

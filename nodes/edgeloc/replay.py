@@ -72,7 +72,9 @@ class LearnerSettings:
 
     `detector_fit` is not a scenario field yet: the replay fits the detector's Gaussians with
     median/MAD ("robust", see `detector`), because with the MLE fit one retransmitted request
-    resets the learner (KL ~75-180 against ~1-5 for a real bandwidth shift).
+    resets the learner (KL ~75-180 against ~1-5 for a real bandwidth shift). `bandit_fit` is the
+    same choice for the UCB index ("robust", see `bandit`): with mean/variance one retransmitted
+    request makes the slowest arm look most promising for ~50 plays.
     """
 
     window: int = 50
@@ -83,6 +85,7 @@ class LearnerSettings:
     consecutive: int = 3
     detector_window: int = 20
     detector_fit: Literal["mle", "robust"] = "robust"
+    bandit_fit: Literal["mle", "robust"] = "robust"
 
     def build(self, arms: list[str], seed: int) -> AdaptiveSplitLearner:
         """The learner these settings describe (the replay and the ROS node both use this)."""
@@ -95,6 +98,7 @@ class LearnerSettings:
             detector_window=self.detector_window,
             rng_seed=seed,
             detector_fit=self.detector_fit,
+            fit=self.bandit_fit,
         )
 
 
@@ -236,8 +240,10 @@ class ReplayResult:
           `split_share` (whole run), `phases` (per bandwidth phase: start_s, end_s,
           uplink_rate_bps, plays, share per split, chosen split (most played), best split in
           hindsight (lowest mean measured latency among splits played >= 2 times),
-          expected_best (the latency model's noise-free best), share_best overall and in the
-          phase's second half), `resets` (detector events: time, play, arm, kl);
+          expected_best (the latency model's noise-free best), share_best overall, in the
+          phase's second half and last third, and converged_after_plays/_s: how long after the
+          phase began the best arm first held 80% of a 20-play sliding window, see
+          `convergence`), `resets` (detector events: time, play, arm, kl);
         - `latency`: per split {plays, lost, mean_s, median_s, p95_s, mean_bytes} and the
           compute model (`compute`: per-stage times, head/tail per split, CPU budgets);
         - `fusion`: DNN answers applied, mean weight u, plausibility-gate counts per estimator;
@@ -304,6 +310,8 @@ class ReplayResult:
             best = min(means, key=means.__getitem__) if means else None
             expected = self._expected_best((a + b) / 2)
             half = plays[len(plays) // 2 :]
+            tail = plays[len(plays) * 2 // 3 :]
+            conv = convergence([p.split for p in plays], best)
             out.append(
                 {
                     "start_s": a,
@@ -318,6 +326,15 @@ class ReplayResult:
                     "share_best": counts[best] / len(plays) if best and plays else 0.0,
                     "share_best_second_half": (
                         sum(p.split == best for p in half) / len(half) if best and half else 0.0
+                    ),
+                    "share_best_last_third": (
+                        sum(p.split == best for p in tail) / len(tail) if best and tail else 0.0
+                    ),
+                    # plays (and seconds) from the phase's start until the best arm holds
+                    # CONVERGED_SHARE of a CONVERGED_WINDOW-play sliding window; None: never
+                    "converged_after_plays": conv,
+                    "converged_after_s": (
+                        None if conv is None else round(plays[conv].sent_s - a, 6)
                     ),
                 }
             )
@@ -412,6 +429,28 @@ def _schedule_dict(s: object) -> list[dict[str, object]]:
         {"from_s": t, **{k: (None if v == math.inf else v) for k, v in asdict(st).items()}}
         for t, st in zip(s.times, s.states, strict=True)  # type: ignore[attr-defined]
     ]
+
+
+CONVERGED_WINDOW = 20  # plays: ~1.5-2 s of requests at the default scenario's latencies
+CONVERGED_SHARE = 0.8
+
+
+def convergence(
+    splits: Sequence[str],
+    best: str | None,
+    window: int = CONVERGED_WINDOW,
+    share: float = CONVERGED_SHARE,
+) -> int | None:
+    """Index of the first play from which `best` takes >= `share` of the next `window` plays
+    (the learner has re-converged after a change), or None when it never does."""
+    if best is None or len(splits) < window:
+        return None
+    hits = np.cumsum([0, *(s == best for s in splits)])
+    need = share * window
+    for i in range(len(splits) - window + 1):
+        if hits[i + window] - hits[i] >= need - 1e-9:
+            return i
+    return None
 
 
 def headline(comparison: dict[str, object]) -> str:
@@ -630,7 +669,15 @@ def run_replay(
     if cache is not None and (cache.dataset is not dataset or cache.codec != config.codec):
         raise ValueError("the inference cache was built for another dataset or codec")
     replay = Replay(config, latency, dataset, model, cache)
-    poses = replay.run()
+    # One frame at a time through a small network: torch's intra-op threads only add
+    # synchronisation, and on a shared machine they make every convolution wait for a core
+    # (measured: 25 ms per conv call under load instead of ~0.05 ms).
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        poses = replay.run()
+    finally:
+        torch.set_num_threads(threads)
     provenance = {
         "dataset": dataset_provenance(config, dataset),
         "model": model_provenance(config.weights),
@@ -695,6 +742,7 @@ __all__ = [
     "Replay",
     "ReplayConfig",
     "ReplayResult",
+    "convergence",
     "headline",
     "run_replay",
     "sweep_rows",

@@ -17,6 +17,8 @@ samples in its window, so in steady state the best arm gets at most 1 − 2(K−
 `--detector-fit robust` fits the detector's Gaussians with median/MAD as the replay does: the
 replay's latencies have retransmission spikes, which this simulation (lognormal noise) has not,
 and here the MAD's noisier scale estimate gives more false alarms than the MLE fit.
+`--bandit-fit robust` does the same for the UCB index (median and MAD instead of mean and
+variance), as the replay and the ROS node do (see `bandit`).
 Usage: python tests/bench/bench_learner.py [--seeds 20] [--window 100] [--detector-windows 20,30]
 """
 
@@ -109,6 +111,7 @@ def simulate(
     kl_threshold: float = 1.0,
     consecutive: int = 3,
     detector_fit: str = "mle",
+    bandit_fit: str = "mle",
 ) -> RunResult:
     """One seeded run of the learner through the bandwidth phases, analysed per phase."""
     rng = np.random.default_rng(seed)
@@ -119,7 +122,7 @@ def simulate(
         if detector
         else None
     )
-    learner = AdaptiveSplitLearner(arms, window=window, detector=det, rng_seed=seed)
+    learner = AdaptiveSplitLearner(arms, window=window, detector=det, rng_seed=seed, fit=bandit_fit)
     choices: list[str] = []
     for bw in bandwidths:
         for _ in range(plays_per_phase):
@@ -180,6 +183,7 @@ class BenchSettings:
     detector: bool = True
     detector_window: int = 30
     detector_fit: str = "mle"
+    bandit_fit: str = "mle"
     kl_threshold: float = 1.0
     consecutive: int = 3
     bandwidths: tuple[float, ...] = BANDWIDTHS_BPS
@@ -197,6 +201,7 @@ def report(cfg: BenchSettings) -> None:
             kl_threshold=cfg.kl_threshold,
             consecutive=cfg.consecutive,
             detector_fit=cfg.detector_fit,
+            bandit_fit=cfg.bandit_fit,
         )
         for seed in range(cfg.seeds)
     ]
@@ -204,7 +209,8 @@ def report(cfg: BenchSettings) -> None:
     label = "SW-UCB1-normal alone"
     if cfg.detector:
         label = (
-            f"SW-UCB1-normal + KL detector (window {cfg.detector_window}, {cfg.detector_fit} fit, "
+            f"SW-UCB1-normal ({cfg.bandit_fit} fit) + KL detector (window "
+            f"{cfg.detector_window}, {cfg.detector_fit} fit, "
             f"threshold {cfg.kl_threshold:g}, C={cfg.consecutive})"
         )
     print(f"\n== {label}: W={cfg.window}, K={len(SPLITS)}, {cfg.seeds} seeds, "
@@ -250,6 +256,7 @@ def main() -> None:
     )
     ap.add_argument("--kl-threshold", type=float, default=1.0)
     ap.add_argument("--detector-fit", choices=("mle", "robust"), default="mle")
+    ap.add_argument("--bandit-fit", choices=("mle", "robust"), default="mle")
     ap.add_argument("--consecutive", type=int, default=3)
     ap.add_argument(
         "--bandwidths",
@@ -270,6 +277,7 @@ def main() -> None:
         kl_threshold=args.kl_threshold,
         consecutive=args.consecutive,
         detector_fit=args.detector_fit,
+        bandit_fit=args.bandit_fit,
         bandwidths=bandwidths,
     )
     try:
