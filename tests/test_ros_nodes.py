@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import json
 import math
+import time
 from pathlib import Path
 
 import numpy as np
@@ -180,8 +181,33 @@ def test_compute_thread_joins_its_group_by_thread_id_and_runs_jobs_there(tmp_pat
         "tid": tid,
         "cpu.cfs_quota_us": 1000,
         "cpu.cfs_period_us": 100000,
+        "paced_cores": 0.01,
     }
     assert took >= 0.0
+
+
+def test_compute_thread_paces_jobs_to_the_budgets_speed(tmp_path: Path) -> None:
+    # 0.05 cores: a job that burns ~20 ms of this thread's CPU takes ~400 ms of wall time, as
+    # on a processor 20 times slower; without a group it returns as soon as it is done.
+    (tmp_path / "cpu.cfs_quota_us").write_text("5000\n")
+    (tmp_path / "cpu.cfs_period_us").write_text("100000\n")
+    (tmp_path / "tasks").write_text("")
+
+    def burn() -> float:
+        start = time.thread_time()
+        while time.thread_time() - start < 0.02:
+            pass
+        return time.thread_time() - start
+
+    paced, free = ComputeThread(tmp_path), ComputeThread(None)
+    try:
+        cpu, took = paced.run(burn)
+        cpu_free, took_free = free.run(burn)
+    finally:
+        paced.close()
+        free.close()
+    assert took >= cpu / 0.05 * 0.98, (cpu, took)
+    assert took_free < cpu_free / 0.05 / 2, (cpu_free, took_free)
 
 
 def test_compute_thread_without_a_group_runs_unbudgeted_and_says_why(tmp_path: Path) -> None:

@@ -131,11 +131,19 @@ class ComputeThread:
     quota there throttles the DNN head or tail and nothing else: the node's other threads (ROS
     executor, the real-time VO/fusion processes) stay in the namespace's unthrottled group.
     Without a group, or when joining fails, jobs run unbudgeted and `budget` says why.
+
+    A quota alone does not make a slow processor: at 0.007 cores the kernel grants 1 ms per
+    143 ms period, so a 0.5 ms head runs at full speed and is rarely throttled, and the learner
+    would see the vehicle as fast as the edge. So each job is also paced to the budget's speed:
+    a job that used `c` s of this thread's CPU returns after `c / cores` s of wall time, as it
+    would on a processor `cores` times as fast (the replay's latency model, `nodes.edgeloc.
+    latency`). The quota stays the hard limit on throughput; the pacing gives jobs their latency.
     """
 
     def __init__(self, cgroup: Path | None, name: str = "dnn-compute") -> None:
         self.cgroup = cgroup
         self.budget: dict[str, Any] = {"cgroup": str(cgroup) if cgroup else None, "joined": False}
+        self.cores: float | None = None  # the budget's speed, once the thread joined its group
         self._pool = concurrent.futures.ThreadPoolExecutor(
             max_workers=1, thread_name_prefix=name, initializer=self._join
         )
@@ -156,13 +164,24 @@ class ComputeThread:
         for name in ("cpu.cfs_quota_us", "cpu.cfs_period_us"):
             with contextlib.suppress(OSError, ValueError):
                 self.budget[name] = int((self.cgroup / name).read_text())
+        quota, period = (
+            self.budget.get("cpu.cfs_quota_us", -1),
+            self.budget.get("cpu.cfs_period_us"),
+        )
+        if quota > 0 and period:
+            self.cores = quota / period
+            self.budget["paced_cores"] = self.cores
 
     def run(self, fn: Callable[[], T]) -> tuple[T, float]:
-        """Run `fn` on the compute thread; (its result, wall seconds it took there)."""
+        """Run `fn` on the compute thread, paced to the budget's speed (see the class);
+        (its result, wall seconds it took there, pacing included)."""
 
         def timed() -> tuple[T, float]:
-            t = time.perf_counter()
+            t, cpu = time.perf_counter(), time.thread_time()
             out = fn()
+            if self.cores is not None and self.cores < 1.0:
+                due = t + (time.thread_time() - cpu) / self.cores
+                time.sleep(max(0.0, due - time.perf_counter()))
             return out, time.perf_counter() - t
 
         return self._pool.submit(timed).result()
