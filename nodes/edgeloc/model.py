@@ -36,7 +36,10 @@ import numpy as np
 import torch
 from torch import nn
 
-SPLITS: tuple[str, ...] = ("image", "conv1", "conv2", "conv3", "conv4", "fc", "vehicle")
+from nodes.edgeloc.settings import SPLITS
+
+# SPLITS (the split-point names) lives in the torch-free settings module; the layers below
+# implement them in that order.
 IMAGE_SHAPE = (96, 128, 3)  # H, W, C of the camera the committed weights expect
 INPUT_POOL = 2  # the first stage averages INPUT_POOL x INPUT_POOL pixel blocks (PoseNet's resize)
 DEFAULT_ROADS = tuple(-200.0 + 80.0 * i for i in range(6))  # road grid of the default town

@@ -39,18 +39,16 @@ import platform
 import time
 from collections import Counter
 from collections.abc import Sequence
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass
 from pathlib import Path
-from typing import Literal
 
 import numpy as np
 import torch
 
-from nodes.edgeloc.bandit import AdaptiveSplitLearner
 from nodes.edgeloc.codec import decode, encode
 from nodes.edgeloc.dataset import Dataset, open_dataset
 from nodes.edgeloc.fusion import DnnHold, EdgeLocFuser, VoHistory, time_zone_revision
-from nodes.edgeloc.gate import GateSettings, PlausibilityGate
+from nodes.edgeloc.gate import PlausibilityGate
 from nodes.edgeloc.kalman import KalmanBaseline
 from nodes.edgeloc.latency import LatencyModel, RequestTiming
 from nodes.edgeloc.metrics import (
@@ -61,101 +59,10 @@ from nodes.edgeloc.metrics import (
     position_errors,
     write_tum,
 )
-from nodes.edgeloc.model import SPLITS, LocNet, to_pose
+from nodes.edgeloc.model import LocNet, to_pose
+from nodes.edgeloc.settings import KalmanSettings, LearnerSettings, ReplayConfig
 
 SUMMARY_VERSION = 1
-
-
-@dataclass(frozen=True)
-class LearnerSettings:
-    """The scenario's learner knobs (see `testbed.scenario.model.Learner`).
-
-    `detector_fit` is not a scenario field yet: the replay fits the detector's Gaussians with
-    median/MAD ("robust", see `detector`), because with the MLE fit one retransmitted request
-    resets the learner (KL ~75-180 against ~1-5 for a real bandwidth shift). `bandit_fit` is the
-    same choice for the UCB index ("robust", see `bandit`): with mean/variance one retransmitted
-    request makes the slowest arm look most promising for ~50 plays.
-    """
-
-    window: int = 50
-    cost: Literal["latency", "error"] = "latency"
-    fixed_split: str | None = None
-    detector: bool = True
-    kl_threshold: float = 1.0
-    consecutive: int = 3
-    detector_window: int = 20
-    detector_fit: Literal["mle", "robust"] = "robust"
-    bandit_fit: Literal["mle", "robust"] = "robust"
-
-    def build(self, arms: list[str], seed: int) -> AdaptiveSplitLearner:
-        """The learner these settings describe (the replay and the ROS node both use this)."""
-        return AdaptiveSplitLearner.from_settings(
-            arms,
-            window=self.window,
-            detector=self.detector,
-            kl_threshold=self.kl_threshold,
-            consecutive=self.consecutive,
-            detector_window=self.detector_window,
-            rng_seed=seed,
-            detector_fit=self.detector_fit,
-            fit=self.bandit_fit,
-        )
-
-
-@dataclass(frozen=True)
-class KalmanSettings:
-    """The Kalman baseline's fixed Q (per VO step) and R (per DNN answer), as the paper's.
-
-    R = (2 m)² per axis: a 2-D error whose median is 2.38 m (the DNN's held-out median, see
-    weights/metrics.json) has a per-axis σ of 2.38 / sqrt(2 ln 2) ≈ 2.0 m; r_yaw = 0.01 rad²
-    (~6°). Q = (0.1 m)² and 0.0005 rad² per VO step. They are not fitted to the drive being
-    scored; `make bench` prints Kalman filters with other fixed R beside it (R = 16 m² does
-    better in hindsight, because the DNN's errors are correlated in time, which a white-noise
-    R does not model — the paper's §4.1 argument).
-    """
-
-    q_pos: float = 0.01
-    q_yaw: float = 0.0005
-    r_pos: float = 4.0
-    r_yaw: float = 0.01
-
-
-@dataclass(frozen=True)
-class ReplayConfig:
-    """Everything a replay needs besides the latency model; plain values, no scenario types.
-
-    `phases` are the start times of the bandwidth phases to report on (the timeline's event
-    times; 0 is always one). `dataset` is "synthetic" or a recorded folder.
-    """
-
-    name: str = "replay"
-    seed: int = 0
-    duration_s: float = 90.0
-    rate_hz: float = 20.0
-    dataset: str = "synthetic"
-    corruption: float = 0.0
-    codec: str = "fp16-zlib"
-    weights: str | None = None
-    splits: tuple[str, ...] = SPLITS
-    learner: LearnerSettings = field(default_factory=LearnerSettings)
-    k_s: float = 20.0
-    dt0_s: float = 0.25
-    kalman: KalmanSettings = field(default_factory=KalmanSettings)
-    gate: GateSettings | None = field(default_factory=GateSettings)
-    phases: tuple[float, ...] = (0.0,)
-
-    def __post_init__(self) -> None:
-        unknown = [s for s in self.splits if s not in SPLITS]
-        if unknown or not self.splits:
-            raise ValueError(
-                f"unknown split point(s) {', '.join(unknown) or '(none given)'}; "
-                f"known: {', '.join(SPLITS)}"
-            )
-        fixed = self.learner.fixed_split
-        if fixed is not None and fixed not in self.splits:
-            raise ValueError(f"fixed split {fixed!r} is not one of {', '.join(self.splits)}")
-        if not (self.duration_s > 0 and self.rate_hz > 0):
-            raise ValueError("duration_s and rate_hz must be > 0")
 
 
 @dataclass(frozen=True)

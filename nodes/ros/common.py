@@ -29,7 +29,7 @@ from pathlib import Path
 from typing import Any, TypeVar
 
 from nodes.edgeloc.gate import GateSettings
-from nodes.edgeloc.replay import KalmanSettings, LearnerSettings, ReplayConfig
+from nodes.edgeloc.settings import KalmanSettings, LearnerSettings, ReplayConfig
 
 #: Extra seconds of dataset beyond the scenario's duration: nodes start before the timeline.
 DATASET_MARGIN_S = 60.0

@@ -26,7 +26,7 @@ from nodes.edgeloc.fusion import DnnHold, EdgeLocFuser, VoHistory, time_zone_rev
 from nodes.edgeloc.gate import PlausibilityGate
 from nodes.edgeloc.kalman import KalmanBaseline
 from nodes.edgeloc.metrics import position_errors
-from nodes.edgeloc.replay import ReplayConfig
+from nodes.edgeloc.settings import ReplayConfig
 from nodes.ros.common import (
     READY,
     NodeArgs,
