@@ -24,6 +24,7 @@ from reports.html import to_html
 from reports.mcapread import MCAP_NAME, ReportInputError, RunData, read_run
 from reports.plots import Plot, draw_all, safe
 from reports.summary import method_errors, summarize, summary_json
+from testbed.linktest import LinkTestReport
 
 FORMATS = ("html", "md", "json")
 
@@ -569,19 +570,7 @@ def _links(s: dict[str, Any], plots: dict[str, Plot | None]) -> Section:
         verdict = "every link within tolerance" if lt.get("ok") else "a link is OUT of tolerance"
         sec.add(
             Table(
-                [
-                    "link",
-                    "dir",
-                    "rtt ms med/p99",
-                    "base ms",
-                    "owd ms med/p99",
-                    "sd ms",
-                    "tcp Mbit/s",
-                    "udp Mbit/s",
-                    "loss %",
-                    "ok",
-                    "checks",
-                ],
+                list(LinkTestReport.HEADERS),  # the same columns `testbed link-test` prints
                 _linktest_rows(lt),
                 caption=f"link self-test ({verdict}; backend {lt.get('backend', '-')})",
             )

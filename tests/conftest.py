@@ -89,3 +89,14 @@ def state_dir(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Iterator[Path]
     for name in list_netns():
         if any(name.startswith(f"el-{run_id}-") for run_id in seen):
             delete_netns(name)
+
+
+@pytest.fixture(scope="session")
+def interfaces() -> None:
+    """edgeloc_interfaces installed in this interpreter's prefix (built once if needed)."""
+    from nodes.ros_build import BuildError, ensure_built
+
+    try:
+        ensure_built()
+    except BuildError as err:
+        pytest.fail(f"edgeloc_interfaces could not be built: {err}")

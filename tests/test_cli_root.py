@@ -11,7 +11,6 @@ import os
 import re
 import signal
 import subprocess
-import sys
 import time
 from pathlib import Path
 
@@ -19,22 +18,11 @@ import pytest
 
 from testbed import state as st
 from testbed.net import Netns, list_netns
+from tests.realrun import TESTBED, testbed_cli
 
 pytestmark = pytest.mark.root
 
 REPO = Path(__file__).resolve().parents[1]
-TESTBED = [sys.executable, "-m", "testbed.cli"]
-
-
-def _testbed(*args: str, timeout: float = 60) -> subprocess.CompletedProcess[str]:
-    return subprocess.run(
-        [*TESTBED, *args],
-        capture_output=True,
-        text=True,
-        timeout=timeout,
-        cwd=REPO,
-        env={**os.environ, "CI": "1"},
-    )
 
 
 def _ours(run_id: str) -> list[str]:
@@ -57,7 +45,7 @@ def _big_scenario(path: Path, vehicles: int, cells: int) -> Path:
 
 def test_up_carries_packets_and_down_leaves_nothing(state_dir: Path) -> None:
     links_before = os.listdir("/sys/class/net")
-    up = _testbed("up", "scenarios/smoke.yaml")
+    up = testbed_cli("up", "scenarios/smoke.yaml")
     assert up.returncode == 0, up.stderr
     run_id = re.search(r"run ([0-9a-f]{6}) is up", up.stdout).group(1)
     assert re.search(r"link backend: (userspace|tc) \(auto: ", up.stdout)
@@ -82,12 +70,12 @@ def test_up_carries_packets_and_down_leaves_nothing(state_dir: Path) -> None:
             cli.close()
     assert os.listdir("/sys/class/net") == links_before  # nothing in the host namespace
 
-    down = _testbed("down", run_id)
+    down = testbed_cli("down", run_id)
     assert down.returncode == 0, down.stderr
     assert _ours(run_id) == []
     assert st.list_runs() == []
     assert os.listdir("/sys/class/net") == links_before
-    status = _testbed("status")
+    status = testbed_cli("status")
     assert status.stdout.strip() == "no runs"
 
 
@@ -115,7 +103,7 @@ def test_sigkill_of_up_midway_then_clean_leaves_nothing(state_dir: Path, tmp_pat
         proc.wait()
     assert run_id is not None, "testbed up never wrote its state file"
     assert st.load_run(run_id).liveness() in ("dead", "detached")
-    cleaned = _testbed("clean", "--all")
+    cleaned = testbed_cli("clean", "--all")
     assert cleaned.returncode == 0, cleaned.stderr
     assert _ours(run_id) == []
     assert st.list_runs() == []
@@ -131,7 +119,7 @@ def test_run_leaves_a_run_folder_and_no_namespaces(state_dir: Path, tmp_path: Pa
         .replace("at: 10s", "at: 2s")
     )
     runs = tmp_path / "runs"
-    result = _testbed("run", str(short), "--runs-dir", str(runs))
+    result = testbed_cli("run", str(short), "--runs-dir", str(runs))
     assert result.returncode == 0, result.stdout + result.stderr
     (folder,) = runs.iterdir()
     run = json.loads((folder / "run.json").read_text())
@@ -149,7 +137,7 @@ def test_run_leaves_a_run_folder_and_no_namespaces(state_dir: Path, tmp_path: Pa
 
 
 def test_up_dry_run_prints_ip_and_link_commands(state_dir: Path) -> None:
-    result = _testbed("up", "--dry-run", "scenarios/smoke.yaml")
+    result = testbed_cli("up", "--dry-run", "scenarios/smoke.yaml")
     assert result.returncode == 0, result.stderr
     assert "ip netns add el-" in result.stdout
     # tc lines where the kernel has netem, relay command lines where it does not
@@ -165,7 +153,7 @@ def test_bad_scenario_exits_2_and_creates_nothing(state_dir: Path, tmp_path: Pat
         .replace("{name: av1, gnb: gnb1}", "{name: av1, gnb: gnb9}")
     )
     before = [n for n in list_netns() if n.startswith("el-")]
-    result = _testbed("up", str(bad))
+    result = testbed_cli("up", str(bad))
     assert result.returncode == 2
     assert "bad.yaml:" in result.stderr and "gnb9" in result.stderr
     assert [n for n in list_netns() if n.startswith("el-")] == before

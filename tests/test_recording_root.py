@@ -20,6 +20,8 @@ from typing import Any
 
 import pytest
 
+from tests.realrun import processes_mentioning
+
 pytestmark = [pytest.mark.root, pytest.mark.ros, pytest.mark.slow, pytest.mark.e2e]
 
 REPO = Path(__file__).resolve().parents[1]
@@ -39,16 +41,6 @@ def short_smoke(folder: Path, duration_s: int, images: bool = False) -> Path:
     path = folder / "recording.yaml"
     path.write_text(text)
     return path
-
-
-@pytest.fixture(scope="module")
-def interfaces() -> None:
-    from nodes.ros_build import BuildError, ensure_built
-
-    try:
-        ensure_built()
-    except BuildError as err:
-        pytest.fail(f"edgeloc_interfaces could not be built: {err}")
 
 
 def read_both(path: Path) -> tuple[dict[str, list[Any]], dict[str, int], Any]:
@@ -87,20 +79,6 @@ def mcap_extras(path: Path) -> tuple[dict[str, dict[str, str]], set[str]]:
         meta = {m.name: dict(m.metadata) for m in reader.iter_metadata()}
         names = {a.name for a in reader.iter_attachments()}
     return meta, names
-
-
-def _processes_mentioning(text: str) -> list[int]:
-    found = []
-    for entry in os.listdir("/proc"):
-        if not entry.isdigit() or int(entry) == os.getpid():
-            continue
-        try:
-            cmd = Path(f"/proc/{entry}/cmdline").read_bytes().replace(b"\0", b" ").decode()
-        except OSError:
-            continue
-        if text in cmd:
-            found.append(int(entry))
-    return found
 
 
 def test_run_mcap_decodes_fully_and_counts_match_the_nodes(
@@ -213,7 +191,7 @@ def test_ctrl_c_mid_run_still_writes_a_valid_run_mcap(
     meta, attachments = mcap_extras(folder / "run.mcap")
     assert meta["edgeloc.run"]["status"] == "interrupted"
     assert {"scenario.yaml", "links.json", "events.jsonl"} <= attachments
-    assert st.list_runs() == [] and _processes_mentioning(str(folder)) == []
+    assert st.list_runs() == [] and processes_mentioning(str(folder)) == []
 
 
 def test_sigkill_of_the_orchestrator_then_clean_finalises_run_mcap(
@@ -256,8 +234,8 @@ def test_sigkill_of_the_orchestrator_then_clean_finalises_run_mcap(
     # Nothing of the run is left.
     assert [n for n in list_netns() if n.startswith(f"el-{run_id}-")] == []
     assert st.list_runs() == []
-    assert _processes_mentioning(str(folder)) == []
-    assert _processes_mentioning(f"el-{run_id}-") == []
+    assert processes_mentioning(str(folder)) == []
+    assert processes_mentioning(f"el-{run_id}-") == []
 
 
 def test_a_node_that_crashes_fails_the_run_and_run_mcap_names_it(

@@ -7,30 +7,17 @@ format and the figures on, in a private state directory (EDGELOC_STATE_DIR)."""
 from __future__ import annotations
 
 import json
-import os
 import re
 import shutil
-import subprocess
-import sys
 from pathlib import Path
 
 import pytest
 
+from tests.realrun import testbed_cli
+
 pytestmark = [pytest.mark.root, pytest.mark.ros, pytest.mark.e2e, pytest.mark.slow]
 
 REPO = Path(__file__).resolve().parents[1]
-TESTBED = [sys.executable, "-m", "testbed.cli"]
-
-
-def _testbed(*args: str, timeout: float = 300) -> subprocess.CompletedProcess[str]:
-    return subprocess.run(
-        [*TESTBED, *args],
-        capture_output=True,
-        text=True,
-        timeout=timeout,
-        cwd=REPO,
-        env={**os.environ, "CI": "1"},
-    )
 
 
 def test_run_reports_and_the_report_rebuilds_identically(state_dir: Path, tmp_path: Path) -> None:
@@ -46,7 +33,7 @@ def test_run_reports_and_the_report_rebuilds_identically(state_dir: Path, tmp_pa
     short.write_text(text)
     runs = tmp_path / "runs"
 
-    result = _testbed("run", str(short), "--runs-dir", str(runs))
+    result = testbed_cli("run", str(short), "--runs-dir", str(runs))
     assert result.returncode == 0, result.stdout[-3000:] + result.stderr[-3000:]
     (folder,) = runs.iterdir()
     *_, headline, where = result.stdout.strip().splitlines()
@@ -66,6 +53,6 @@ def test_run_reports_and_the_report_rebuilds_identically(state_dir: Path, tmp_pa
     again = tmp_path / "again"
     again.mkdir()
     shutil.copyfile(folder / "run.mcap", again / "run.mcap")
-    rebuilt = _testbed("report", str(again), "--formats", "json")
+    rebuilt = testbed_cli("report", str(again), "--formats", "json")
     assert rebuilt.returncode == 0, rebuilt.stdout + rebuilt.stderr
     assert (again / "summary.json").read_bytes() == (folder / "summary.json").read_bytes()

@@ -159,17 +159,6 @@ pytestmark = [pytest.mark.root, pytest.mark.ros]
 THIS = Path(__file__).resolve()
 
 
-@pytest.fixture(scope="module")
-def interfaces() -> None:
-    """edgeloc_interfaces installed in this interpreter's prefix (built once if needed)."""
-    from nodes.ros_build import BuildError, ensure_built
-
-    try:
-        ensure_built()
-    except BuildError as err:
-        pytest.fail(f"edgeloc_interfaces could not be built: {err}")
-
-
 @pytest.fixture
 def net(state_dir: Path, interfaces: None) -> Iterator[Any]:
     """av1 -- gnb1 -- core1, torn down after the test whatever happens."""

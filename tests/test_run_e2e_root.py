@@ -19,6 +19,8 @@ from typing import Any
 
 import pytest
 
+from tests.realrun import processes_mentioning
+
 pytestmark = [pytest.mark.root, pytest.mark.ros, pytest.mark.slow, pytest.mark.e2e]
 
 REPO = Path(__file__).resolve().parents[1]
@@ -45,31 +47,6 @@ def short_scenario(folder: Path, duration_s: int = DURATION_S) -> Path:
     path = folder / "short.yaml"
     path.write_text(text)
     return path
-
-
-@pytest.fixture(scope="module")
-def interfaces() -> None:
-    from nodes.ros_build import BuildError, ensure_built
-
-    try:
-        ensure_built()
-    except BuildError as err:
-        pytest.fail(f"edgeloc_interfaces could not be built: {err}")
-
-
-def _processes_mentioning(text: str) -> list[int]:
-    """Live processes whose command line contains `text` (e.g. a run folder)."""
-    found = []
-    for entry in os.listdir("/proc"):
-        if not entry.isdigit():
-            continue
-        try:
-            cmd = Path(f"/proc/{entry}/cmdline").read_bytes().replace(b"\0", b" ").decode()
-        except OSError:
-            continue
-        if text in cmd and int(entry) != os.getpid():
-            found.append(int(entry))
-    return found
 
 
 def _ready_lines(log: Path) -> dict[str, Any]:
@@ -179,7 +156,7 @@ def test_run_starts_every_node_and_leaves_nothing(
 
     # Teardown left nothing: no namespace, no node process, no cgroup of this run.
     assert not [n for n in list_netns() if n.startswith(f"el-{result.run_id}-")]
-    assert _processes_mentioning(str(folder)) == []
+    assert processes_mentioning(str(folder)) == []
     assert cgroups.find_leftovers(result.run_id) == []
     assert (folder / "run.json").is_file() and (folder / "logs" / "av1.fusion.log").is_file()
 
@@ -301,5 +278,5 @@ def test_ctrl_c_mid_run_tears_everything_down(
     assert (runs / run_id / "report.html").is_file() and "report:" in rest
     assert [n for n in list_netns() if n.startswith(f"el-{run_id}-")] == []
     assert st.list_runs() == []
-    assert _processes_mentioning(f"el-{run_id}-") == []
-    assert _processes_mentioning(str(runs)) == []
+    assert processes_mentioning(f"el-{run_id}-") == []
+    assert processes_mentioning(str(runs)) == []

@@ -13,8 +13,6 @@ from __future__ import annotations
 import json
 import os
 import re
-import subprocess
-import sys
 import time
 from pathlib import Path
 
@@ -24,12 +22,12 @@ import yaml
 from testbed import state as st
 from testbed.net import list_netns
 from testbed.sweep import read_tree, shorten
+from tests.realrun import processes_mentioning, testbed_cli
 
 pytestmark = [pytest.mark.root, pytest.mark.ros, pytest.mark.slow, pytest.mark.e2e]
 
 REPO = Path(__file__).resolve().parents[1]
 LIBRARY = sorted((REPO / "scenarios").glob("*.yaml"))
-TESTBED = [sys.executable, "-m", "testbed.cli"]
 #: Issue #7: the smoke scenario alone in under 90 s of wall time (CI, 2 cores).
 SMOKE_WALL_S = 90.0
 #: A shortened multi-vehicle run must fit in this (or it is not worth its place in `make test`).
@@ -37,43 +35,8 @@ MULTI_WALL_S = 60.0
 MULTI_SHORT_S = 12.0
 
 
-def _testbed(*args: str, timeout: float = 120) -> subprocess.CompletedProcess[str]:
-    return subprocess.run(
-        [*TESTBED, *args],
-        capture_output=True,
-        text=True,
-        timeout=timeout,
-        cwd=REPO,
-        env={**os.environ, "CI": "1"},
-    )
-
-
 def _ours(run_id: str) -> list[str]:
     return [n for n in list_netns() if n.startswith(f"el-{run_id}-")]
-
-
-def _processes_mentioning(text: str) -> list[int]:
-    found = []
-    for entry in os.listdir("/proc"):
-        if not entry.isdigit() or int(entry) == os.getpid():
-            continue
-        try:
-            cmd = Path(f"/proc/{entry}/cmdline").read_bytes().replace(b"\0", b" ").decode()
-        except OSError:
-            continue
-        if text in cmd:
-            found.append(int(entry))
-    return found
-
-
-@pytest.fixture(scope="module")
-def interfaces() -> None:
-    from nodes.ros_build import BuildError, ensure_built
-
-    try:
-        ensure_built()
-    except BuildError as err:
-        pytest.fail(f"edgeloc_interfaces could not be built: {err}")
 
 
 @pytest.mark.parametrize("file", LIBRARY, ids=[p.stem for p in LIBRARY])
@@ -82,7 +45,7 @@ def test_up_and_down_of_every_library_scenario(file: Path, state_dir: Path) -> N
 
     scenario = load(file)
     links_before = os.listdir("/sys/class/net")
-    up = _testbed("up", str(file.relative_to(REPO)))
+    up = testbed_cli("up", str(file.relative_to(REPO)))
     assert up.returncode == 0, up.stdout + up.stderr
     run_id = re.search(r"run ([0-9a-f]{6}) is up", up.stdout).group(1)  # type: ignore[union-attr]
     try:
@@ -92,11 +55,11 @@ def test_up_and_down_of_every_library_scenario(file: Path, state_dir: Path) -> N
         assert re.search(r"link backend: (userspace|tc) \(auto: ", up.stdout), up.stdout
         assert os.listdir("/sys/class/net") == links_before  # nothing in the host namespace
     finally:
-        down = _testbed("down", run_id)
+        down = testbed_cli("down", run_id)
     assert down.returncode == 0, down.stdout + down.stderr
     assert _ours(run_id) == []
     assert st.list_runs() == []
-    assert _processes_mentioning(f"el-{run_id}-") == []
+    assert processes_mentioning(f"el-{run_id}-") == []
     assert os.listdir("/sys/class/net") == links_before
 
 
@@ -105,7 +68,7 @@ def test_smoke_scenario_runs_end_to_end_through_the_cli(
 ) -> None:
     runs = tmp_path / "runs"
     t0 = time.monotonic()
-    r = _testbed("run", "scenarios/smoke.yaml", "--runs-dir", str(runs), timeout=300)
+    r = testbed_cli("run", "scenarios/smoke.yaml", "--runs-dir", str(runs), timeout=300)
     wall = time.monotonic() - t0
     assert r.returncode == 0, r.stdout[-4000:] + r.stderr[-4000:]
     (folder,) = [p for p in runs.iterdir() if p.is_dir()]
