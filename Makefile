@@ -14,11 +14,18 @@ HAVE_APT_ROS := $(shell [ "$$ROS_DISTRO" = jazzy ] && $(PYTHON) -c 'import rclpy
 
 .PHONY: setup scenario test smoke bench lint clean help model
 
+# Debian packages for the tc-backend VM tests (tests/vm/), needed only where the host kernel has
+# no sch_netem. INITRD=No: the kernel is only booted by qemu, so no initramfs/grub update.
+VM_DEBS := qemu-system-x86 linux-image-amd64 busybox-static
+.PHONY: sysdeps test-netem chromium report-screenshot
+
 help:
 	@echo "make scenario   set up (first time) and run $(SCENARIO)"
 	@echo "make test       set up (first time) and run the tests (needs root for namespaces)"
+	@echo "make test-netem the tc backend with real netem (in a qemu VM if this kernel has none)"
 	@echo "make smoke      run the smoke scenario"
-	@echo "make bench      print benchmark figures"
+	@echo "make bench      print benchmark figures (includes a 10-minute soak)"
+	@echo "make report-screenshot  render a report in headless Chromium -> report-screenshot.png"
 	@echo "make model      retrain the localization DNN (deterministic; weights are committed)"
 	@echo "make lint       ruff"
 	@echo "make clean      remove leftovers of crashed runs, caches"
@@ -45,8 +52,32 @@ scenario: setup
 smoke: setup
 	$(BIN)/testbed run scenarios/smoke.yaml
 
-test: setup
+test: setup sysdeps chromium
 	$(BIN)/python -m pytest -q
+
+# Installs $(VM_DEBS) when this kernel lacks sch_netem and they are missing (root only).
+sysdeps: setup
+	@if $(BIN)/python -c 'import sys; from testbed.check import netem_available as n; sys.exit(0 if n() else 1)' 2>/dev/null; then exit 0; fi; \
+	missing=$$(for p in $(VM_DEBS); do dpkg-query -W -f='$${db:Status-Status}' $$p 2>/dev/null | grep -qx installed || echo $$p; done); \
+	if [ -z "$$missing" ]; then exit 0; fi; \
+	if [ "$$(id -u)" != 0 ]; then echo "sysdeps: the tc-backend VM tests need" $$missing "- run 'sudo make sysdeps'"; exit 0; fi; \
+	echo "sysdeps: installing" $$missing "from Debian (for the tc-backend test VM)"; \
+	apt-get update -q && DEBIAN_FRONTEND=noninteractive INITRD=No apt-get install -y -q --no-install-recommends $$missing
+
+# tc backend with real netem: on this host if its kernel has sch_netem, else in a qemu VM.
+test-netem: setup sysdeps
+	$(BIN)/python -m pytest -q tests/test_tc_root.py tests/vm/guest_checks.py tests/test_netem_vm_root.py
+
+# Debian's headless Chromium: the report test renders report.html in it (root installs it; a
+# user without root gets the test's skip reason instead).
+chromium:
+	@command -v chromium >/dev/null 2>&1 || { [ "$$(id -u)" = 0 ] \
+	  && apt-get update -q && DEBIAN_FRONTEND=noninteractive apt-get install -y -q chromium \
+	  || echo "chromium: not installed (needs root: sudo make chromium); the report browser test will skip"; }
+
+report-screenshot: setup chromium
+	REPORT_SCREENSHOT=$(CURDIR)/report-screenshot.png $(BIN)/python -m pytest -q tests/test_report_browser.py
+	@echo "wrote report-screenshot.png"
 
 bench: setup
 	$(BIN)/python tests/bench/run.py $(BENCH)
