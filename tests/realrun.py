@@ -4,6 +4,7 @@ processes a run left behind."""
 from __future__ import annotations
 
 import os
+import signal
 import subprocess
 import sys
 from pathlib import Path
@@ -21,6 +22,27 @@ def testbed_cli(*args: str, timeout: float = 300) -> subprocess.CompletedProcess
         timeout=timeout,
         cwd=REPO,
         env={**os.environ, "CI": "1"},
+    )
+
+
+def _default_sigint() -> None:
+    # A shell running the suite in the background (`make test &`, nohup, some CI runners)
+    # starts it with SIGINT ignored, and Python then never raises KeyboardInterrupt: the
+    # Ctrl-C tests would send a signal nobody hears.
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
+def testbed_popen(*args: str) -> subprocess.Popen[str]:
+    """`testbed ARGS...` started in the background, stdout+stderr merged into a text pipe,
+    with Ctrl-C (SIGINT) delivered as in a terminal."""
+    return subprocess.Popen(
+        [*TESTBED, *args],
+        cwd=REPO,
+        env={**os.environ, "CI": "1"},
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+        preexec_fn=_default_sigint,
     )
 
 

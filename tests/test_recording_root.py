@@ -20,7 +20,7 @@ from typing import Any
 
 import pytest
 
-from tests.realrun import processes_mentioning
+from tests.realrun import processes_mentioning, testbed_popen
 
 pytestmark = [pytest.mark.root, pytest.mark.ros, pytest.mark.slow, pytest.mark.e2e]
 
@@ -148,14 +148,7 @@ def test_run_mcap_decodes_fully_and_counts_match_the_nodes(
 
 def _start_run(tmp_path: Path, duration_s: int) -> tuple[subprocess.Popen[str], list[str]]:
     scenario = short_smoke(tmp_path, duration_s)
-    proc = subprocess.Popen(
-        [sys.executable, "-m", "testbed.cli", "run", str(scenario), "--runs-dir", str(tmp_path)],
-        cwd=REPO,
-        env={**os.environ, "CI": "1"},
-        stdout=subprocess.PIPE,
-        stderr=subprocess.STDOUT,
-        text=True,
-    )
+    proc = testbed_popen("run", str(scenario), "--runs-dir", str(tmp_path))
     lines: list[str] = []
     assert proc.stdout is not None
     for line in proc.stdout:  # until the nodes run and the timeline plays

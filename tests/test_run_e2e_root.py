@@ -19,7 +19,7 @@ from typing import Any
 
 import pytest
 
-from tests.realrun import processes_mentioning
+from tests.realrun import processes_mentioning, testbed_popen
 
 pytestmark = [pytest.mark.root, pytest.mark.ros, pytest.mark.slow, pytest.mark.e2e]
 
@@ -230,22 +230,13 @@ def test_ctrl_c_mid_run_tears_everything_down(
     """SIGINT to `testbed run` while the nodes run: exit 130, teardown in a few seconds, and
     no namespace, relay, node process or state file left behind."""
     import json
-    import subprocess
-    import sys
 
     from testbed import state as st
     from testbed.net import list_netns
 
     scenario = short_scenario(tmp_path, duration_s=60)
     runs = tmp_path / "runs"
-    proc = subprocess.Popen(
-        [sys.executable, "-m", "testbed.cli", "run", str(scenario), "--runs-dir", str(runs)],
-        cwd=REPO,
-        env={**os.environ, "CI": "1"},
-        stdout=subprocess.PIPE,
-        stderr=subprocess.STDOUT,
-        text=True,
-    )
+    proc = testbed_popen("run", str(scenario), "--runs-dir", str(runs))
     lines: list[str] = []
     try:
         assert proc.stdout is not None

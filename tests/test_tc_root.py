@@ -221,6 +221,7 @@ def goodput_bps(bins: list[int], start_s: float, end_s: float) -> float:
 
 
 @pytest.mark.slow
+@pytest.mark.measure
 @pytest.mark.parametrize("mbit", [2, 5, 20, 50])
 def test_htb_egress_rate_tcp(pair: Pair, mbit: int) -> None:
     with ShapedInterface(pair.a, "v0") as egress:
@@ -232,6 +233,7 @@ def test_htb_egress_rate_tcp(pair: Pair, mbit: int) -> None:
 
 
 @pytest.mark.slow
+@pytest.mark.measure
 def test_ifb_ingress_rate_tcp(pair: Pair) -> None:
     # b -> a is shaped on a's ingress, via an IFB in namespace a
     with TcLinkBackend(pair.a, "v0", "downlink") as backend:
@@ -252,6 +254,7 @@ def test_ifb_ingress_rate_tcp(pair: Pair) -> None:
 
 
 @pytest.mark.slow
+@pytest.mark.measure
 def test_in_place_rate_change_has_no_gap(pair: Pair) -> None:
     with ShapedInterface(pair.a, "v0") as egress:
         egress.apply(LinkProfile(rate_bps=20e6))
@@ -312,6 +315,7 @@ def test_shape_composes_with_a_profile_and_clear_restores_it(pair: Pair) -> None
 
 
 @pytest.mark.slow
+@pytest.mark.measure
 def test_shape_on_a_bare_interface_measured_and_cleared(pair: Pair) -> None:
     shape(pair.b, "v1", uplink_bps=4e6, downlink_bps=8e6)
     try:
@@ -513,6 +517,7 @@ def udp_received(pair: Pair, n: int, pps: float) -> list[int]:
 
 @needs_netem
 @pytest.mark.slow
+@pytest.mark.measure
 def test_netem_delay_rtt_and_in_place_change(pair: Pair) -> None:
     floor = path_rtt_floor(pair)
     with ShapedInterface(pair.a, "v0") as egress:
@@ -529,6 +534,7 @@ def test_netem_delay_rtt_and_in_place_change(pair: Pair) -> None:
 
 @needs_netem
 @pytest.mark.slow
+@pytest.mark.measure
 def test_netem_random_loss(pair: Pair) -> None:
     n = 12_000
     with ShapedInterface(pair.a, "v0") as egress:
@@ -541,6 +547,7 @@ def test_netem_random_loss(pair: Pair) -> None:
 
 @needs_netem
 @pytest.mark.slow
+@pytest.mark.measure
 def test_netem_gilbert_elliott_loss(pair: Pair) -> None:
     n = 12_000
     ge = GilbertElliott(p=0.02, r=0.25, good_loss=0.0, bad_loss=1.0)
@@ -556,6 +563,7 @@ def test_netem_gilbert_elliott_loss(pair: Pair) -> None:
 
 @needs_netem
 @pytest.mark.slow
+@pytest.mark.measure
 def test_netem_jitter_keeps_order_unless_reorder(pair: Pair) -> None:
     with ShapedInterface(pair.a, "v0") as egress:
         egress.apply(LinkProfile(delay_s=0.01, jitter_s=0.005))

@@ -73,6 +73,8 @@ BOOTED, READY, EXIT, FAIL = (
 )
 
 PR_SET_PDEATHSIG = 1
+#: Where guest_init.sh mounts guest-private tmpfs over the host's read-only root.
+GUEST_TMPFS = ("/tmp", "/var/tmp", "/run", "/dev/shm")
 
 
 class VmUnavailable(RuntimeError):
@@ -358,6 +360,12 @@ def run_in_guest(
     caller must read them before this returns: pass `workdir` to keep them). Raises
     VmUnavailable when the host lacks qemu, busybox-static or the Debian kernel.
     """
+    hidden = [d for d in GUEST_TMPFS if Path(d) == REPO or Path(d) in REPO.parents]
+    if hidden:
+        raise VmUnavailable(
+            f"the checkout {REPO} is under {hidden[0]}, which the guest replaces by its own "
+            "tmpfs (guest_init.sh), so the guest cannot see it: clone it elsewhere"
+        )
     qemu, busybox, kernel = find_qemu(), find_busybox(), find_kernel()
     if not GUEST_INIT.is_file():
         raise VmUnavailable(f"{GUEST_INIT} is missing from the checkout")
