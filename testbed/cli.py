@@ -30,7 +30,10 @@ app = typer.Typer(
         "  testbed check                      # can this host run it?\n\n"
         "  testbed validate scenarios/*.yaml  # are my scenarios right?\n\n"
         "  testbed up scenarios/default.yaml  # build the network, leave it up\n\n"
-        "  testbed status ; testbed down      # see it, tear it down"
+        "  testbed status ; testbed down      # see it, tear it down\n\n"
+        "  testbed run scenarios/default.yaml # the whole experiment\n\n"
+        "  testbed report runs/<id>           # rebuild its report from run.mcap\n\n"
+        "  testbed sweep FILE --set KEY=A,B   # a grid of variants, one comparison"
     ),
     no_args_is_help=True,
     add_completion=False,
@@ -42,6 +45,7 @@ ScenarioFile = Annotated[
     Path, typer.Argument(help="Scenario YAML file.", show_default=False, dir_okay=False)
 ]
 JsonFlag = Annotated[bool, typer.Option("--json", help="Print machine-readable JSON.")]
+RunsDir = Annotated[Path, typer.Option("--runs-dir", help="Where run folders go.", file_okay=False)]
 
 
 def _fail(err: TestbedError) -> typer.Exit:
@@ -127,9 +131,7 @@ def up(
 @app.command()
 def run(
     file: ScenarioFile,
-    runs_dir: Annotated[
-        Path, typer.Option("--runs-dir", help="Where run folders go.", file_okay=False)
-    ] = Path("runs"),
+    runs_dir: RunsDir = Path("runs"),
 ) -> None:
     """Run a scenario: build its network, check every vehicle reaches its edge server with real
     packets, run the EdgeLoc ROS 2 nodes in the namespaces while the timeline plays, tear down,
@@ -249,9 +251,7 @@ def report(
 @app.command()
 def replay(
     file: ScenarioFile,
-    runs_dir: Annotated[
-        Path, typer.Option("--runs-dir", help="Where run folders go.", file_okay=False)
-    ] = Path("runs"),
+    runs_dir: RunsDir = Path("runs"),
     json_out: JsonFlag = False,
 ) -> None:
     """Replay the scenario's EdgeLoc workload in one process (no network, faster than real
