@@ -220,7 +220,7 @@ def _trajectories(data: RunData, plots: dict[str, Plot | None], tum: list[Path])
         if p:
             sec.add(Image(p))
             shown = True
-    if not shown:
+    if not shown and not tum:  # figures may be off; TUM files mean poses were recorded
         sec.add(_not_recorded("poses"))
     if tum:
         names = ", ".join(str(p) for p in tum)

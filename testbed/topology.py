@@ -21,6 +21,7 @@ each other (a vehicle reaches its own cell's core; vehicles of one cell reach ea
 from __future__ import annotations
 
 import contextlib
+import errno
 import os
 import re
 import signal
@@ -524,6 +525,10 @@ def _stop(refs: Sequence[st.ProcessRef], children: Sequence[subprocess.Popen[Any
     return len(alive)
 
 
+#: How long `clean` waits for killed tasks to be reaped before a cgroup counts as stuck.
+CGROUP_RMDIR_WAIT_S = 5.0
+
+
 def _remove_cgroup(path: str) -> str | None:
     """rmdir a recorded cgroup after killing what is in it; only under /sys/fs/cgroup."""
     p = Path(path)
@@ -541,11 +546,17 @@ def _remove_cgroup(path: str) -> str | None:
     except OSError:
         pids = []
     _stop([st.ProcessRef.of(pid, "in cgroup") for pid in pids])
-    try:
-        p.rmdir()
-    except OSError as err:
-        return f"cgroup {path} ({err.strerror})"
-    return None
+    # A killed task keeps its cgroup busy until it is reaped (kernels >= 5.0 keep zombies in
+    # their cgroup); an orphan waits for init to reap it, so give that a moment.
+    deadline = time.monotonic() + CGROUP_RMDIR_WAIT_S
+    while True:
+        try:
+            p.rmdir()
+            return None
+        except OSError as err:
+            if err.errno != errno.EBUSY or time.monotonic() > deadline:
+                return f"cgroup {path} ({err.strerror})"
+        time.sleep(0.05)
 
 
 def _remove_namespaces(names: Sequence[str], removed: Removed, open_ns: Sequence[Netns]) -> None:

@@ -358,6 +358,9 @@ def test_rebuild_gives_identical_summary(tmp_path: Path) -> None:
     build_report(folder, plots=False)
     assert (folder / "summary.json").read_bytes() == before
     json.loads(before)  # strict JSON: no NaN
+    # Without figures the trajectories are still there (TUM files), not "not recorded".
+    trajectories = (folder / "report.md").read_text().split("## Trajectories")[1].split("\n## ")[0]
+    assert "Not recorded" not in trajectories and "TUM files for evo" in trajectories
 
 
 # ---- damaged, partial, missing -----------------------------------------------------------------
@@ -436,7 +439,9 @@ def test_empty_recording_still_builds(tmp_path: Path) -> None:
     rep = build_report(write_run(tmp_path, s), plots=False)
     assert rep.summary["methods"] == {}
     assert "EdgeLoc total error n/a" in rep.headline
-    assert "The run FAILED: nothing ran" in (rep.folder / "report.md").read_text()
+    md = (rep.folder / "report.md").read_text()
+    assert "The run FAILED: nothing ran" in md
+    assert "Not recorded" in md.split("## Trajectories")[1].split("\n## ")[0]
 
 
 def test_not_an_mcap_is_refused(tmp_path: Path) -> None:
