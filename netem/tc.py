@@ -32,7 +32,9 @@ from pyroute2 import IPRoute
 from netem.profile import LinkProfile
 from netem.tc_netlink import (
     NetlinkExecutor,
+    QdiscCounters,
     TextExecutor,
+    dump_qdisc_counters,
     dump_qdiscs,
     percent_u32,
     read_tree,
@@ -122,6 +124,10 @@ class ShapedInterface:
         if self._nl is None:
             return self._planned
         return read_tree(self.ipr, self._nl.ifindex(self.ifname))
+
+    def counters(self) -> list[QdiscCounters]:
+        """Every qdisc on the device with its packet, byte, drop and overlimit counters."""
+        return dump_qdisc_counters(self.ipr, self._nl.ifindex(self.ifname)) if self._nl else []
 
     # -- what users call --------------------------------------------------------------------
 

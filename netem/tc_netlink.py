@@ -416,6 +416,43 @@ def dump_qdiscs(ipr: IPRoute, ifindex: int) -> list[KernelQdisc]:
     return out
 
 
+@dataclass(frozen=True)
+class QdiscCounters:
+    """A qdisc's counters since it was created (`TCA_STATS2`): what went through, what not."""
+
+    kind: str
+    handle: int
+    bytes: int
+    packets: int
+    drops: int
+    overlimits: int
+    requeues: int
+    backlog_bytes: int
+    qlen: int
+
+
+def dump_qdisc_counters(ipr: IPRoute, ifindex: int) -> list[QdiscCounters]:
+    out = []
+    for msg in ipr.get_qdiscs(index=ifindex):
+        stats = msg.get_attr("TCA_STATS2")
+        basic = (stats.get_attr("TCA_STATS_BASIC") if stats else None) or {}
+        queue = (stats.get_attr("TCA_STATS_QUEUE") if stats else None) or {}
+        out.append(
+            QdiscCounters(
+                kind=msg.get_attr("TCA_KIND"),
+                handle=msg["handle"],
+                bytes=basic.get("bytes", 0),
+                packets=basic.get("packets", 0),
+                drops=queue.get("drops", 0),
+                overlimits=queue.get("overlimits", 0),
+                requeues=queue.get("requeues", 0),
+                backlog_bytes=queue.get("backlog", 0),
+                qlen=queue.get("qlen", 0),
+            )
+        )
+    return out
+
+
 def dump_htb_classes(ipr: IPRoute, ifindex: int) -> list[KernelClass]:
     out = []
     for msg in ipr.get_classes(index=ifindex):

@@ -13,6 +13,7 @@ import pytest
 from testbed import state as st
 from testbed.net import delete_netns, list_netns
 from testbed.topology import _remove_run
+from tests.machine import busy_fraction, dirty_mb
 
 
 def _root_reason() -> str | None:
@@ -34,6 +35,11 @@ def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item
     for item in items:
         if root and "root" in item.keywords:
             item.add_marker(pytest.mark.skip(reason=root))
+        elif "measure" in item.keywords:
+            # Rate measurements depend on the qdisc watchdog firing on time. In CI the 2-core VM
+            # has spells of tens of seconds where it does not (HTB goodput 24-75% of the rate on
+            # 3 tries 3 s apart, then 95.6% again): more tries, spread over about a minute.
+            item.add_marker(pytest.mark.flaky(reruns=4, reruns_delay=12))
         elif "root" in item.keywords:
             # Real-network tests measure rates and delays on a 2-core VM whose timing is noisy
             # (a TCP goodput 5-10% low once in a few suites); a logic error fails all 3 tries.
@@ -55,27 +61,19 @@ def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item
     items.sort(key=order)
 
 
-def _busy_fraction(interval_s: float) -> float:
-    def sample() -> tuple[int, int]:
-        with open("/proc/stat") as f:
-            fields = [int(x) for x in f.readline().split()[1:]]
-        return sum(fields), fields[3] + fields[4]  # total, idle + iowait
-
-    total0, idle0 = sample()
-    time.sleep(interval_s)
-    total1, idle1 = sample()
-    return 1.0 - (idle1 - idle0) / max(total1 - total0, 1)
-
-
 @pytest.fixture
 def quiet_machine() -> float:
-    """Wait (at most 20 s) until the CPUs are mostly idle; returns the seconds waited.
+    """Wait (at most 20 s) until the disk is flushed and the CPUs are mostly idle.
 
-    Rate measurements share two cores with whatever ran before them (kernel workers still
-    freeing namespaces, exiting processes); measuring into that load tests the load.
+    Returns the seconds waited. Rate measurements share two cores with whatever ran before
+    them (kernel workers still freeing namespaces, exiting processes, the page cache of a fresh
+    install being written back); measuring into that load tests the load. With 2.4 GB dirty,
+    a 50 Mbit/s HTB class delivered 80% of its rate here, and 95% once it was written.
     """
     start = time.monotonic()
-    while time.monotonic() - start < 20 and _busy_fraction(0.5) > 0.25:
+    if dirty_mb() > 64:
+        os.sync()
+    while time.monotonic() - start < 20 and busy_fraction(0.5) > 0.25:
         pass
     return time.monotonic() - start
 

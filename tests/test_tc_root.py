@@ -27,6 +27,7 @@ from netem.tc import IngressShaper, ShapedInterface, TcLinkBackend
 from netem.tc_netlink import dump_htb_classes, dump_qdiscs
 from testbed.check import netem_status
 from testbed.errors import NetlinkError
+from tests.machine import CpuTimes, tcp_retransmits
 
 pytestmark = pytest.mark.root
 
@@ -224,11 +225,22 @@ def goodput_bps(bins: list[int], start_s: float, end_s: float) -> float:
 @pytest.mark.measure
 @pytest.mark.parametrize("mbit", [2, 5, 20, 50])
 def test_htb_egress_rate_tcp(pair: Pair, mbit: int) -> None:
+    retrans, cpu = tcp_retransmits(pair.a), CpuTimes()
     with ShapedInterface(pair.a, "v0") as egress:
         egress.apply(LinkProfile(rate_bps=mbit * 1e6))
         _, bins = tcp_bins(pair.a, pair.b, "10.9.0.2", 5.0)
+        queues = [
+            f"{q.kind} sent {q.packets} drops {q.drops} overlimits {q.overlimits}"
+            for q in egress.counters()
+        ]
+    busy, steal = cpu.since()
     ratio = goodput_bps(bins, 1.0, 5.0) / (mbit * 1e6)
-    print(f"HTB egress {mbit} Mbit/s: TCP goodput ratio {ratio:.4f}")
+    # what the machine did meanwhile, for a ratio that comes out low
+    print(
+        f"HTB egress {mbit} Mbit/s: TCP goodput ratio {ratio:.4f}; CPU busy {busy:.0%}, "
+        f"steal {steal:.0%}; TCP retransmits {tcp_retransmits(pair.a) - retrans}; "
+        + "; ".join(queues)
+    )
     assert ratio == pytest.approx(TCP_PAYLOAD_RATIO, abs=0.03)
 
 
