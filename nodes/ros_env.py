@@ -21,6 +21,13 @@ with it inside the node's namespace. What it encodes, and why (SPEC §8):
     holds several nodes (only one of them needs to be in range: discovered participants
     exchange every locator).
   * announces a starting participant more often (INITIAL_ANNOUNCEMENTS).
+  * makes reliable writers send a heartbeat every 100 ms instead of every 3 s
+    (HEARTBEAT_PERIOD_NS). A reader learns that it missed a sample only from a heartbeat, and
+    on a lossy air link a camera frame (one 37 kB UDP datagram, ~26 IP fragments: one lost
+    fragment loses it) is lost a few times a minute. With 3 s heartbeats each loss left the
+    vehicle without DNN answers for ~2 s (grey gaps in the error plot of a default run);
+    100 ms repairs it about as fast as a TCP retransmission timeout would (200 ms, the
+    latency model's `rto_s`).
 - `RMW_IMPLEMENTATION=rmw_fastrtps_cpp`: the only RMW the PyPI wheels ship; the profile above is
   Fast DDS's format.
 """
@@ -42,6 +49,7 @@ MAX_INITIAL_PEERS = 8
 # burst was missed, the 3 s announcement found it); with 15 x 200 ms it took 0.3-0.6 s.
 INITIAL_ANNOUNCEMENTS = 15
 ANNOUNCEMENT_PERIOD_NS = 200_000_000
+HEARTBEAT_PERIOD_NS = 100_000_000
 MAX_STATIC_PEERS = 32  # rcl reads at most this many entries of ROS_STATIC_PEERS
 MAX_DOMAIN_ID = 101  # ROS 2's safe range on Linux (higher ids collide with ephemeral ports)
 
@@ -132,6 +140,11 @@ def fastdds_profile(
         </builtin>
       </rtps>
     </participant>
+    <data_writer profile_name="edgeloc_writer" is_default_profile="true">
+      <times>
+        <heartbeatPeriod><sec>0</sec><nanosec>{HEARTBEAT_PERIOD_NS}</nanosec></heartbeatPeriod>
+      </times>
+    </data_writer>
   </profiles>
 </dds>
 """

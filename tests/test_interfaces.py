@@ -281,3 +281,23 @@ def test_domain_id_for_run_ids() -> None:
     assert ids == set(range(1, 101))
     with pytest.raises(RosEnvError, match="not hexadecimal"):
         domain_id_for("zz")
+
+
+def test_fastdds_profile_is_xml_with_fast_reliable_repair() -> None:
+    import xml.etree.ElementTree as ET
+
+    from nodes.ros_env import HEARTBEAT_PERIOD_NS, fastdds_profile
+
+    ns = {"d": "http://www.eprosima.com/XMLSchemas/fastRTPS_Profiles"}
+    root = ET.fromstring(fastdds_profile())
+    writer = root.find("d:profiles/d:data_writer", ns)
+    assert writer is not None and writer.get("is_default_profile") == "true"
+    period = writer.find("d:times/d:heartbeatPeriod", ns)
+    assert period is not None
+    seconds = (
+        int(period.findtext("d:sec", namespaces=ns))
+        + int(period.findtext("d:nanosec", namespaces=ns)) / 1e9
+    )
+    # a lost frame must be repaired about as fast as the latency model's 200 ms RTO assumes
+    assert seconds == HEARTBEAT_PERIOD_NS / 1e9 <= 0.2
+    assert root.find("d:profiles/d:participant/d:rtps/d:useBuiltinTransports", ns).text == "false"

@@ -3,11 +3,11 @@
 The replay (and any other offline study) asks a `LatencyModel` what happens to a request sent
 at time `t` with split `k` and `n` activation bytes. The answer is a `RequestTiming`:
 
-    head compute(k) on the vehicle  (measured per stage, scaled by the vehicle's CPU budget)
+    head compute(k) on the vehicle  (measured per call, scaled by the vehicle's CPU budget)
   + uplink:  serialisation of the request bytes at the path's bottleneck rate (integrated over
              time, so a rate change or an outage mid-transfer counts), plus the path's one-way
              delay and one draw of its jitter
-  + tail compute(k) on the edge     (measured per stage, scaled by the edge's CPU budget)
+  + tail compute(k) on the edge     (measured per call, scaled by the edge's CPU budget)
   + downlink: the same for the reply (the pose, the split id and t0)
   + the protocol's extra messages and fixed overhead (`Exchange`: a ROS 2 action needs one
     more small round trip before the reply can leave, and its client loop costs a few ms)
@@ -18,8 +18,9 @@ The nouns:
   bottleneck rate, summed delay, root-sum-square jitter, combined loss, and whether it is up.
 - `PathSchedule`: that state as a step function of time (the scenario's timeline: shape, set,
   outage and trace events each start a new step).
-- `ComputeProfile`: seconds per DNN stage on the measuring machine (torch, one thread), and the
-  CPU budgets (cores) of the vehicle and the edge. A stage that needs `c` s on one full core
+- `ComputeProfile`: seconds of one core per head and per tail call on the measuring machine
+  (torch, one thread, called at a node's cadence), and the CPU budgets (cores) of the vehicle
+  and the edge. A call that needs `c` s on one full core
   takes `c / min(cpu, 1)` s under a budget of `cpu` cores (a fluid model of a cgroup quota:
   one inference thread cannot use more than one core, and a quota below one core stretches
   it). `None` = unlimited = the measured time.
@@ -45,8 +46,9 @@ for its 1 ms minimum quota, and a sub-millisecond DNN head runs at full speed un
 period's quota is spent. At ~10-30 requests a second the heads of LocNet (~0.5 ms) mostly fit
 in the quota, so in a real run every split costs about the same compute (run 4a2cf3 measured
 52-54 ms for every split under `cpu: 0.01`), and the split with the fewest bytes always wins.
-For real runs to behave as this model, the node's compute thread must dilate time: after a
-job that used `c` s of thread CPU time, wait `c (1/cpu - 1)` s more.
+For real runs to behave as this model, the node's compute thread dilates time: a job that used
+`c` s of thread CPU time returns after `c / cpu` s (`nodes.ros.common.ComputeThread`). It paces
+on what the call really cost, which is why the profile is measured per call at a node's cadence.
 """
 
 from __future__ import annotations
@@ -55,8 +57,8 @@ import bisect
 import json
 import math
 import time
-from collections.abc import Sequence
-from dataclasses import dataclass, field
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Literal
 
@@ -67,6 +69,8 @@ PACKET_OVERHEAD = 70  # IPv4 20 + UDP 8 + RTPS header and DATA submessage ~42
 REQUEST_HEADER = 16  # split id and capture stamp t0 travel with every request and reply
 LossPolicy = Literal["retransmit", "drop"]
 REFERENCE_FILE = Path(__file__).resolve().parent / "weights" / "compute.json"
+#: Seconds between DNN calls when a profile is measured: a node asks about every 50-100 ms.
+NODE_CADENCE_S = 0.05
 JITTERS = ("normal", "uniform", "pareto")
 
 
@@ -188,27 +192,33 @@ class PathSchedule:
 
 @dataclass(frozen=True)
 class ComputeProfile:
-    """Seconds per DNN stage on one full core, and the CPU budgets that stretch them.
+    """Seconds of one core per split's head and tail, and the CPU budgets that stretch them.
 
-    `stage_s[j]` is stage j (between split j and split j+1 of `splits`); `encode_s[k]` and
-    `decode_s[k]` the codec time of the activation at split k. Budgets are cores (None:
-    unlimited). `source` says where the numbers came from (measured here, or given).
+    `head_core_s[k]` is what the vehicle spends for split k (DNN layers [0:k] and encoding the
+    activation at k), `tail_core_s[k]` what the edge spends (decoding it and layers [k:]), both
+    as thread CPU time of one call on one core. Budgets are cores (None: unlimited). `source`
+    says where the numbers came from (measured here, or given).
+
+    Why whole calls and not a sum of per-layer times: a node runs one head per request, tens of
+    milliseconds apart, and between requests its other threads evict the DNN's weights from the
+    caches. A call then costs 2.5-8x what the same call costs in a tight loop (0.51 against
+    0.07 ms for "image", 1.97 against 0.77 ms for "conv3" here), and that cold cost is what the
+    node's `ComputeThread` paces on. `measure` reproduces that cadence.
     """
 
     splits: tuple[str, ...]
-    stage_s: tuple[float, ...]
-    encode_s: tuple[float, ...]
-    decode_s: tuple[float, ...]
+    head_core_s: tuple[float, ...]
+    tail_core_s: tuple[float, ...]
     vehicle_cpu: float | None = None
     edge_cpu: float | None = None
     source: str = "given"
 
     def __post_init__(self) -> None:
         k = len(self.splits)
-        if len(self.stage_s) != k - 1 or len(self.encode_s) != k or len(self.decode_s) != k:
-            raise ValueError(
-                f"compute profile: {k} splits need {k - 1} stage times and {k} codec times"
-            )
+        if len(self.head_core_s) != k or len(self.tail_core_s) != k:
+            raise ValueError(f"compute profile: {k} splits need {k} head and {k} tail times")
+        if not all(math.isfinite(v) and v >= 0 for v in self.head_core_s + self.tail_core_s):
+            raise ValueError("compute profile: head and tail times must be finite and >= 0 s")
         for name, cpu in (("vehicle", self.vehicle_cpu), ("edge", self.edge_cpu)):
             if cpu is not None and not (math.isfinite(cpu) and cpu > 0):
                 raise ValueError(f"{name} CPU budget must be > 0 cores, got {cpu!r}")
@@ -219,35 +229,24 @@ class ComputeProfile:
         return 1.0 if cpu is None else 1.0 / min(cpu, 1.0)
 
     def head_s(self, split: str) -> float:
-        """Vehicle: stages [0:k] and encoding the activation at k, under the vehicle budget."""
-        k = self.splits.index(split)
-        return (sum(self.stage_s[:k]) + self.encode_s[k]) * self.stretch(self.vehicle_cpu)
+        """Vehicle: layers [0:k] and encoding the activation at k, under the vehicle budget."""
+        return self.head_core_s[self.splits.index(split)] * self.stretch(self.vehicle_cpu)
 
     def tail_s(self, split: str) -> float:
-        """Edge: decoding the activation at k and stages [k:], under the edge budget."""
-        k = self.splits.index(split)
-        return (self.decode_s[k] + sum(self.stage_s[k:])) * self.stretch(self.edge_cpu)
+        """Edge: decoding the activation at k and layers [k:], under the edge budget."""
+        return self.tail_core_s[self.splits.index(split)] * self.stretch(self.edge_cpu)
 
     def with_budgets(self, vehicle_cpu: float | None, edge_cpu: float | None) -> ComputeProfile:
-        return ComputeProfile(
-            self.splits,
-            self.stage_s,
-            self.encode_s,
-            self.decode_s,
-            vehicle_cpu,
-            edge_cpu,
-            self.source,
-        )
+        return replace(self, vehicle_cpu=vehicle_cpu, edge_cpu=edge_cpu)
 
     def to_dict(self) -> dict[str, object]:
         return {
             "source": self.source,
-            "model": "stage seconds on one core, stretched by 1 / min(cpu, 1) under a budget",
+            "model": "seconds of one core per call, stretched by 1 / min(cpu, 1) under a budget",
             "vehicle_cpu": self.vehicle_cpu,
             "edge_cpu": self.edge_cpu,
-            "stage_s": dict(zip(self.splits[1:], self.stage_s, strict=True)),
-            "encode_s": dict(zip(self.splits, self.encode_s, strict=True)),
-            "decode_s": dict(zip(self.splits, self.decode_s, strict=True)),
+            "head_core_s": dict(zip(self.splits, self.head_core_s, strict=True)),
+            "tail_core_s": dict(zip(self.splits, self.tail_core_s, strict=True)),
             "head_s": {k: self.head_s(k) for k in self.splits},
             "tail_s": {k: self.tail_s(k) for k in self.splits},
         }
@@ -257,27 +256,31 @@ class ComputeProfile:
         return {
             "source": self.source,
             "splits": list(self.splits),
-            "stage_s": list(self.stage_s),
-            "encode_s": list(self.encode_s),
-            "decode_s": list(self.decode_s),
+            "head_core_s": list(self.head_core_s),
+            "tail_core_s": list(self.tail_core_s),
         }
 
     @classmethod
     def from_json(cls, data: dict[str, object]) -> ComputeProfile:
-        return cls(
-            tuple(data["splits"]),  # type: ignore[arg-type]
-            tuple(float(v) for v in data["stage_s"]),  # type: ignore[union-attr]
-            tuple(float(v) for v in data["encode_s"]),  # type: ignore[union-attr]
-            tuple(float(v) for v in data["decode_s"]),  # type: ignore[union-attr]
-            source=str(data.get("source", "given")),
-        )
+        try:
+            return cls(
+                tuple(data["splits"]),  # type: ignore[arg-type]
+                tuple(float(v) for v in data["head_core_s"]),  # type: ignore[union-attr]
+                tuple(float(v) for v in data["tail_core_s"]),  # type: ignore[union-attr]
+                source=str(data.get("source", "given")),
+            )
+        except KeyError as err:
+            raise ValueError(
+                f"compute profile has no {err.args[0]!r}: it predates per-call profiles; "
+                "measure it again (`make model` or `python -m nodes.edgeloc.train --reevaluate`)"
+            ) from None
 
     @classmethod
     def reference(cls, path: Path | None = None) -> ComputeProfile | None:
         """The profile committed beside the weights (`weights/compute.json`), or None.
 
-        Why a committed profile: under a budget of 0.007 cores every measured microsecond is
-        stretched ~140x, so a measurement on a loaded or a different machine moves the latency
+        Why a committed profile: under a budget of 0.02 cores every measured microsecond is
+        stretched 50x, so a measurement on a loaded or a different machine moves the latency
         of every split by milliseconds and with it the rates at which the best split changes.
         The committed profile makes a replay the same on every machine; `measure()` gives this
         machine's own numbers when those are wanted.
@@ -289,75 +292,82 @@ class ComputeProfile:
 
     @classmethod
     def measure_reference(
-        cls, model: object, image: np.ndarray, codec: str, rounds: int = 5, reps: int = 50
+        cls, model: object, images: np.ndarray, codec: str, rounds: int = 3, reps: int = 30
     ) -> ComputeProfile:
-        """`rounds` measurements, the fastest of each part kept: the compute itself is
+        """`rounds` measurements, the fastest of each call kept: the compute itself is
         deterministic, so what varies between rounds is other load on the machine, which only
         ever adds time."""
-        runs = [cls.measure(model, image, codec, reps) for _ in range(rounds)]
+        runs = [cls.measure(model, images, codec, reps) for _ in range(rounds)]
 
         def fastest(parts: list[tuple[float, ...]]) -> tuple[float, ...]:
             return tuple(min(v) for v in zip(*parts, strict=True))
 
-        first = runs[0]
         import platform
 
         source = (
-            f"reference: fastest of {rounds} medians of {reps} runs (torch, 1 thread) on "
+            f"reference: fastest of {rounds} medians of {reps} calls (torch, 1 thread) on "
             f"{platform.machine()} {platform.processor() or platform.system()}, "
-            f"{first.source.split(': ', 1)[-1]}"
+            f"{runs[0].source.split(': ', 1)[-1]}"
         )
         return cls(
-            first.splits,
-            fastest([r.stage_s for r in runs]),
-            fastest([r.encode_s for r in runs]),
-            fastest([r.decode_s for r in runs]),
+            runs[0].splits,
+            fastest([r.head_core_s for r in runs]),
+            fastest([r.tail_core_s for r in runs]),
             source=source,
         )
 
     @classmethod
     def measure(
-        cls, model: object, image: np.ndarray, codec: str, reps: int = 50
+        cls,
+        model: object,
+        images: np.ndarray,
+        codec: str,
+        reps: int = 30,
+        gap_s: float = NODE_CADENCE_S,
     ) -> ComputeProfile:
-        """Time every stage and the codec on this machine with torch on one thread (median of
-        `reps` runs after a warm-up); the global torch thread count is restored afterwards."""
+        """Time every split's head and tail on this machine as a node runs them: one call
+        at a time, `gap_s` apart, on real frames (`images`: one HxWx3 frame or a stack),
+        torch on one thread; the median of `reps` calls' thread CPU time. The global torch
+        thread count is restored afterwards."""
         import torch
 
         from nodes.edgeloc.codec import decode, encode
         from nodes.edgeloc.model import SPLITS
 
+        frames = images[None] if images.ndim == 3 else images
         threads = torch.get_num_threads()
         torch.set_num_threads(1)
+
+        def median_cpu_s(call: Callable[[int], object]) -> float:
+            call(0)  # first call of a shape: allocator and kernel selection, not compute
+            samples = []
+            for i in range(reps):
+                time.sleep(gap_s)
+                t = time.thread_time()
+                call(i)
+                samples.append(time.thread_time() - t)
+            return float(np.median(samples))
+
         try:
             with torch.no_grad():
-                acts = [torch.from_numpy(np.ascontiguousarray(image[None]))]
-                for stage in model.stages:  # type: ignore[attr-defined]
-                    acts.append(stage(acts[-1]))
 
-                def median_s(fn) -> float:
-                    for _ in range(5):
-                        fn()
-                    samples = []
-                    for _ in range(reps):
-                        t = time.perf_counter()
-                        fn()
-                        samples.append(time.perf_counter() - t)
-                    return float(np.median(samples))
+                def head(split: str, i: int) -> bytes:
+                    frame = torch.from_numpy(np.ascontiguousarray(frames[i % len(frames)][None]))
+                    return encode(model.head(split, frame), codec)  # type: ignore[attr-defined]
 
-                stage_s = tuple(
-                    median_s(lambda s=s, a=a: s(a))
-                    for s, a in zip(model.stages, acts[:-1], strict=True)  # type: ignore[attr-defined]
+                blobs = {k: head(k, 0) for k in SPLITS}
+                head_s = tuple(median_cpu_s(lambda i, k=k: head(k, i)) for k in SPLITS)
+                tail_s = tuple(
+                    median_cpu_s(lambda i, k=k: model.tail(k, decode(blobs[k])))  # type: ignore[attr-defined]
+                    for k in SPLITS
                 )
-                blobs = [encode(a, codec) for a in acts]
-                encode_s = tuple(median_s(lambda a=a: encode(a, codec)) for a in acts)
-                decode_s = tuple(median_s(lambda b=b: decode(b)) for b in blobs)
         finally:
             torch.set_num_threads(threads)
         source = (
-            f"measured on this machine: torch {torch.__version__}, 1 thread, median of {reps}, "
-            f"codec {codec}"
+            f"measured on this machine: torch {torch.__version__}, 1 thread, median thread CPU "
+            f"of {reps} calls {gap_s * 1e3:.0f} ms apart, codec {codec}"
         )
-        return cls(tuple(SPLITS), stage_s, encode_s, decode_s, source=source)
+        return cls(tuple(SPLITS), head_s, tail_s, source=source)
 
 
 @dataclass(frozen=True)

@@ -302,8 +302,7 @@ def reevaluate(weights_dir: Path = WEIGHTS_DIR, log=print) -> dict:
     if "held_out" in old and "held_out_before" not in old:
         metrics["held_out_before"] = {"image_shape": old.get("image_shape"), **old["held_out"]}
     metrics_path.write_text(json.dumps(metrics, indent=2) + "\n")
-    profile = ComputeProfile.measure_reference(model, images[0], "fp16-zlib")
-    (weights_dir / COMPUTE_FILE).write_text(json.dumps(profile.to_json(), indent=2) + "\n")
+    write_compute_profile(model, images[:30], weights_dir)
     h = metrics["held_out"]
     log(
         f"held-out: median {h['median_translation_m']:.2f} m, outliers "
@@ -335,6 +334,21 @@ def load_model(weights_path: str | os.PathLike | None = None) -> LocNet:
     return model.eval()
 
 
+def drive_frames(town_seed: int, n: int = 30) -> NDArray[np.uint8]:
+    """`n` consecutive camera frames of a drive (what a node's DNN head gets)."""
+    ds = SyntheticDataset(0, duration_s=n / 20 + 0.5, town_seed=town_seed)
+    return np.stack([ds.image(i) for i in range(n)])
+
+
+def write_compute_profile(model: LocNet, frames: NDArray[np.uint8], weights_dir: Path) -> Path:
+    """Measure the per-call compute profile the replay uses for these weights and write it
+    beside them (see `latency.ComputeProfile.reference`)."""
+    profile = ComputeProfile.measure_reference(model, frames, "fp16-zlib")
+    path = weights_dir / COMPUTE_FILE
+    path.write_text(json.dumps(profile.to_json(), indent=2) + "\n")
+    return path
+
+
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="python -m nodes.edgeloc.train", description=__doc__)
     p.add_argument("--seed", type=int, default=0, help="training seed (default 0)")
@@ -347,7 +361,20 @@ def main(argv: list[str] | None = None) -> int:
         action="store_true",
         help="do not train: evaluate the weights in --out again and rewrite their metrics",
     )
+    p.add_argument(
+        "--compute",
+        action="store_true",
+        help="do not train: measure the compute profile of the weights in --out again",
+    )
     a = p.parse_args(argv)
+    if a.compute:
+        torch.set_num_threads(1)
+        cfg = TrainConfig(**json.loads((a.out / METRICS_FILE).read_text()).get("config", {}))
+        path = write_compute_profile(
+            load_model(a.out / WEIGHTS_FILE), drive_frames(cfg.town_seed), a.out
+        )
+        print(f"wrote {path}")
+        return 0
     if a.evaluate:
         reevaluate(a.out, log=lambda m: print(m, flush=True))
         return 0
@@ -358,10 +385,7 @@ def main(argv: list[str] | None = None) -> int:
     a.out.mkdir(parents=True, exist_ok=True)
     torch.save(model.state_dict(), a.out / WEIGHTS_FILE)
     (a.out / METRICS_FILE).write_text(json.dumps(metrics, indent=2) + "\n")
-    # the stage times the replay uses for these weights (see latency.ComputeProfile.reference)
-    image = SyntheticDataset(0, duration_s=1.0, town_seed=cfg.town_seed).image(0)
-    profile = ComputeProfile.measure_reference(model, image, "fp16-zlib")
-    (a.out / COMPUTE_FILE).write_text(json.dumps(profile.to_json(), indent=2) + "\n")
+    write_compute_profile(model, drive_frames(cfg.town_seed), a.out)
     h = metrics["held_out"]
     print(
         f"held-out: median {h['median_translation_m']:.2f} m, {h['median_rotation_deg']:.2f} deg, "
