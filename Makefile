@@ -46,8 +46,12 @@ endif
 	@$(BIN)/python -c 'import rclpy, torch, pyroute2, mcap; print("setup ok: torch", torch.__version__)'
 	@touch $@
 
-scenario: setup
-	$(BIN)/testbed run $(SCENARIO)
+# Prints its own wall time, set-up included: the first run on a fresh machine installs
+# everything, a second one only checks the stamp.
+scenario:
+	@t0=$$(date +%s); $(MAKE) --no-print-directory setup && $(BIN)/testbed run $(SCENARIO); \
+	rc=$$?; echo "make scenario: $$(( $$(date +%s) - t0 )) s wall, set-up included (exit $$rc)"; \
+	exit $$rc
 
 smoke: setup
 	$(BIN)/testbed run scenarios/smoke.yaml

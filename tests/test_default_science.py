@@ -1,6 +1,6 @@
 """The default scenario's science, computed from its offline replay (issues #4 and #7).
 
-scenarios/default.yaml shapes the vehicle's uplink through three bandwidth phases (40, 4,
+scenarios/default.yaml shapes the vehicle's uplink through three bandwidth phases (40, 2,
 20 Mbit/s). Its replay (the same algorithms as the ROS nodes, the scenario's network and the
 reference compute profile, one process) must show what the paper's cellular experiment shows:
 

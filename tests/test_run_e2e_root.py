@@ -140,12 +140,13 @@ def test_run_starts_every_node_and_leaves_nothing(
     assert budgets["av1"]["requested_cores"] == cores
     assert budgets["av1"]["applied_cores"] >= 0.5
     # ... while the DNN head alone runs under exactly that budget: its thread joined the
-    # vehicle's compute group (the kernel's 1 ms minimum quota per a stretched period), which
+    # vehicle's compute group (cores x period of quota, at least the kernel's 1 ms), which
     # the kernel then throttled, and its jobs were paced to that speed.
     assert budgets["av1"]["compute_cores"] == cores, budgets["av1"]
     assert budgets["av1"]["compute_period_us"] == cgroups.period_for(cores)
     assert inference["compute_budget"]["joined"], inference["compute_budget"]
-    assert inference["compute_budget"]["cpu.cfs_quota_us"] == 1000
+    period = cgroups.period_for(cores)
+    assert inference["compute_budget"]["cpu.cfs_quota_us"] == cgroups.quota_us(cores, period)
     assert inference["compute_budget"]["paced_cores"] == pytest.approx(cores, rel=0.01)
     assert budgets["av1"]["compute_cpu_stat"]["nr_periods"] > 0, budgets["av1"]
     assert set(inference["head_s"]) <= {"image", "conv3", "vehicle"}

@@ -26,7 +26,7 @@ def test_default_scenario() -> None:
     s = load(SCENARIOS / "default.yaml")
     assert (s.name, s.seed, s.duration_s, s.version) == ("default", 7, 90.0, 1)
     assert s.source == SCENARIOS / "default.yaml"
-    assert s.topology.vehicles == (m.Vehicle("av1", "gnb1", cpu=0.007),)
+    assert s.topology.vehicles == (m.Vehicle("av1", "gnb1", cpu=0.025),)
     assert s.topology.cells == (m.Cell("gnb1", "core1"),)
     assert s.links.backend == "auto"
     assert s.links.names() == ["av1-gnb1", "gnb1-core1"]
@@ -39,11 +39,11 @@ def test_default_scenario() -> None:
     # The paper's three uplink phases, in order.
     assert [(e.at_s, e.node, e.uplink_bps) for e in s.timeline] == [
         (0.0, "av1", 40e6),
-        (30.0, "av1", 4e6),
+        (30.0, "av1", 2e6),
         (60.0, "av1", 20e6),
     ]
     assert all(isinstance(e, m.ShapeEvent) and e.downlink_bps is None for e in s.timeline)
-    assert s.workload.fusion == m.Fusion(k_s=10.0, dt0_s=-0.22)
+    assert s.workload.fusion == m.Fusion(k_s=2.0, dt0_s=-1.4)
 
 
 def test_smoke_scenario() -> None:

@@ -41,9 +41,9 @@ SMALL = 16  # float tensors up to this many values are sent as float32
 ZLIB_LEVEL = 1  # fast: compression time adds to the latency the learner minimises
 # Camera frames (uint8) go stored (zlib level 0: framing and checksum, no compression). With
 # sensor noise zlib level 1 saves only ~26% of a 128x96 frame (27.4 of 36.9 kB on the synthetic
-# drive) and takes ~1.5 ms of one full core here; on the vehicle's budget (0.007 cores in the
-# default scenario stretches that ~140x) the compression costs far more time than the 9.5 kB
-# it saves on even a 4 Mbit/s uplink (19 ms). Activations compress well (ReLU zeros) and stay
+# drive) and takes ~1.5 ms of one full core here; on the vehicle's budget (0.025 cores in the
+# default scenario stretches that 40x) the compression costs far more time (60 ms) than the
+# 9.5 kB it saves on even a 2 Mbit/s uplink (38 ms). Activations compress well (ReLU zeros) and stay
 # at ZLIB_LEVEL.
 IMAGE_ZLIB_LEVEL = 0
 _MAGIC, _VERSION = b"EA", 1
