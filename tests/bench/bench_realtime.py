@@ -1,11 +1,12 @@
 """Benchmark: does the real-time thread keep its deadline, and how slow is the budgeted head?
 
-    sudo .venv/bin/python tests/bench/bench_realtime.py [--seconds 20] [--cpu 0.01]
+    sudo .venv/bin/python tests/bench/bench_realtime.py [--seconds 20] [--cpu 0.025]
 
 Part 1 (head inference time per split): the DNN head of each split run on one thread at the
-frame rate (20 Hz), first with no limit (what the edge's CPU does), then with the thread alone
-in a cgroup v1 group holding the vehicle's CPU budget (`CpuBudget.add_thread`, the mechanism
-the inference node uses). Printed side by side: wall ms per head call, mean / p50 / p95.
+frame rate (20 Hz) on the inference node's `ComputeThread`, first with no limit (what the edge's
+CPU does), then alone in a cgroup v1 group holding the vehicle's CPU budget and paced to it
+(the mechanism the inference node uses). Printed side by side: wall ms per head call, mean /
+p50 / p95.
 
 Part 2 (real-time under a saturated uplink): the default scenario's nodes are started in a
 fresh run (`el-<id>-*` namespaces, removed at the end) with the uplink held at one rate, and a
@@ -22,15 +23,14 @@ from __future__ import annotations
 
 import argparse
 import os
+import re
 import secrets
 import statistics
 import sys
 import tempfile
-import threading
 import time
 from pathlib import Path
 
-import numpy as np
 import torch
 
 REPO = Path(__file__).resolve().parents[2]
@@ -42,47 +42,44 @@ from testbed import cgroups  # noqa: E402
 
 SPLITS = ("image", "conv3", "vehicle")
 RATE_HZ = 20
+DEFAULT_CPU = 0.025  # scenarios/default.yaml's vehicle
 
 
 def head_times(cores: float | None, calls: int) -> dict[str, list[float]]:
-    """Wall seconds per head call (head + encode) per split, paced at the frame rate, on one
-    thread that is alone in a CPU budget of `cores` (None: no budget)."""
+    """Wall seconds per head call (head + encode) per split, one call per frame at the frame
+    rate, on the inference node's own `ComputeThread`: alone in a cgroup v1 group holding
+    `cores` and paced to that speed (None: no budget, no pacing)."""
+    from nodes.edgeloc.dataset import SyntheticDataset
+    from nodes.ros.common import ComputeThread
+
     torch.set_num_threads(1)
     model = load_model(None)
-    rng = np.random.default_rng(0)
-    image = torch.from_numpy(rng.integers(0, 255, (1, 48, 64, 3), dtype=np.uint8))
+    drive = SyntheticDataset(0, duration_s=calls / RATE_HZ + 1.0)
+    frames = [torch.from_numpy(drive.image(i)[None]) for i in range(calls)]
     out: dict[str, list[float]] = {s: [] for s in SPLITS}
-    errors: list[BaseException] = []
     budget = None
     if cores is not None:
         budget = cgroups.CpuBudget(
             f"b{secrets.token_hex(3)}", "head", cores, period_us=cgroups.period_for(cores)
         ).create()
-
-    def work() -> None:
-        try:
-            if budget is not None:
-                budget.add_thread(threading.get_native_id())
-            for split in SPLITS:
-                for _ in range(calls):
-                    t = time.perf_counter()
-                    with torch.no_grad():
-                        encode(model.head(split, image), "fp16-zlib")
-                    took = time.perf_counter() - t
-                    out[split].append(took)
-                    time.sleep(max(0.0, 1.0 / RATE_HZ - took))
-        except BaseException as err:  # reported by the caller
-            errors.append(err)
-
+    compute = ComputeThread(budget.path if budget is not None else None, name="bench-head")
     try:
-        worker = threading.Thread(target=work, name="bench-head")
-        worker.start()
-        worker.join()
+        if budget is not None and not compute.budget["joined"]:
+            raise RuntimeError(f"the compute thread did not join its budget: {compute.budget}")
+        for split in SPLITS:
+            for frame in frames:
+
+                def head(split: str = split, frame: torch.Tensor = frame) -> bytes:
+                    with torch.no_grad():
+                        return encode(model.head(split, frame), "fp16-zlib")
+
+                _, took = compute.run(head)
+                out[split].append(took)
+                time.sleep(max(0.0, 1.0 / RATE_HZ - took))
     finally:
+        compute.close()
         if budget is not None:
             budget.remove()
-    if errors:
-        raise errors[0]
     return out
 
 
@@ -121,7 +118,7 @@ def part_realtime(seconds: int, cpu: float, uplink: str) -> None:
     text = text.replace("link_test: true", "link_test: false")
     # No timeline player here: the air link is built at the rate the flow should saturate.
     text = text.replace("uplink:   {rate: 50mbit", f"uplink:   {{rate: {uplink}")
-    text = text.replace("      cpu: 0.01\n", f"      cpu: {cpu}\n")
+    text = re.sub(r"(?m)^      cpu: [0-9.]+$", f"      cpu: {cpu}", text)
     with tempfile.TemporaryDirectory() as tmp:
         path = Path(tmp) / "bench.yaml"
         path.write_text(text)
@@ -185,7 +182,9 @@ def part_realtime(seconds: int, cpu: float, uplink: str) -> None:
 def main() -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--seconds", type=int, default=20, help="length of the real-time run")
-    p.add_argument("--cpu", type=float, default=0.01, help="vehicle CPU budget, cores")
+    p.add_argument(
+        "--cpu", type=float, default=DEFAULT_CPU, help="vehicle CPU budget, cores (default.yaml's)"
+    )
     p.add_argument("--calls", type=int, default=60, help="head calls per split in part 1")
     p.add_argument("--uplink", default="20mbit", help="uplink rate during part 2")
     p.add_argument("--skip-run", action="store_true", help="only part 1 (no namespaces)")
