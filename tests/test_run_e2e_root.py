@@ -174,6 +174,38 @@ def test_run_starts_every_node_and_leaves_nothing(
     )
 
 
+def test_uplink_cut_moves_the_split_to_a_smaller_activation(
+    state_dir: Path, interfaces: None, tmp_path: Path
+) -> None:
+    """default.yaml's 40 -> 2 Mbit/s cut in a 36 s real run: the decisions recorded on the
+    decision topic move from the raw frame to a split that sends fewer bytes. (At 2 Mbit/s a
+    frame takes ~150 ms to send, conv3's activation ~11 ms for ~60 ms more head compute.)"""
+    from collections import Counter
+
+    from reports.mcapread import read_run
+    from testbed.run import run_scenario
+    from testbed.scenario.loader import load
+
+    path = short_scenario(tmp_path, duration_s=36)
+    path.write_text(path.read_text().replace("uplink: 8mbit}", "uplink: 2mbit}"))
+    lines: list[str] = []
+    result = run_scenario(load(path), tmp_path / "runs", lines.append)
+    assert result.ok, "\n".join(lines[-30:])
+    data = read_run(result.folder / "run.mcap")
+    cut = [e.t for e in data.link_events if e.scheduled_s == 18]  # short_scenario: half-way
+    assert len(cut) == 1, data.link_events
+    decisions = data.vehicles["av1"].decisions
+    assert decisions and {d.chosen for d in decisions} <= {"image", "conv3", "vehicle"}
+    # the learner's settled choice in each phase: after 3 s (exploration, the window turning over)
+    before = Counter(d.chosen for d in decisions if data.t0 + 3 <= d.t < cut[0])
+    after = Counter(d.chosen for d in decisions if d.t >= cut[0] + 6)
+    print(f"\nplays before the cut {dict(before)}, after {dict(after)}")
+    top_before, n_before = before.most_common(1)[0]
+    top_after, n_after = after.most_common(1)[0]
+    assert top_before == "image" and n_before >= 0.6 * sum(before.values()), before
+    assert top_after in ("conv3", "vehicle") and n_after >= 0.6 * sum(after.values()), after
+
+
 def test_vehicle_keeps_publishing_fused_poses_when_the_edge_dies(
     state_dir: Path, interfaces: None, tmp_path: Path
 ) -> None:
