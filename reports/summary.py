@@ -29,7 +29,8 @@ report can be compared with the run's own. Keys of summary.json (`version` 1):
   t_s, arm, kl, at_play}], phases [{start_s, end_s, plays, share {split: fraction}, chosen
   (most played), best_in_hindsight (lowest mean latency among splits answered >= 2 times),
   mean_latency_s {split: s}, share_best, share_best_second_half}] — one phase per span
-  between applied timeline events, all vehicles pooled};
+  between applied timeline events (an event scheduled at 0 s opens the first), all vehicles
+  pooled};
 - `accuracy_vs_latency`: EdgeLoc position error against the age of the newest DNN answer it
   used, per frame: {frames, pearson_r, bins [{latency_lo_s, latency_hi_s, frames,
   median_error_m, mean_error_m}]} (quartiles of the latency);
@@ -290,7 +291,12 @@ def learner_phases(data: RunData) -> list[dict[str, Any]]:
     if not decisions:
         return []
     end = max([decisions[-1][0], *(a[0] for a in answers)])
-    cuts = sorted({e.t - t0 for e in data.link_events if 0.0 < e.t - t0 < end})
+    # An event scheduled at 0 s sets the network the run starts on: it is applied while the
+    # nodes come up, so the first decisions can precede it by a fraction of a second, and
+    # cutting there would report a phase of one or two plays.
+    cuts = sorted(
+        {e.t - t0 for e in data.link_events if e.scheduled_s > 0 and 0.0 < e.t - t0 < end}
+    )
     bounds = [min(0.0, decisions[0][0]), *cuts, end]
     out = []
     for k, (a, b) in enumerate(itertools.pairwise(bounds)):

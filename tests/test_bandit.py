@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from nodes.edgeloc.bandit import AdaptiveSplitLearner, SlidingWindowUCB1Normal
+from nodes.edgeloc.bandit import AdaptiveSplitLearner, SlidingWindowUCB1Normal, lead_for_good
 from nodes.edgeloc.detector import KLChangeDetector
 
 
@@ -155,6 +155,17 @@ def test_bad_updates_are_named() -> None:
         bandit.update("a", float("nan"))
     with pytest.raises(ValueError, match="must be a number"):
         bandit.update("a", "fast")  # type: ignore[arg-type]
+
+
+def test_lead_for_good_counts_plays_until_the_best_never_falls_behind() -> None:
+    # b catches up with a at play 4 (2:2), then leads for good from play 5 on
+    plays = ["a", "a", "b", "b", "b", "b", "a", "b"]
+    assert lead_for_good(plays, "b") == (4, 0.75)
+    assert lead_for_good(["b", "b", "a"], "b") == (0, 2 / 3)  # leads from the first play
+    assert lead_for_good(["a", "a", "b"], "b") == (None, None)  # never leads
+    assert lead_for_good(["a", "b"], "c") == (None, None)  # never played
+    assert lead_for_good([], "a") == (None, None)
+    assert lead_for_good(["a"], None) == (None, None)
 
 
 def test_learner_resets_bandit_on_detected_change() -> None:

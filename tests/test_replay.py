@@ -145,7 +145,7 @@ def test_default_scenario_path_follows_the_timeline() -> None:
     cfg = replay_config(sc)
     assert cfg.phases == (0.0, 30.0, 60.0)
     assert cfg.splits == ("image", "conv3", "vehicle")
-    assert cfg.learner.window == 50 and cfg.learner.detector_window == 30
+    assert cfg.learner.window == 100 and cfg.learner.detector_window == 30
     assert cfg.k_s == 2.0 and cfg.dt0_s == -1.4
     assert cfg.learner.detector_fit == "robust" and cfg.learner.bandit_fit == "robust"
     assert lm.compute.vehicle_cpu == 0.025  # the whole network takes ~106 ms on the vehicle
@@ -209,7 +209,7 @@ def test_default_replay_edgeloc_beats_every_baseline_and_the_learner_holds_the_b
     Q/R of the scenario) by a clear margin, though below the paper's 30.26% (see the bench for
     the figures and for Kalman filters with other R). The learner: per bandwidth phase the
     split it played most is the best in hindsight, with >= 80% of the plays in the phase's
-    second half (the ceiling of the paper's exploration rule is 92% for K = 3, W = 50; in the
+    second half (the ceiling of the paper's exploration rule is 96% for K = 3, W = 100; in the
     2 Mbit/s phase the best split leads the next by ~16 ms, a few times the std of a request's
     four jittered messages, so UCB1-normal keeps sampling the runner-up more)."""
     sc = load(ROOT / "scenarios" / "default.yaml")

@@ -659,12 +659,11 @@ def test_learner_phases_between_timeline_events(tmp_path: Path) -> None:
             "InferenceResult",
             {"stamp": stamp(T0 + t), "split": split, "latency_s": lat, "ok": True},
         )
-    s.add(
-        T0 + 1.0,
-        "/links/events",
-        "LinkEvent",
-        {"stamp": stamp(T0 + 1.0), "action": "shape", "target": "av1", "keys": [], "values": []},
-    )
+    # the starting shape (scheduled at 0 s) lands after the first plays: it opens phase 1
+    for t, scheduled in ((0.25, 0.0), (1.0, 1.0)):
+        event = {"stamp": stamp(T0 + t), "action": "shape", "target": "av1", "keys": []}
+        event |= {"values": [], "scheduled_s": scheduled}
+        s.add(T0 + t, "/links/events", "LinkEvent", event)
     first, second = summarize(read_run(write_run(tmp_path, s)))["learner"]["phases"]
     assert (first["start_s"], first["end_s"], second["end_s"]) == pytest.approx((0, 1.0, 1.45))
     assert first["plays"] == 4 and first["chosen"] == "image"

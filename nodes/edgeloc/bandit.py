@@ -261,3 +261,23 @@ class AdaptiveSplitLearner:
 
     def stats(self) -> list[ArmStats]:
         return self.bandit.stats()
+
+
+def lead_for_good(splits: Sequence[str], best: str | None) -> tuple[int | None, float | None]:
+    """(plays until `best` leads for good, its share of the plays after that).
+
+    `best` leads after play i when it has been played more often than any other split over
+    plays 0..i, and it leads for good from the first play after which it never falls behind
+    again. This is the issue's "after convergence the learner plays the best split >= 90% of
+    the time; it re-converges within 2·W plays"; (None, None) when it never leads.
+    """
+    if best is None or not splits:
+        return None, None
+    counts = {a: np.cumsum([s == a for s in splits]) for a in {*splits, best}}
+    others = [v for a, v in counts.items() if a != best] or [np.zeros(len(splits))]
+    behind = np.flatnonzero(counts[best] <= np.max(others, axis=0))
+    lead = 0 if behind.size == 0 else int(behind[-1]) + 1
+    after = splits[lead:]
+    if not after:
+        return None, None
+    return lead, sum(s == best for s in after) / len(after)

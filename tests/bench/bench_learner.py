@@ -35,7 +35,7 @@ import numpy as np
 if __package__ in (None, ""):  # run as a script: make the repo importable
     sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 
-from nodes.edgeloc.bandit import AdaptiveSplitLearner
+from nodes.edgeloc.bandit import AdaptiveSplitLearner, lead_for_good
 from nodes.edgeloc.detector import ChangeEvent, KLChangeDetector
 
 
@@ -145,17 +145,7 @@ def analyse_phase(
     window: int,
 ) -> PhaseResult:
     """Re-convergence and share of best plays within [start, end) (play indices 0-based)."""
-    phase = choices[start:end]
-    on_best = np.array([c == best for c in phase], dtype=np.float64)
-    # Plays of each split since the shift; converged from the first play after which the
-    # best split leads every other split's count until the phase ends.
-    counts = {a: np.cumsum([c == a for c in phase]) for a in set(phase) | {best}}
-    rival = np.max([v for a, v in counts.items() if a != best] or [np.zeros(len(phase))], axis=0)
-    behind = np.flatnonzero(counts[best] <= rival)
-    converged = 0 if behind.size == 0 else int(behind[-1]) + 1
-    if converged >= len(phase):
-        converged = None
-    share_after = None if converged is None else float(on_best[converged:].mean())
+    converged, share_after = lead_for_good(choices[start:end], best)
     # Events count plays 1-based; the play at 0-based index i is event play i + 1.
     mine = [e for e in events if start < e.at_play <= end]
     false_alarms = [e for e in mine if e.at_play - start > 2 * window]

@@ -36,13 +36,18 @@ from pathlib import Path
 if __package__ in (None, ""):  # run as a script: make the repo importable
     sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 
-import numpy as np
 import torch
 
+from nodes.edgeloc.bandit import lead_for_good
 from nodes.edgeloc.dataset import open_dataset
 from nodes.edgeloc.gate import GateSettings
 from nodes.edgeloc.latency import LatencyModel, PathSchedule
-from nodes.edgeloc.replay import InferenceCache, ReplayResult, run_replay, sweep_rows
+from nodes.edgeloc.replay import (
+    InferenceCache,
+    ReplayResult,
+    run_replay,
+    sweep_rows,
+)
 from nodes.edgeloc.train import load_model
 from testbed.replay_cmd import compute_profile, latency_model, replay_config
 from testbed.scenario import load
@@ -82,29 +87,13 @@ def phase_lines(res: ReplayResult) -> list[str]:
 
 
 def convergence(res: ReplayResult) -> list[dict[str, object]]:
-    """Per phase: plays to (re-)converge on the best-in-hindsight split and the share after.
-
-    Converged from the first play after which the best split has been played more often since
-    the phase began than any other split, for the rest of the phase (as bench_learner)."""
+    """Per phase: plays until the best-in-hindsight split leads for good, and its share after
+    (`replay.lead_for_good`, as bench_learner)."""
     out = []
     for ph in res.phase_summaries():
         plays = [p.split for p in res.plays if ph["start_s"] <= p.sent_s < ph["end_s"]]
-        best = ph["best_in_hindsight"]
-        if not plays or best is None:
-            out.append({"converge": None, "share_after": None, "best": best})
-            continue
-        counts = {a: np.cumsum([c == a for c in plays]) for a in set(plays) | {best}}
-        others = [v for a, v in counts.items() if a != best] or [np.zeros(len(plays))]
-        behind = np.flatnonzero(counts[best] <= np.max(others, axis=0))
-        conv = 0 if behind.size == 0 else int(behind[-1]) + 1
-        after = plays[conv:]
-        out.append(
-            {
-                "converge": conv if conv < len(plays) else None,
-                "share_after": sum(c == best for c in after) / len(after) if after else None,
-                "best": best,
-            }
-        )
+        lead, share = lead_for_good(plays, ph["best_in_hindsight"])
+        out.append({"converge": lead, "share_after": share, "best": ph["best_in_hindsight"]})
     return out
 
 
