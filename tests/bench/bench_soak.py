@@ -11,6 +11,10 @@ growth = (last - warm) / warm, against the target of 10%.
 A process that grows steadily (a leak) shows as growth; a single allocation spike shows as a
 peak well above the last sample.
 
+Then (issue #6) it builds the run's whole report from run.mcap alone (report.html with its
+plots, report.md, summary.json, TUM trajectories), as `testbed report` does, and prints how
+long that took for a run of this length.
+
 Prints figures only; nothing is asserted. `make bench` runs it with the defaults (10 minutes);
 `make bench BENCH=soak` alone.
 """
@@ -32,6 +36,7 @@ import yaml
 REPO = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(REPO))
 
+from reports.build import build_report  # noqa: E402
 from testbed.run import run_scenario  # noqa: E402
 from testbed.scenario.loader import load  # noqa: E402
 
@@ -123,6 +128,24 @@ class Sampler(threading.Thread):
                 self.series[pid].samples.append((now, kb))
 
 
+def time_report(folder: Path, minutes: float) -> str:
+    """Build the run's report from its run.mcap as `testbed report` does; the timing line."""
+    mcap = folder / "run.mcap"
+    if not mcap.is_file():
+        return f"report: no run.mcap in {folder}, nothing to time"
+    t = time.perf_counter()
+    report = build_report(folder)
+    took = time.perf_counter() - t
+    plots = len(list((folder / "plots").glob("*.png")))
+    html = (folder / "report.html").stat().st_size
+    return (
+        f"report of the {minutes:g} min run built from run.mcap ({mcap.stat().st_size / 1e6:.1f}"
+        f" MB, {sum(report.summary['recording']['messages'].values())} messages) in {took:.1f} s: "
+        f"report.html {html / 1e6:.1f} MB with {plots} plots, report.md, summary.json, TUM "
+        "trajectories"
+    )
+
+
 def soak_scenario(folder: Path, seconds: float) -> Path:
     data = yaml.safe_load((REPO / "scenarios" / "default.yaml").read_text())
     data["duration"] = f"{seconds:g}s"
@@ -167,6 +190,7 @@ def main() -> int:
                 log = result.folder / nodes[name]["log"]
                 tail = log.read_text().splitlines()[-5:] if log.is_file() else ["(no log)"]
                 print(f"  {name}: " + "\n    ".join(tail))
+        report_line = time_report(result.folder, args.minutes)
         if args.keep is not None:
             shutil.copytree(result.folder, args.keep / result.run_id)
             print(f"run folder kept: {args.keep / result.run_id}")
@@ -189,6 +213,7 @@ def main() -> int:
             f"{growth:+8.1%}  {verdict}"
         )
     print(f"\nworst growth {worst:+.1%} over {len(sampler.series)} processes")
+    print(report_line)
     return 0
 
 
