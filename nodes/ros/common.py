@@ -379,12 +379,56 @@ def ros_node(name: str, spin: bool = True, record: Path | None = None) -> Iterat
         emit("exit", seconds=steps)
 
 
+#: Diagnostic (bench_soak --trace-python): with this set to N seconds, a node traces its Python
+#: allocations, snapshots them N s after start and, at exit, logs where the heap grew since.
+TRACE_ENV = "EDGELOC_TRACEMALLOC_AFTER_S"
+
+
+def _python_heap_tracer() -> Callable[[], None] | None:
+    """Start tracing when TRACE_ENV is set; returns what logs the growth at exit."""
+    after = os.environ.get(TRACE_ENV)
+    if not after:
+        return None
+    try:
+        delay_s = float(after)
+    except ValueError:
+        print(f"{TRACE_ENV}={after!r} is not seconds: not tracing", file=sys.stderr)
+        return None
+    import tracemalloc
+
+    tracemalloc.start(4)  # frames per trace: enough to name the caller, cheap enough to stop
+    first: list[Any] = []
+    timer = threading.Timer(delay_s, lambda: first.append(tracemalloc.take_snapshot()))
+    timer.daemon = True
+    timer.start()
+
+    def report() -> None:
+        timer.cancel()
+        if not first:
+            tracemalloc.stop()
+            return
+        diff = tracemalloc.take_snapshot().compare_to(first[0], "traceback")
+        tracemalloc.stop()
+        grown = sum(d.size_diff for d in diff)
+        print(f"python heap since {after} s: {grown / 1024:+.0f} kB", file=sys.stderr)
+        for d in diff[:8]:
+            print(f"  {d.size_diff / 1024:+.0f} kB in {d.count_diff:+d} blocks:", file=sys.stderr)
+            for line in d.traceback.format()[-6:]:
+                print(f"    {line}", file=sys.stderr)
+        sys.stderr.flush()
+
+    return report
+
+
 def run_main(main: Any) -> None:
     """Run a node's `main()` and exit with its status; a bad setting is one line, not a trace."""
+    report_heap = _python_heap_tracer()
     try:
         code = main()
     except (ValueError, FileNotFoundError) as err:
         emit("error", message=str(err))
         print(f"error: {err}", file=sys.stderr, flush=True)
         code = 2
+    if report_heap is not None:
+        report_heap()
     sys.exit(code)

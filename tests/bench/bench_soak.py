@@ -7,7 +7,8 @@ samples the resident set size (VmRSS) of every process of the run every `--every
 EdgeLoc nodes (found by the run folder in their command line), the userspace link relays (by
 the run's namespaces in theirs) and this orchestrator. Printed per process: RSS at the end of
 warm-up (counted from the process's first sample), peak and last RSS after it, and
-growth = (last - warm) / warm, against the target of 10%.
+growth = (last - warm) / warm, against the target of 10%, and the slope of the second half
+after warm-up in MB per minute.
 A process that grows steadily (a leak) shows as growth; a single allocation spike shows as a
 peak well above the last sample.
 
@@ -30,12 +31,15 @@ import threading
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
+import numpy as np
 import yaml
 
 REPO = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(REPO))
 
+from nodes.ros.common import TRACE_ENV  # noqa: E402
 from reports.build import build_report  # noqa: E402
 from testbed.run import run_scenario  # noqa: E402
 from testbed.scenario.loader import load  # noqa: E402
@@ -59,6 +63,18 @@ class Series:
             return None
         warm, last = after[0], after[-1]
         return warm, max(after), last, (last - warm) / warm
+
+    def late_slope(self, warmup_s: float) -> float | None:
+        """MB per minute over the second half of the samples after warm-up (least squares):
+        a leak keeps its slope, memory that only settles (allocator arenas, caches) flattens."""
+        start = self.samples[0][0] if self.samples else 0.0
+        after = [(t, kb) for t, kb in self.samples if t - start >= warmup_s]
+        late = after[len(after) // 2 :]
+        if len(late) < 3:
+            return None
+        t = np.array([x for x, _ in late]) / 60.0
+        mb = np.array([kb for _, kb in late]) / 1024.0
+        return float(np.polyfit(t, mb, 1)[0])
 
 
 def rss_kb(pid: int) -> int | None:
@@ -128,6 +144,21 @@ class Sampler(threading.Thread):
                 self.series[pid].samples.append((now, kb))
 
 
+def python_heap_lines(folder: Path, nodes: dict[str, Any]) -> list[str]:
+    """What each node logged about its Python heap's growth (see `--trace-python`)."""
+    out = []
+    for name, proc in sorted(nodes.items()):
+        log = folder / proc.get("log", "")
+        if not log.is_file():
+            continue
+        lines = log.read_text(errors="replace").splitlines()
+        start = next((i for i, x in enumerate(lines) if x.startswith("python heap since")), None)
+        if start is not None:
+            out.append(f"{name}: {lines[start]}")
+            out.extend(x for x in lines[start + 1 :] if x.startswith("  "))
+    return out
+
+
 def time_report(folder: Path, minutes: float) -> str:
     """Build the run's report from its run.mcap as `testbed report` does; the timing line."""
     mcap = folder / "run.mcap"
@@ -162,7 +193,16 @@ def main() -> int:
     parser.add_argument("--warmup", type=float, default=60.0, help="seconds before the baseline")
     parser.add_argument("--every", type=float, default=5.0, help="seconds between samples")
     parser.add_argument("--keep", type=Path, help="copy the run folder here afterwards")
+    parser.add_argument(
+        "--trace-python",
+        action="store_true",
+        help="nodes trace their Python allocations after the warm-up and log where the heap "
+        "grew, printed after the table (tracing costs memory and time: RSS figures then "
+        "include the tracer, and a node may overrun its stop grace)",
+    )
     args = parser.parse_args()
+    if args.trace_python:  # inherited by every node the run starts
+        os.environ[TRACE_ENV] = f"{args.warmup:g}"
     if os.geteuid() != 0:
         print("needs root (network namespaces): sudo .venv/bin/python tests/bench/bench_soak.py")
         return 2
@@ -191,6 +231,7 @@ def main() -> int:
                 tail = log.read_text().splitlines()[-5:] if log.is_file() else ["(no log)"]
                 print(f"  {name}: " + "\n    ".join(tail))
         report_line = time_report(result.folder, args.minutes)
+        heap_lines = python_heap_lines(result.folder, nodes) if args.trace_python else []
         if args.keep is not None:
             shutil.copytree(result.folder, args.keep / result.run_id)
             print(f"run folder kept: {args.keep / result.run_id}")
@@ -198,7 +239,10 @@ def main() -> int:
         f"\nRSS after a {args.warmup:g} s warm-up, sampled every {args.every:g} s "
         f"(target: growth <= {TARGET_GROWTH:.0%})"
     )
-    print(f"{'process':40} {'warm MB':>8} {'peak MB':>8} {'last MB':>8} {'growth':>8}  verdict")
+    print(
+        f"{'process':40} {'warm MB':>8} {'peak MB':>8} {'last MB':>8} {'growth':>8} "
+        f"{'late MB/min':>11}  verdict"
+    )
     worst = 0.0
     for series in sorted(sampler.series.values(), key=lambda s: s.name):
         figs = series.figures(args.warmup)
@@ -208,12 +252,16 @@ def main() -> int:
         warm, peak, last, growth = figs
         worst = max(worst, growth)
         verdict = "ok" if growth <= TARGET_GROWTH else "GROWS"
+        slope = series.late_slope(args.warmup)
+        late = "n/a" if slope is None else f"{slope:+.3f}"
         print(
             f"{series.name:40} {warm / 1024:8.1f} {peak / 1024:8.1f} {last / 1024:8.1f} "
-            f"{growth:+8.1%}  {verdict}"
+            f"{growth:+8.1%} {late:>11}  {verdict}"
         )
     print(f"\nworst growth {worst:+.1%} over {len(sampler.series)} processes")
     print(report_line)
+    for line in heap_lines:
+        print(line)
     return 0
 
 
