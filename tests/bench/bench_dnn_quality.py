@@ -31,10 +31,11 @@ import torch
 
 from nodes.edgeloc.dataset import Dataset, open_dataset
 from nodes.edgeloc.model import LocNet
-from nodes.edgeloc.replay import Answer, InferenceCache, ReplayResult, run_replay
+from nodes.edgeloc.replay import Answer, InferenceCache, run_replay
 from nodes.edgeloc.train import load_model
 from testbed.replay_cmd import compute_profile, latency_model, replay_config
 from testbed.scenario import load
+from tests.bench.bench_replay import totals_line
 
 ROOT = Path(__file__).resolve().parents[2]
 OUTLIER_SPAN_M = 60.0
@@ -86,17 +87,6 @@ class KnownErrorAnswers(InferenceCache):
         return Answer(pose, real.payload)
 
 
-def row(label: str, res: ReplayResult) -> str:
-    s = res.summary()
-    total = {m: s["methods"][m]["position_m"]["total"] for m in ("vo", "dnn", "kalman", "edgeloc")}
-    red = {r["versus"]: r["ours_pct"] for r in s["paper_comparison"]["reductions"]}
-    return (
-        f"  {label:34} DNN {total['dnn']:7.0f}  KF {total['kalman']:6.0f}  EdgeLoc "
-        f"{total['edgeloc']:6.0f} | vs VO {red['vo']:5.1f}%  vs DNN {red['dnn']:5.1f}%  "
-        f"vs KF {red['kalman']:5.1f}%"
-    )
-
-
 def main() -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--seed", type=int, default=None, help="drive seed (default: scenario's)")
@@ -113,12 +103,12 @@ def main() -> int:
     t = time.perf_counter()
     print(f"default.yaml replayed (drive seed {seed}); paper vs KF: 30.26%")
     real = InferenceCache(model, ds, sc.workload.codec)
-    print(row("LocNet (the trained DNN)", run_replay(cfg, lm, ds, model, real)))
+    print(totals_line("LocNet (the trained DNN)", run_replay(cfg, lm, ds, model, real)))
     for sigma, outliers, rho in ERROR_KINDS:
         answers = KnownErrorAnswers(model, ds, sc.workload.codec, sigma, outliers, rho)
         answers._cache = real._cache  # the payloads: one DNN pass serves every row
         label = f"σ {sigma:g} m, {outliers:.0%} outliers, ρ {rho:g}"
-        print(row(label, run_replay(cfg, lm, ds, model, answers)))
+        print(totals_line(label, run_replay(cfg, lm, ds, model, answers)))
     print(f"took {time.perf_counter() - t:.1f} s")
     return 0
 
