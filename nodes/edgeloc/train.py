@@ -55,8 +55,8 @@ class TrainConfig:
 
     seed: int = 0
     town_seed: int = DEFAULT_TOWN_SEED
-    samples: int = 32000  # rendered training frames
-    epochs: int = 16
+    samples: int = 48000  # rendered training frames
+    epochs: int = 20
     batch: int = 64
     lr: float = 2e-3
     spacing: float = 15.0  # metres between street anchors of the place classifier

@@ -39,7 +39,7 @@ from tests.bench.bench_replay import totals_line
 
 ROOT = Path(__file__).resolve().parents[2]
 OUTLIER_SPAN_M = 60.0
-#: (σ m, outlier share, ρ per frame): today's DNN's size (median 2.72 m ≈ σ 2.3 m per axis)
+#: (σ m, outlier share, ρ per frame): the DNN before retraining (median 2.72 m ≈ σ 2.3 m per axis)
 #: with and without its outliers and correlation, then better networks.
 ERROR_KINDS = (
     (2.3, 0.13, 0.95),
