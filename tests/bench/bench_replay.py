@@ -42,12 +42,7 @@ from nodes.edgeloc.bandit import lead_for_good
 from nodes.edgeloc.dataset import open_dataset
 from nodes.edgeloc.gate import GateSettings
 from nodes.edgeloc.latency import LatencyModel, PathSchedule
-from nodes.edgeloc.replay import (
-    InferenceCache,
-    ReplayResult,
-    run_replay,
-    sweep_rows,
-)
+from nodes.edgeloc.replay import InferenceCache, ReplayResult, run_replay, sweep_rows
 from nodes.edgeloc.train import load_model
 from testbed.replay_cmd import compute_profile, latency_model, replay_config
 from testbed.scenario import load
@@ -88,7 +83,7 @@ def phase_lines(res: ReplayResult) -> list[str]:
 
 def convergence(res: ReplayResult) -> list[dict[str, object]]:
     """Per phase: plays until the best-in-hindsight split leads for good, and its share after
-    (`replay.lead_for_good`, as bench_learner)."""
+    (`bandit.lead_for_good`, as bench_learner)."""
     out = []
     for ph in res.phase_summaries():
         plays = [p.split for p in res.plays if ph["start_s"] <= p.sent_s < ph["end_s"]]
