@@ -10,6 +10,8 @@ with what to install (`sudo make sysdeps`): a silent skip would hide an untested
 
 from __future__ import annotations
 
+import shutil
+import tempfile
 import xml.etree.ElementTree as ET
 from pathlib import Path
 
@@ -72,3 +74,26 @@ def test_tc_backend_tests_pass_in_a_vm_with_netem(tmp_path: Path) -> None:
         f"only {len(netem_passed)} netem tests passed in the guest: {netem_passed}"
     )
     assert run.rc == 0, f"guest pytest exited {run.rc}\n{tail}"
+
+
+@pytest.mark.flaky(reruns=0)
+def test_a_checkout_under_tmp_is_seen_by_the_guest(tmp_path: Path) -> None:
+    """The guest's own tmpfs on /tmp must not hide a checkout that lives there (a fresh
+    `git clone` into /tmp is where many people try a project): the runner exports it."""
+    has_netem, detail = netem_status()
+    if has_netem:
+        pytest.skip(f"this host's kernel has sch_netem ({detail}): no VM is booted here")
+    checkout = Path(tempfile.mkdtemp(prefix="edgeloc-checkout-", dir="/tmp"))
+    try:
+        (checkout / "marker.txt").write_text("seen from the guest\n")
+        command = 'pwd > "$VMOUT/pwd"; cat marker.txt > "$VMOUT/marker"'
+        try:
+            run = run_in_guest(command, timeout_s=300, workdir=tmp_path, checkout=checkout)
+        except VmUnavailable as err:
+            pytest.fail(f"cannot boot the VM (host kernel: {detail}): {err}", pytrace=False)
+    finally:
+        shutil.rmtree(checkout)
+    tail = "\n".join(run.console.splitlines()[-30:])
+    assert run.ok, f"{run.failure or f'job exit {run.rc}'}\n--- guest console ---\n{tail}"
+    assert (run.out / "pwd").read_text().strip() == str(checkout)
+    assert (run.out / "marker").read_text() == "seen from the guest\n"

@@ -4,8 +4,9 @@
 #
 # Loads the modules (9p/virtio to reach the host, qdiscs/veth/ifb for the tests), mounts the
 # host's root read-only over 9p at /newroot with private tmpfs for everything a test writes,
-# mounts the writable 9p share `out` at /run/vmout, runs /run/vmout/job.sh chrooted into the
-# host's root, and powers off. The job's exit status goes to /run/vmout/rc and to the console
+# mounts the writable 9p share `out` at /run/vmout and the checkout's own read-only share at
+# its host path (listed in /run/vmout/binds), runs /run/vmout/job.sh chrooted into the host's
+# root, and powers off. The job's exit status goes to /run/vmout/rc and to the console
 # as "EDGELOC-VM-EXIT <rc>": the host trusts only that, so a guest that dies early fails.
 /bin/busybox mkdir -p /bin /sbin /proc /sys /dev /newroot
 /bin/busybox --install -s /bin
@@ -44,6 +45,14 @@ mount -t devpts devpts /newroot/dev/pts || fail "devpts"
 mount -t cgroup2 cgroup2 /newroot/sys/fs/cgroup 2>/dev/null || true
 mkdir -p /newroot/run/vmout /newroot/run/netns
 mount -t 9p -o "$opts,rw" out /newroot/run/vmout || fail "mount the output share over 9p"
+# The checkout (and an outside venv) at their host paths, exported on their own: last, so a
+# checkout under /tmp or /run lands on the tmpfs above instead of being hidden by it.
+i=0
+while IFS= read -r dir; do
+    mkdir -p "/newroot$dir" || fail "mkdir $dir"
+    mount -t 9p -o "$opts,ro,cache=loose" "bind$i" "/newroot$dir" || fail "mount $dir over 9p"
+    i=$((i + 1))
+done < /newroot/run/vmout/binds
 echo "EDGELOC-VM-READY $(cut -d' ' -f1 /newroot/proc/uptime)"
 
 chroot /newroot /bin/sh /run/vmout/job.sh

@@ -10,7 +10,9 @@ What the guest is: the kernel of Debian's `linux-image-amd64` (installed on the 
 and the package's own virtio/9p/qdisc modules, in a temporary directory), and the host's `/`
 mounted read-only over virtio-9p. So the guest runs the host's exact Python, `.venv` and
 checkout; everything it writes goes to guest-private tmpfs, and results come back through a
-second, writable 9p share of a host temporary directory (`/run/vmout` in the guest).
+second, writable 9p share of a host temporary directory (`/run/vmout` in the guest). The
+checkout (and the venv, when it lies outside the checkout) is also exported on its own and
+mounted at its host path after the tmpfs, so a checkout under /tmp or /run is seen too.
 
 The VM has no network card (`-nic none`): the tests build namespaces inside the guest, so no
 host network state is touched. It never outlives its caller: qemu gets SIGKILL when the
@@ -75,6 +77,9 @@ BOOTED, READY, EXIT, FAIL = (
 PR_SET_PDEATHSIG = 1
 #: Where guest_init.sh mounts guest-private tmpfs over the host's read-only root.
 GUEST_TMPFS = ("/tmp", "/var/tmp", "/run", "/dev/shm")
+#: Host directories exported on their own (9p tags `bind0`, `bind1`, ...), listed one per line
+#: in this file of the output share; guest_init.sh mounts each at its host path over the tmpfs.
+BINDS_FILE = "binds"
 
 
 class VmUnavailable(RuntimeError):
@@ -305,14 +310,14 @@ def _die_with_parent() -> None:
         os._exit(1)
 
 
-def _job_script(command: str, env: dict[str, str]) -> str:
+def _job_script(command: str, env: dict[str, str], checkout: Path) -> str:
     exports = "".join(f"export {k}={shlex.quote(v)}\n" for k, v in env.items())
     return (
         "#!/bin/sh\n"
         "# written by tests/vm/netem_vm.py; runs chrooted into the host's read-only root\n"
         f"{exports}"
         'mkdir -p "$HOME"\n'
-        f"cd {shlex.quote(str(REPO))} || exit 97\n"
+        f"cd {shlex.quote(str(checkout))} || exit 97\n"
         f"{command}\n"
     )
 
@@ -331,6 +336,38 @@ def _bootstrap_env() -> dict[str, str]:
 def venv_python() -> Path:
     """The interpreter the guest runs: this one (the project's .venv), by its venv path."""
     return Path(sys.executable) if sys.prefix != sys.base_prefix else REPO / ".venv/bin/python"
+
+
+def guest_binds(checkout: Path, python: Path) -> list[Path]:
+    """Host directories the guest mounts at their own paths on top of its tmpfs: the checkout,
+    and the venv holding `python` unless it is inside the checkout.
+
+    The host root alone is not enough: the guest's tmpfs on /tmp, /run ... hides whatever the
+    host keeps there, and a checkout under /tmp is an ordinary place for a clone.
+    """
+    binds = [checkout]
+    venv = python.parent.parent  # <venv>/bin/python, by its venv path (not resolved)
+    if (venv / "pyvenv.cfg").is_file() and venv != checkout and checkout not in venv.parents:
+        binds.append(venv)
+    return binds
+
+
+def _virtfs_args(binds: Sequence[Path], out: Path) -> list[str]:
+    args = [
+        "-virtfs",
+        "local,path=/,mount_tag=hostroot,security_model=none,readonly=on,multidevs=remap",
+        "-virtfs",
+        f"local,path={out},mount_tag=out,security_model=none",
+    ]
+    for i, path in enumerate(binds):
+        if "," in str(path) or "\n" in str(path):
+            # qemu's option parser splits at commas; guest_init.sh reads one path per line
+            raise VmUnavailable(f"cannot export {path!r} to the guest (a comma or newline in it)")
+        args += [
+            "-virtfs",
+            f"local,path={path},mount_tag=bind{i},security_model=none,readonly=on,multidevs=remap",
+        ]
+    return args
 
 
 @contextlib.contextmanager
@@ -352,20 +389,16 @@ def run_in_guest(
     echo: bool = False,
     workdir: Path | None = None,
     env: dict[str, str] | None = None,
+    checkout: Path = REPO,
 ) -> GuestRun:
     """Boot the VM, run the shell `command` in the repo checkout inside it, power off.
 
     `command` runs as root in the guest with the project's venv first on PATH; files it writes
     under $VMOUT come back in `GuestRun.out` (only valid inside a kept `workdir`, else the
-    caller must read them before this returns: pass `workdir` to keep them). Raises
+    caller must read them before this returns: pass `workdir` to keep them). `checkout` is
+    where the command runs (this checkout; tests pass another directory). Raises
     VmUnavailable when the host lacks qemu, busybox-static or the Debian kernel.
     """
-    hidden = [d for d in GUEST_TMPFS if Path(d) == REPO or Path(d) in REPO.parents]
-    if hidden:
-        raise VmUnavailable(
-            f"the checkout {REPO} is under {hidden[0]}, which the guest replaces by its own "
-            "tmpfs (guest_init.sh), so the guest cannot see it: clone it elsewhere"
-        )
     qemu, busybox, kernel = find_qemu(), find_busybox(), find_kernel()
     if not GUEST_INIT.is_file():
         raise VmUnavailable(f"{GUEST_INIT} is missing from the checkout")
@@ -386,7 +419,9 @@ def run_in_guest(
             **_bootstrap_env(),
             **(env or {}),
         }
-        (out / "job.sh").write_text(_job_script(command, guest_env))
+        (out / "job.sh").write_text(_job_script(command, guest_env, checkout))
+        binds = guest_binds(checkout, python)
+        (out / BINDS_FILE).write_text("".join(f"{b}\n" for b in binds))
         accel = choose_accel(qemu)
         args = [
             str(qemu),
@@ -413,10 +448,7 @@ def run_in_guest(
             # panic=-1 + -no-reboot: a guest whose init dies makes qemu exit at once;
             # tsc=reliable: no clocksource watchdog switching clocks when TCG runs late
             "console=ttyS0 panic=-1 quiet loglevel=4 rdinit=/init tsc=reliable",
-            "-virtfs",
-            "local,path=/,mount_tag=hostroot,security_model=none,readonly=on,multidevs=remap",
-            "-virtfs",
-            f"local,path={out},mount_tag=out,security_model=none",
+            *_virtfs_args(binds, out),
         ]
         if accel == "kvm":
             args += ["-accel", "kvm", "-cpu", "host"]
