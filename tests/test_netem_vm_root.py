@@ -18,6 +18,7 @@ from pathlib import Path
 import pytest
 
 from testbed.check import netem_status
+from tests.vm import netem_vm
 from tests.vm.netem_vm import DEFAULT_PYTEST, VmUnavailable, pytest_command, run_in_guest
 
 pytestmark = [pytest.mark.root, pytest.mark.netem_vm, pytest.mark.slow]
@@ -64,6 +65,8 @@ def test_tc_backend_tests_pass_in_a_vm_with_netem(tmp_path: Path) -> None:
     bad = [c for c in cases if c[1] in ("failure", "error")]
     skipped = [c for c in cases if c[1] == "skipped" and SKIP_OK not in c[2]]
     netem_passed = [c for c in cases if c[1] == "passed" and "netem" in c[0]]
+    for note in run.notes:  # e.g. a silent KVM guest given up for TCG
+        print(f"VM: {note}")
     print(
         f"VM ({run.accel}): init {run.boot_s} s, root mounted {run.ready_s} s, "
         f"off {run.wall_s:.1f} s; {len(cases)} tests, {len(netem_passed)} netem tests passed"
@@ -97,3 +100,40 @@ def test_a_checkout_under_tmp_is_seen_by_the_guest(tmp_path: Path) -> None:
     assert run.ok, f"{run.failure or f'job exit {run.rc}'}\n--- guest console ---\n{tail}"
     assert (run.out / "pwd").read_text().strip() == str(checkout)
     assert (run.out / "marker").read_text() == "seen from the guest\n"
+
+
+@pytest.mark.flaky(reruns=0)
+def test_a_silent_kvm_guest_falls_back_to_tcg(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A /dev/kvm that passes the probe but boots nothing leaves qemu silent: the runner must
+    notice within its silence limit and boot the same guest under TCG, not wait 900 s.
+
+    The "KVM" qemu here is real but runs a firmware of `hlt`s (it never loads the kernel and
+    prints nothing), which is what such a host looks like from outside."""
+    has_netem, detail = netem_status()
+    if has_netem:
+        pytest.skip(f"this host's kernel has sch_netem ({detail}): no VM is booted here")
+    hlt = tmp_path / "hlt.bin"
+    hlt.write_bytes(b"\xf4" * 65536)
+    real_accel_args = netem_vm._accel_args
+
+    def accel_args(accel: str) -> list[str]:
+        if accel == "kvm":
+            return ["-accel", "tcg", "-cpu", "max", "-bios", str(hlt)]
+        return real_accel_args(accel)
+
+    monkeypatch.delenv("EDGELOC_VM_ACCEL", raising=False)
+    monkeypatch.setattr(netem_vm, "choose_accel", lambda _qemu: "kvm")
+    monkeypatch.setattr(netem_vm, "_accel_args", accel_args)
+    monkeypatch.setattr(netem_vm, "KVM_SILENCE_S", 3.0)
+    try:
+        run = run_in_guest('echo ok > "$VMOUT/ok"', timeout_s=300, workdir=tmp_path / "vm")
+    except VmUnavailable as err:
+        pytest.fail(f"cannot boot the VM (host kernel: {detail}): {err}", pytrace=False)
+    print(*run.notes, sep="\n")
+    tail = "\n".join(run.console.splitlines()[-30:])
+    assert run.accel == "tcg" and run.ok, f"{run.failure}\n{tail}"
+    (note,) = run.notes
+    assert note.startswith("the kvm guest printed nothing for 3 s before its init ran")
+    assert (run.out / "ok").read_text() == "ok\n"

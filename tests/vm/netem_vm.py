@@ -17,7 +17,9 @@ mounted at its host path after the tmpfs, so a checkout under /tmp or /run is se
 The VM has no network card (`-nic none`): the tests build namespaces inside the guest, so no
 host network state is touched. It never outlives its caller: qemu gets SIGKILL when the
 calling process dies (PR_SET_PDEATHSIG) and when the time limit passes, and the guest powers
-off when its job ends. KVM is used when /dev/kvm works, TCG otherwise.
+off when its job ends. KVM is used when /dev/kvm works, TCG otherwise; a KVM guest that
+prints nothing for `KVM_SILENCE_S` before its init runs is killed and the VM boots again
+under TCG, saying so (a /dev/kvm can run the probe's firmware and still not boot a kernel).
 """
 
 from __future__ import annotations
@@ -35,7 +37,7 @@ import sys
 import tempfile
 import threading
 import time
-from collections.abc import Iterator, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -80,6 +82,10 @@ GUEST_TMPFS = ("/tmp", "/var/tmp", "/run", "/dev/shm")
 #: Host directories exported on their own (9p tags `bind0`, `bind1`, ...), listed one per line
 #: in this file of the output share; guest_init.sh mounts each at its host path over the tmpfs.
 BINDS_FILE = "binds"
+#: Seconds a KVM guest may print nothing before its init runs: under KVM the kernel reaches
+#: init in a second or two, so a silent console means the guest is not booting and waiting
+#: for the whole time limit would only hide that. TCG gets no such limit (it boots slowly).
+KVM_SILENCE_S = 20.0
 
 
 class VmUnavailable(RuntimeError):
@@ -295,6 +301,8 @@ class GuestRun:
     failure: str | None = None  # why the run did not finish, when it did not
     timed_out: bool = False
     timings: dict[str, float] = field(default_factory=dict)
+    silent: bool = False  # killed for printing nothing before its init ran (see KVM_SILENCE_S)
+    notes: list[str] = field(default_factory=list)  # e.g. why KVM was given up for TCG
 
     @property
     def ok(self) -> bool:
@@ -370,6 +378,13 @@ def _virtfs_args(binds: Sequence[Path], out: Path) -> list[str]:
     return args
 
 
+def _accel_args(accel: str) -> list[str]:
+    if accel == "kvm":
+        return ["-accel", "kvm", "-cpu", "host"]
+    # multi-threaded TCG: one host thread per vCPU
+    return ["-accel", "tcg,thread=multi", "-cpu", "max"]
+
+
 @contextlib.contextmanager
 def _workdir(keep: Path | None) -> Iterator[Path]:
     if keep is not None:
@@ -423,6 +438,8 @@ def run_in_guest(
         binds = guest_binds(checkout, python)
         (out / BINDS_FILE).write_text("".join(f"{b}\n" for b in binds))
         accel = choose_accel(qemu)
+        # KVM that was not asked for by name may fall back to TCG; a forced one fails fast
+        fallback = accel == "kvm" and os.environ.get("EDGELOC_VM_ACCEL") != "kvm"
         args = [
             str(qemu),
             "-nodefaults",
@@ -450,18 +467,57 @@ def run_in_guest(
             "console=ttyS0 panic=-1 quiet loglevel=4 rdinit=/init tsc=reliable",
             *_virtfs_args(binds, out),
         ]
-        if accel == "kvm":
-            args += ["-accel", "kvm", "-cpu", "host"]
-        else:
-            # multi-threaded TCG: one host thread per vCPU
-            args += ["-accel", "tcg,thread=multi", "-cpu", "max"]
-        return _supervise(args, out, accel, timeout_s, echo)
+        accels = [accel, "tcg"] if fallback else [accel]
+        return boot_guest(
+            lambda a: [*args, *_accel_args(a)], accels, out, timeout_s, echo, KVM_SILENCE_S
+        )
 
 
-def _supervise(args: list[str], out: Path, accel: str, timeout_s: float, echo: bool) -> GuestRun:
+def boot_guest(
+    argv_for: Callable[[str], list[str]],
+    accels: Sequence[str],
+    out: Path,
+    timeout_s: float,
+    echo: bool,
+    kvm_silence_s: float = KVM_SILENCE_S,
+) -> GuestRun:
+    """Run qemu (`argv_for(accel)`) under each accelerator of `accels` in turn until one is not
+    silent: a KVM guest that prints nothing for `kvm_silence_s` before its init runs is killed
+    and the next accelerator is tried, with a note saying so (printed, in `GuestRun.notes` and
+    in console.log). `timeout_s` covers all attempts together."""
+    start = time.monotonic()
+    (out.parent / "console.log").write_text("")  # the attempts append to it
+    notes: list[str] = []
+    for i, accel in enumerate(accels):
+        left = max(1.0, timeout_s - (time.monotonic() - start))
+        silence = kvm_silence_s if accel == "kvm" else None
+        run = _supervise(argv_for(accel), out, accel, left, echo, silence)
+        if not run.silent or i == len(accels) - 1:
+            run.notes[:0] = notes
+            return run
+        note = (
+            f"the {accel} guest printed nothing for {kvm_silence_s:g} s before its init ran "
+            f"(killed after {run.wall_s:.1f} s): booting it again under {accels[i + 1]}"
+        )
+        print(f"[vm] {note}", file=sys.stderr, flush=True)
+        with (out.parent / "console.log").open("a") as log:
+            log.write(f"[vm] {note}\n")
+        notes.append(note)
+    raise AssertionError("no accelerator to boot the guest with")  # accels was empty
+
+
+def _supervise(
+    args: list[str],
+    out: Path,
+    accel: str,
+    timeout_s: float,
+    echo: bool,
+    silence_s: float | None = None,
+) -> GuestRun:
     lines: list[str] = []
     marks: dict[str, float] = {}
     start = time.monotonic()
+    last_output = [start]  # the reader thread moves it on with every console line
     proc = subprocess.Popen(
         args,
         stdin=subprocess.DEVNULL,
@@ -476,8 +532,10 @@ def _supervise(args: list[str], out: Path, accel: str, timeout_s: float, echo: b
         assert proc.stdout is not None
         # console.log next to the output share: to follow a long run (`tail -f`) and to read
         # after a failure, when `workdir` is kept
-        with (out.parent / "console.log").open("w") as log:
+        with (out.parent / "console.log").open("a") as log:
+            log.write(f"[vm] qemu -accel {accel}\n")
             for raw in proc.stdout:
+                last_output[0] = time.monotonic()
                 line = raw.decode(errors="replace").rstrip("\r\n")
                 lines.append(line)
                 log.write(line + "\n")
@@ -490,11 +548,19 @@ def _supervise(args: list[str], out: Path, accel: str, timeout_s: float, echo: b
 
     thread = threading.Thread(target=reader, daemon=True)
     thread.start()
-    timed_out = False
+    timed_out = silent = False
+    deadline = start + timeout_s
     try:
-        proc.wait(timeout=timeout_s)
-    except subprocess.TimeoutExpired:
-        timed_out = True
+        while proc.poll() is None:
+            now = time.monotonic()
+            if now >= deadline:
+                timed_out = True
+                break
+            if silence_s is not None and BOOTED not in marks and now - last_output[0] > silence_s:
+                silent = True
+                break
+            with contextlib.suppress(subprocess.TimeoutExpired):
+                proc.wait(timeout=min(0.2, max(0.01, deadline - now)))
     finally:
         if proc.poll() is None:
             proc.kill()
@@ -504,7 +570,12 @@ def _supervise(args: list[str], out: Path, accel: str, timeout_s: float, echo: b
     console = "\n".join(lines)
     rc = _exit_status(console, out)
     failure = None
-    if timed_out:
+    if silent:
+        failure = (
+            f"the guest ({accel}) printed nothing for {silence_s:g} s before its init ran "
+            "and was killed"
+        )
+    elif timed_out:
         failure = f"the VM did not finish within {timeout_s:.0f} s and was killed"
     elif rc is None:
         fail_line = next((ln for ln in lines if ln.startswith(FAIL)), None)
@@ -524,6 +595,7 @@ def _supervise(args: list[str], out: Path, accel: str, timeout_s: float, echo: b
         failure=failure,
         timed_out=timed_out,
         timings=marks,
+        silent=silent,
     )
 
 
@@ -596,6 +668,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 3
     boot = f"{run.boot_s:.1f}" if run.boot_s is not None else "?"
     ready = f"{run.ready_s:.1f}" if run.ready_s is not None else "?"
+    for note in run.notes:
+        print(f"VM: {note}", file=sys.stderr)
     print(
         f"VM ({run.accel}): init at {boot} s, host root mounted at {ready} s, "
         f"powered off at {run.wall_s:.1f} s; job exit {run.rc}"
