@@ -21,7 +21,8 @@ HEADER = re.compile(
 
 
 def _expectation(path: Path) -> re.Match[str]:
-    first = path.read_text().splitlines()[0]
+    # bytes: a case may be a file that is not UTF-8 after its (ASCII) first line
+    first = path.read_bytes().split(b"\n", 1)[0].decode("ascii")
     m = HEADER.match(first)
     assert m, f"{path.name}: first line must be '# expect: line=N path=P | text', not {first!r}"
     return m

@@ -63,6 +63,19 @@ def test_validate_a_missing_file_is_bad_input(tmp_path: Path) -> None:
     assert "no such file" in result.output
 
 
+def test_validate_locates_a_byte_that_is_not_utf8(tmp_path: Path) -> None:
+    # line 3 holds two 2-byte characters before the bad byte: its column counts characters
+    # (as every other issue's does), the byte offset counts bytes
+    bad = tmp_path / "latin1.yaml"
+    bad.write_bytes(b"name: t\nduration: 90s\n# \xc3\xa9t\xc3\xa9!\xff\n")
+    result = runner.invoke(app, ["validate", str(bad)])
+    assert result.exit_code == 2
+    assert f"{bad}:3:7: expected a UTF-8 text file, found byte 0xff at byte offset 30" in (
+        result.output
+    )
+    assert "Traceback" not in result.output
+
+
 def test_validate_as_a_process() -> None:
     # The real entry point: exit status and stderr as a shell sees them.
     bad = BAD / "duplicate_key.yaml"

@@ -43,9 +43,7 @@ def load(path: str | Path) -> model.Scenario:
     except IsADirectoryError:
         raise _file_error(shown, "a scenario file", "a directory") from None
     except UnicodeDecodeError as err:
-        raise _file_error(
-            shown, "a UTF-8 text file", f"a byte it cannot decode ({err.reason})"
-        ) from None
+        raise ScenarioError([_undecodable(shown, err)]) from None
     except OSError as err:
         raise _file_error(shown, "a readable scenario file", err.strerror or str(err)) from None
     return _load(text, shown, path.parent, path.parent, path)
@@ -63,6 +61,25 @@ def loads(
 
 def _file_error(file: str, expected: str, found: str) -> ScenarioError:
     return ScenarioError([Issue(file, None, None, "", expected, found)])
+
+
+def _undecodable(file: str, err: UnicodeDecodeError) -> Issue:
+    """Where the first byte that is not UTF-8 is: line and column (in characters, as PyYAML
+    counts them for every other issue) and its byte offset, which an editor can jump to."""
+    data = bytes(err.object)
+    line_start = data.rfind(b"\n", 0, err.start) + 1
+    line = data.count(b"\n", 0, err.start) + 1
+    # the line's bytes before the bad one are valid UTF-8: the error is at the first bad byte
+    column = len(data[line_start : err.start].decode("utf-8")) + 1
+    return Issue(
+        file,
+        line,
+        column,
+        "",
+        "a UTF-8 text file",
+        f"byte 0x{data[err.start]:02x} at byte offset {err.start}, which is not UTF-8 "
+        f"({err.reason})",
+    )
 
 
 def _load(
