@@ -16,7 +16,7 @@ from typing import Any
 
 import numpy as np
 from matplotlib.figure import Figure
-from matplotlib.ticker import FuncFormatter, SymmetricalLogLocator
+from matplotlib.ticker import FuncFormatter, LogLocator, NullFormatter
 
 from reports.mcapread import RunData, VehicleData
 from reports.summary import FrameErrors, fused_method, split_order
@@ -32,6 +32,11 @@ METHOD_COLORS = {
     "edgeloc": "#2ca02c",
 }
 EXTRA_COLORS = ("#9467bd", "#8c564b", "#e377c2", "#17becf", "#bcbd22", "#d62728")
+#: Bottoms of the log axes of quantities that cannot be negative. Smaller values (a perfect
+#: frame, an idle link) are drawn on the bottom line, labelled "≤ floor": 1 cm is far below
+#: any error a method makes here, 1 kbit/s below any traffic the nodes send.
+ERROR_FLOOR_M = 0.01
+RATE_FLOOR_MBIT = 0.001
 
 
 @dataclass(frozen=True)
@@ -60,12 +65,26 @@ def _save(fig: Figure, folder: Path, name: str) -> str:
     return name
 
 
-def _symlog(ax: Any) -> None:
-    """Linear up to 1, logarithmic above, with plain tick labels (0.5, 1, 2, 5, 10 ...): DNN
-    outliers of 100 m must not flatten errors of a metre."""
-    ax.set_yscale("symlog", linthresh=1.0)
-    ax.yaxis.set_major_locator(SymmetricalLogLocator(linthresh=1.0, base=10, subs=[1, 2, 5]))
-    ax.yaxis.set_major_formatter(FuncFormatter(lambda v, _pos: f"{v:g}"))
+def _floored(values: Any, floor: float) -> Any:
+    """`values` with everything below `floor` (zero included) raised to it, for a log axis."""
+    return np.maximum(np.asarray(values, dtype=float), floor)
+
+
+def _log_axis(ax: Any, floor: float) -> None:
+    """A log y axis from `floor` up, for a quantity >= 0 whose large values must not flatten
+    the small ones (DNN outliers of 100 m beside errors of a metre): plain tick labels
+    (0.1, 0.2, 0.5, 1 ...), the bottom one "≤ floor". Call it after the data is drawn (drawn
+    through `_floored`), so the top of the axis fits the data."""
+    ax.set_yscale("log")
+    top = max(ax.get_ylim()[1], floor * 10)
+    ax.set_ylim(floor, top)
+    ax.yaxis.set_major_locator(LogLocator(base=10, subs=(1.0, 2.0, 5.0)))
+    ax.yaxis.set_minor_formatter(NullFormatter())
+
+    def label(v: float, _pos: int | None) -> str:
+        return f"≤{v:g}" if np.isclose(v, floor) else f"{v:g}"
+
+    ax.yaxis.set_major_formatter(FuncFormatter(label))
 
 
 def _shade(ax: Any, summary: dict[str, Any], vehicle: str, t_label: bool = True) -> None:
@@ -107,20 +126,27 @@ def errors_over_time(
         for m in order:
             fe = errs[m].get(v)
             if fe is not None and len(fe.t):
-                ax.plot(fe.t - data.t0, fe.position_m, lw=1, color=color(m, order), label=m)
+                ax.plot(
+                    fe.t - data.t0,
+                    _floored(fe.position_m, ERROR_FLOOR_M),
+                    lw=1,
+                    color=color(m, order),
+                    label=m,
+                )
         _shade(ax, summary, v)
         ax.set_title(f"{v}: position error per frame")
         ax.set_xlabel("run time (s)")
-        _symlog(ax)
-        ax.set_ylabel("error (m, log above 1)")
+        _log_axis(ax, ERROR_FLOOR_M)
+        ax.set_ylabel("error (m, log)")
         ax.grid(alpha=0.3)
         ax.legend(loc="upper left", fontsize=8, ncol=3)
     note = "" if len(shown) == len(vehicles) else f" (first {len(shown)} vehicles)"
     return Plot(
         _save(fig, out, "errors_over_time.png"),
         "Position error over time",
-        "Per frame, against ground truth; grey spans: no DNN answers arrived; red dashes: "
-        f"change-detector resets{note}.",
+        "Per frame, against ground truth (log axis; errors under "
+        f"{ERROR_FLOOR_M * 100:g} cm on its bottom line); grey spans: no DNN answers arrived; "
+        f"red dashes: change-detector resets{note}.",
     )
 
 
@@ -134,6 +160,10 @@ def error_boxplots(errs: dict[str, dict[str, FrameErrors]], out: Path) -> Plot |
     ):
         ax = fig.add_subplot(1, 2, j + 1)
         series = [np.concatenate([getattr(fe, key) for fe in errs[m].values()]) for m in methods]
+        if key == "position_m":
+            # monotonic: the box of the floored errors differs from the true one only below
+            # the floor, where the log axis cannot tell values apart anyway
+            series = [_floored(x, ERROR_FLOOR_M) for x in series]
         box = ax.boxplot(
             series,
             tick_labels=methods,
@@ -144,9 +174,11 @@ def error_boxplots(errs: dict[str, dict[str, FrameErrors]], out: Path) -> Plot |
         for patch, m in zip(box["boxes"], methods, strict=True):
             patch.set_facecolor(color(m, methods))
             patch.set_alpha(0.6)
-        ax.set_ylabel(label + (", log above 1" if key == "position_m" else ""))
+        ax.set_ylabel(label + (", log" if key == "position_m" else ""))
         if key == "position_m":
-            _symlog(ax)
+            _log_axis(ax, ERROR_FLOOR_M)
+        else:
+            ax.set_ylim(bottom=0)  # linear, and an error is never below 0
         ax.grid(alpha=0.3, axis="y")
     return Plot(
         _save(fig, out, "error_boxplot.png"),
@@ -364,19 +396,20 @@ def link_rates(data: RunData, out: Path) -> Plot | None:
     fig = Figure(figsize=(11, 4))
     ax = fig.add_subplot(1, 1, 1)
     for c, t, r in series:
-        ax.plot(t - data.t0, r, lw=1, label=f"{c.link} {c.direction}")
+        ax.plot(t - data.t0, _floored(r, RATE_FLOOR_MBIT), lw=1, label=f"{c.link} {c.direction}")
     for e in data.link_events:
         ax.axvline(e.t - data.t0, color="0.4", lw=0.8, ls=":")
     ax.set_xlabel("run time (s)")
-    ax.set_ylabel("delivered (Mbit/s)")
-    ax.set_yscale("symlog", linthresh=0.1)
+    _log_axis(ax, RATE_FLOOR_MBIT)
+    ax.set_ylabel("delivered (Mbit/s, log)")
     ax.grid(alpha=0.3)
     ax.legend(fontsize=8, ncol=2)
     return Plot(
         _save(fig, out, "link_rates.png"),
         "Traffic on the emulated links",
         "Delivered rate per link direction from the backends' byte counters (differences of "
-        "consecutive samples); dotted: timeline events.",
+        f"consecutive samples; log axis, under {RATE_FLOOR_MBIT * 1000:g} kbit/s on its bottom "
+        "line); dotted: timeline events.",
     )
 
 
