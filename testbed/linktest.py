@@ -17,7 +17,9 @@ Verdicts (SPEC §7): delay median within `DELAY_TOL_S` of configured + baseline;
 `RATE_TOL` of configured x payload fraction (TCP 1448, UDP 1472 bytes of payload per 1500-byte
 IP packet, plus 14 bytes of Ethernet header on the tc backend's veth), judged on TCP when the
 direction has no random loss (TCP backs off on loss, so its goodput then says nothing about the
-rate) and on UDP otherwise; loss within `LOSS_TOL` of the profile's expected loss.
+rate) and on UDP otherwise; loss within `LOSS_TOL` of the profile's expected loss. The report
+also says how busy the host's CPUs were meanwhile (`testbed.hostload`): on a loaded host a link
+misses its rate because its relay and endpoints wait for a CPU, not because it is wrong.
 
 The measurement functions (`udp_send`, `udp_receive`, `tcp_send`, `tcp_receive`,
 `in_namespace`) are shared with the benchmarks (tests/bench/bench_relay.py, bench_links.py).
@@ -38,6 +40,7 @@ from typing import TYPE_CHECKING, Any, ClassVar
 from netem.profile import LinkProfile
 from testbed.connectivity import echo_rtts
 from testbed.errors import TestbedError
+from testbed.hostload import CpuLoad, CpuSample, cpu_load_between
 from testbed.links import DIRECTIONS, Direction, LinkController, neutral
 from testbed.net import inside, netns_path
 
@@ -282,6 +285,7 @@ class LinkTestReport:
     quick: bool
     links: list[LinkResult]
     seconds: float = 0.0
+    host_cpu: CpuLoad | None = None  # the host's CPUs over the test (None: not measured)
 
     @property
     def ok(self) -> bool:
@@ -293,6 +297,7 @@ class LinkTestReport:
             "quick": self.quick,
             "ok": self.ok,
             "seconds": self.seconds,
+            "host_cpu": None if self.host_cpu is None else self.host_cpu.to_dict(),
             "tolerances": {
                 "delay_ms": DELAY_TOL_S * 1000,
                 "rate_fraction": RATE_TOL,
@@ -357,7 +362,24 @@ class LinkTestReport:
             widths = [max(w, len(c)) for w, c in zip(widths, row, strict=True)]
         lines = ["  ".join(h.ljust(w) for h, w in zip(self.HEADERS, widths, strict=True))]
         lines += ["  ".join(c.ljust(w) for c, w in zip(row, widths, strict=True)) for row in rows]
+        if self.host_cpu is not None:
+            lines.append(f"host during the test: {self.host_cpu.text()}")
         return "\n".join(line.rstrip() for line in lines)
+
+    def warning(self) -> str:
+        """The line `testbed run` prints when a link is out of tolerance: with the host's load,
+        since a busy host is the usual reason a link misses its rate."""
+        text = "warning: a link is out of tolerance (see linktest.json)"
+        if self.host_cpu is None:
+            return text
+        return f"{text}; the host meanwhile: {self.host_cpu.text()}"
+
+
+def _cpu_sample() -> CpuSample | None:
+    try:
+        return CpuSample.read()
+    except (OSError, ValueError):  # no /proc/stat (a container without procfs): no figure
+        return None
 
 
 def _fmt(value: float | None, spec: str) -> str:
@@ -393,13 +415,16 @@ class LinkTest:
 
     def run(self) -> LinkTestReport:
         t0 = time.monotonic()
+        cpu0 = _cpu_sample()
         results = []
         for link in self.net.links.values():
             self.progress(f"link test: {link.name}")
             results.append(self.link(link))
             self._check_alive()
+        cpu1 = _cpu_sample()
+        load = cpu_load_between(cpu0, cpu1) if cpu0 is not None and cpu1 is not None else None
         backend = self.net.backend_text()
-        return LinkTestReport(backend, self.quick, results, time.monotonic() - t0)
+        return LinkTestReport(backend, self.quick, results, time.monotonic() - t0, load)
 
     def _check_alive(self) -> None:
         failure = self.control.failure()

@@ -413,7 +413,7 @@ class _Run:
             for line in report.text().splitlines():
                 progress(f"  {line}")
             if not report.ok:
-                progress("  warning: a link is out of tolerance (see linktest.json)")
+                progress(f"  {report.warning()}")
         _check(net)
         result.connectivity = vehicles_reach_cores(net)
         for r in result.connectivity:

@@ -5,23 +5,20 @@ from __future__ import annotations
 import subprocess
 import time
 
+from testbed.hostload import CpuSample, cpu_load_between
+
 
 class CpuTimes:
-    """The machine's CPU time since this object was made, as fractions of all CPU time."""
+    """The machine's CPU time since this object was made, as fractions of all CPU time
+    (`testbed.hostload`, the figure the link self-test reports too)."""
 
     def __init__(self) -> None:
-        self._start = self._sample()
-
-    @staticmethod
-    def _sample() -> list[int]:
-        with open("/proc/stat") as f:
-            return [int(x) for x in f.readline().split()[1:]]
+        self._start = CpuSample.read()
 
     def since(self) -> tuple[float, float]:
         """(busy, steal): steal is time the hypervisor gave to other guests."""
-        delta = [b - a for a, b in zip(self._start, self._sample(), strict=True)]
-        total = max(sum(delta), 1)
-        return 1.0 - (delta[3] + delta[4]) / total, delta[7] / total  # idle + iowait are free
+        load = cpu_load_between(self._start, CpuSample.read())
+        return load.busy, load.steal
 
 
 def busy_fraction(interval_s: float) -> float:
