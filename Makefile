@@ -27,12 +27,12 @@ help:
 	@echo "make bench      print benchmark figures (includes a 10-minute soak)"
 	@echo "make report-screenshot  render a report in headless Chromium -> report-screenshot.png"
 	@echo "make model      retrain the localization DNN (deterministic; weights are committed)"
-	@echo "make lint       ruff"
+	@echo "make lint       ruff, and the import layers (lint-imports)"
 	@echo "make clean      remove leftovers of crashed runs, caches"
 
 # The interfaces build checks its own source hash, so it runs every time (0.1 s when current).
 setup: $(STAMP)
-	@$(BIN)/python -m nodes.ros_build --prefix $(VENV) -q
+	@$(BIN)/python -m nodes.ros.build --prefix $(VENV) -q
 
 $(STAMP): pyproject.toml Makefile
 	@test -x $(BIN)/python || $(PYTHON) -m venv $(if $(HAVE_APT_ROS),--system-site-packages) $(VENV)
@@ -89,9 +89,12 @@ bench: setup
 model: setup
 	$(BIN)/python -m nodes.edgeloc.train --out nodes/edgeloc/weights
 
+# The layer check: pyproject's import-linter contract (testbed > nodes.ros | reports >
+# netem | nodes.edgeloc | nodes.recording); tests/test_layers.py checks that it bites.
 lint: setup
 	$(BIN)/ruff check testbed netem nodes reports tests
 	$(BIN)/ruff format --check testbed netem nodes reports tests
+	$(BIN)/lint-imports --no-cache
 
 clean:
 	-@test -x $(BIN)/testbed && $(BIN)/testbed clean

@@ -44,6 +44,7 @@ from collections import deque
 from collections.abc import Callable
 from typing import Any
 
+from netem.errors import NetemError
 from netem.profile import PROFILE_FIELDS, LinkProfile
 from netem.stages import Pipeline, validate_profile
 from netem.traces import TRACE_FORMATS, load_trace
@@ -62,7 +63,7 @@ PR_SET_TIMERSLACK = 29
 PR_SET_PDEATHSIG = 1
 
 
-class ControlError(ValueError):
+class ControlError(NetemError, ValueError):
     """A control request that cannot be carried out; its message goes back to the client."""
 
 

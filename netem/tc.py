@@ -29,6 +29,7 @@ from typing import Literal
 
 from pyroute2 import IPRoute
 
+from netem.errors import LinkStateError, NetlinkError, ProfileError
 from netem.profile import LinkProfile
 from netem.tc_netlink import (
     NetlinkExecutor,
@@ -61,7 +62,6 @@ from netem.tc_plan import (
     planned_state,
     rate_bytes,
 )
-from testbed.errors import NetlinkError, TestbedError
 
 Direction = Literal["uplink", "downlink"]
 
@@ -104,7 +104,7 @@ class ShapedInterface:
     @property
     def ipr(self) -> IPRoute:
         if self._nl is None:
-            raise TestbedError("a dry-run ShapedInterface has no kernel to talk to")
+            raise LinkStateError("a dry-run ShapedInterface has no kernel to talk to")
         return self._nl.ipr
 
     @property
@@ -148,7 +148,7 @@ class ShapedInterface:
         """
         state = self.state()
         if state is None:
-            raise TestbedError(
+            raise LinkStateError(
                 f"no tc tree on {self.ifname} in {self._where()} to change: apply a profile first"
             )
         ops = plan_profile_change(self.ifname, state, profile)
@@ -359,7 +359,7 @@ class IngressShaper:
 
     def change(self, profile: LinkProfile) -> None:
         if not self.redirected():
-            raise TestbedError(
+            raise LinkStateError(
                 f"nothing shapes what {self.ifname} receives in namespace {self.netns}: "
                 "apply a profile first"
             )
@@ -416,7 +416,7 @@ class TcLinkBackend:
         dry_run: bool = False,
     ) -> None:
         if sends not in ("uplink", "downlink"):
-            raise TestbedError(f"`sends` must be 'uplink' or 'downlink', not {sends!r}")
+            raise ProfileError(f"`sends` must be 'uplink' or 'downlink', not {sends!r}")
         self.netns = netns
         self.ifname = ifname
         self.sends = sends
@@ -441,7 +441,7 @@ class TcLinkBackend:
     def side(self, direction: Direction) -> ShapedInterface | IngressShaper:
         """Where `direction` is shaped: this end's egress, or its IFB."""
         if direction not in ("uplink", "downlink"):
-            raise TestbedError(f"direction must be 'uplink' or 'downlink', not {direction!r}")
+            raise ProfileError(f"direction must be 'uplink' or 'downlink', not {direction!r}")
         return self.egress if direction == self.sends else self.ingress
 
     def apply(self, uplink: LinkProfile, downlink: LinkProfile) -> None:

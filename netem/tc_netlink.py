@@ -3,7 +3,7 @@
 `build_message(op, ifindex)` turns one `netem.tc_plan` operation into the pyroute2 `tcmsg`
 that `tc` would send for the same command line, so it can be inspected without sending.
 `NetlinkExecutor` sends a plan inside one namespace and turns every refusal into a
-`testbed.errors.NetlinkError` that names the namespace, the command and what to do.
+`netem.errors.NetlinkError` that names the namespace, the command and what to do.
 `read_tree` reads back what is on a device (for in-place changes and for checking).
 
 netem needs its own options class: pyroute2 0.9's netem plugin has no jitter distribution,
@@ -39,6 +39,7 @@ from pyroute2.netlink.rtnl import (
 )
 from pyroute2.netlink.rtnl.tcmsg import cls_u32, sched_htb, tcmsg
 
+from netem.errors import NetlinkError
 from netem.tc_plan import (
     CAP_CLASSID,
     ETH_P_ALL,
@@ -59,7 +60,6 @@ from netem.tc_plan import (
     TreeState,
     ticks_per_us,
 )
-from testbed.errors import NetlinkError
 
 U32_MAX = 0xFFFF_FFFF
 #: netem's distribution tables hold values scaled by this (NETEM_DIST_SCALE in pkt_sched.h).
@@ -515,7 +515,7 @@ class NetlinkExecutor:
     """Sends plans to the kernel inside one namespace (None = this process's namespace).
 
     Holds one rtnetlink socket opened in the namespace; a context manager that closes it.
-    Every refusal becomes a `testbed.errors.NetlinkError`: a half-applied plan is an error,
+    Every refusal becomes a `netem.errors.NetlinkError`: a half-applied plan is an error,
     never a silently unshaped link.
     """
 

@@ -28,8 +28,8 @@ import zlib
 from dataclasses import dataclass
 from typing import Literal
 
+from netem.errors import ProfileError
 from netem.profile import DEFAULT_QUEUE_PACKETS, GilbertElliott, LinkProfile
-from testbed.errors import BadInput
 
 # ---- fixed handles ----------------------------------------------------------------------------
 
@@ -346,8 +346,8 @@ def render(ops: list[Op], netns: str | None) -> list[str]:
 def check_profile(profile: LinkProfile) -> None:
     """Reject values the kernel would refuse or silently misread, naming the field."""
 
-    def bad(field: str, value: object, allowed: str) -> BadInput:
-        return BadInput(f"link profile field `{field}` = {value!r}: must be {allowed}")
+    def bad(field: str, value: object, allowed: str) -> ProfileError:
+        return ProfileError(f"link profile field `{field}` = {value!r}: must be {allowed}")
 
     if profile.rate_bps is not None and not (profile.rate_bps >= 8):
         raise bad("rate_bps", profile.rate_bps, "at least 8 bit/s, or null for unlimited")

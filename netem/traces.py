@@ -24,6 +24,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Literal
 
+from netem.errors import NetemError
+
 TraceFormat = Literal["mahimahi", "csv"]
 TRACE_FORMATS: tuple[str, ...] = ("mahimahi", "csv")
 
@@ -108,7 +110,7 @@ class TraceProblem:
     said: str
 
 
-class TraceError(ValueError):
+class TraceError(NetemError, ValueError):
     """A trace that cannot be used. `problems` lists up to `MAX_PROBLEMS` wrong lines (plus one
     entry counting the rest); the message has one `<source> line <n>: <said>` line each."""
 

@@ -21,6 +21,8 @@ from dataclasses import dataclass
 
 from pyroute2 import IPRoute
 
+from netem.errors import NetemError
+
 TUNSETIFF = 0x400454CA
 IFF_TUN = 0x0001
 IFF_NO_PI = 0x1000
@@ -33,7 +35,7 @@ MAX_MTU = 65535
 _libc = ctypes.CDLL(None, use_errno=True)
 
 
-class TunError(OSError):
+class TunError(NetemError, OSError):
     """Opening or configuring a TUN end failed; the message says which device and why."""
 
 

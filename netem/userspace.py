@@ -32,13 +32,14 @@ from pathlib import Path
 from typing import Any, Literal
 
 import netem
+from netem.errors import NetemError
 from netem.profile import LinkProfile
 from netem.stages import validate_profile
 
 Direction = Literal["uplink", "downlink", "both"]
 
 
-class RelayError(RuntimeError):
+class RelayError(NetemError, RuntimeError):
     """The relay could not start, refused a request, or died; the message says which."""
 
 

@@ -19,12 +19,13 @@ from typing import Any
 import numpy as np
 
 from nodes.edgeloc.metrics import write_tum
+from nodes.recording import linktable
+from nodes.recording.layout import PARTS_DIR, RUN_MCAP, SUMMARY_FILE
 from reports.document import Code, Document, Image, Para, Section, Table, to_markdown
 from reports.html import to_html
-from reports.mcapread import MCAP_NAME, ReportInputError, RunData, read_run
+from reports.mcapread import ReportInputError, RunData, read_run
 from reports.plots import Plot, draw_all, safe
 from reports.summary import method_errors, summarize, summary_json
-from testbed.linktest import LinkTestReport
 
 FORMATS = ("html", "md", "json")
 
@@ -467,35 +468,6 @@ def _gaps(s: dict[str, Any]) -> Section:
     return sec
 
 
-def _linktest_rows(lt: dict[str, Any]) -> list[list[str]]:
-    rows = []
-    for link in lt.get("links", []):
-        rtt = f"{_f(link.get('rtt_median_ms'), '{:.2f}')}/{_f(link.get('rtt_p99_ms'), '{:.2f}')}"
-        for d in link.get("directions", []):
-            checks = "; ".join(
-                f"{v.get('what')} {_f(v.get('measured'), '{:.3g}')} vs "
-                f"{_f(v.get('expected'), '{:.3g}')} ({v.get('tolerance')})"
-                + ("" if v.get("ok") else " OUT")
-                for v in d.get("verdicts", [])
-            )
-            rows.append(
-                [
-                    str(link.get("link")),
-                    str(d.get("direction")),
-                    rtt,
-                    _f(d.get("baseline_ms")),
-                    f"{_f(d.get('owd_median_ms'))}/{_f(d.get('owd_p99_ms'), '{:.2f}')}",
-                    _f(d.get("jitter_sd_ms"), "{:.2f}"),
-                    _f(d.get("tcp_mbit"), "{:.2f}"),
-                    _f(d.get("udp_mbit"), "{:.2f}"),
-                    f"{_f(d.get('loss_pct'), '{:.2f}')} of {d.get('loss_packets', '-')}",
-                    "ok" if d.get("ok") else "OUT",
-                    checks,
-                ]
-            )
-    return rows
-
-
 def _links(s: dict[str, Any], plots: dict[str, Plot | None]) -> Section:
     sec = Section("Links")
     ls = s["links"]
@@ -570,8 +542,8 @@ def _links(s: dict[str, Any], plots: dict[str, Plot | None]) -> Section:
         verdict = "every link within tolerance" if lt.get("ok") else "a link is OUT of tolerance"
         sec.add(
             Table(
-                list(LinkTestReport.HEADERS),  # the same columns `testbed link-test` prints
-                _linktest_rows(lt),
+                list(linktable.HEADERS),  # the same columns `testbed link-test` prints
+                linktable.rows(lt),
                 caption=f"link self-test ({verdict}; backend {lt.get('backend', '-')})",
             )
         )
@@ -670,21 +642,21 @@ def build_report(
     Raises ReportInputError when there is no readable MCAP; anything else the recording
     lacks shows in the report as not recorded."""
     folder = Path(run_folder)
-    if not (folder / MCAP_NAME).is_file() and (folder / "parts").is_dir():
+    if not (folder / RUN_MCAP).is_file() and (folder / PARTS_DIR).is_dir():
         raise ReportInputError(
-            f"{folder}: the recording was never merged into {MCAP_NAME} (the run was killed?); "
+            f"{folder}: the recording was never merged into {RUN_MCAP} (the run was killed?); "
             "`testbed clean` finalises it from the parts in parts/"
         )
-    if not (folder / MCAP_NAME).is_file():
+    if not (folder / RUN_MCAP).is_file():
         raise ReportInputError(
-            f"{folder}: no {MCAP_NAME} here (is it a run folder of `testbed run` with "
+            f"{folder}: no {RUN_MCAP} here (is it a run folder of `testbed run` with "
             "record.enabled?)"
         )
     fmts = set(formats)
     unknown = fmts - set(FORMATS)
     if unknown:
         raise ReportInputError(f"unknown report format(s) {sorted(unknown)}; use {list(FORMATS)}")
-    data = read_run(folder / MCAP_NAME)
+    data = read_run(folder / RUN_MCAP)
     s = summarize(data)
     errs = method_errors(data)
     files: list[Path] = []
@@ -698,8 +670,8 @@ def build_report(
         drawn = draw_all(data, errs, s, plot_dir)
         files += [plot_dir / p.file for p in drawn.values() if p is not None]
     if "json" in fmts:
-        (folder / "summary.json").write_text(summary_json(s), encoding="utf-8")
-        files.append(folder / "summary.json")
+        (folder / SUMMARY_FILE).write_text(summary_json(s), encoding="utf-8")
+        files.append(folder / SUMMARY_FILE)
     doc = document(data, s, drawn, tum)
     if "md" in fmts:
         (folder / "report.md").write_text(to_markdown(doc), encoding="utf-8")

@@ -6,7 +6,7 @@ written before the cut; `RunData.complete` is False then and `problems` says why
 decoded from their `ros2msg` schema text with `mcap_ros2`'s decoder, so no ROS install is
 needed. A message that does not decode is counted, not fatal.
 
-Topics read (see the recorder, `testbed/recording.py`): `/<vehicle>/gt`, `/<vehicle>/vo`,
+Topics read (named in `nodes.recording.layout`): `/<vehicle>/gt`, `/<vehicle>/vo`,
 `/<vehicle>/dnn_answer` and `/<vehicle>/pose` (PoseEstimate; `pose` carries one message per
 method per frame), `/<vehicle>/split_decision`, `/<vehicle>/detector`, `/<vehicle>/inference`,
 `/links/events`, `/links/counters`; metadata `edgeloc.run`, `edgeloc.nodes`,
@@ -31,16 +31,13 @@ from mcap.stream_reader import StreamReader
 from mcap_ros2.decoder import DecoderFactory
 from numpy.typing import NDArray
 
-MCAP_NAME = "run.mcap"
-
-#: The per-vehicle topics the report reads, by their last path element.
-VEHICLE_TOPICS = ("gt", "vo", "dnn_answer", "pose", "split_decision", "detector", "inference")
-LINK_EVENTS_TOPIC = "/links/events"
-LINK_COUNTERS_TOPIC = "/links/counters"
-
-
-class ReportInputError(Exception):
-    """The run folder or its MCAP cannot be read at all (the message says why)."""
+from nodes.recording.layout import (
+    LINK_COUNTERS_TOPIC,
+    LINK_EVENTS_TOPIC,
+    RUN_MCAP,
+    VEHICLE_TOPICS,
+)
+from reports.errors import ReportInputError
 
 
 def _stamp(msg: Any) -> float:
@@ -261,9 +258,9 @@ def read_run(path: Path | str) -> RunData:
     """Read `path` (a run.mcap, or a run folder holding one)."""
     p = Path(path)
     if p.is_dir():
-        p = p / MCAP_NAME
+        p = p / RUN_MCAP
     if not p.is_file():
-        raise ReportInputError(f"{p}: no such file (a run folder holds {MCAP_NAME})")
+        raise ReportInputError(f"{p}: no such file (a run folder holds {RUN_MCAP})")
     with open(p, "rb") as f:
         magic = f.read(8)
     if magic[:5] != b"\x89MCAP":
@@ -531,7 +528,6 @@ def _take(
 
 
 __all__ = [
-    "MCAP_NAME",
     "CounterSeries",
     "Decision",
     "DetectorUpdate",

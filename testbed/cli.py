@@ -11,16 +11,49 @@ Exit codes mean the same thing for every verb:
 from __future__ import annotations
 
 import json
+import math
 import sys
 from pathlib import Path
-from typing import Annotated
+from typing import Annotated, Any
 
 import typer
 
+from netem.errors import NetemError, ProfileError
+from netem.traces import TraceError
+from nodes.edgeloc.errors import EdgeLocError
+from nodes.recording import RecordingError
+from nodes.ros.env import RosEnvError
+from nodes.ros.errors import RosError
+from reports.errors import ReportError, ReportInputError
 from testbed import console as con
-from testbed.errors import TestbedError
+from testbed.errors import BadInput, HostError, TestbedError
 
 EXIT_OK, EXIT_FAILED, EXIT_BAD_INPUT, EXIT_HOST, EXIT_INTERRUPTED = 0, 1, 2, 3, 130
+
+#: The one place an error's type becomes an exit code: the first row whose type matches wins,
+#: so the more specific types come first. Every package's error root is in it.
+EXIT_CODES: tuple[tuple[type[Exception], int], ...] = (
+    (BadInput, EXIT_BAD_INPUT),  # scenarios (ScenarioError), options, run ids
+    (ProfileError, EXIT_BAD_INPUT),
+    (TraceError, EXIT_BAD_INPUT),
+    (ReportInputError, EXIT_BAD_INPUT),
+    (RosEnvError, EXIT_BAD_INPUT),
+    (HostError, EXIT_HOST),
+    (TestbedError, EXIT_FAILED),
+    (NetemError, EXIT_FAILED),
+    (RecordingError, EXIT_FAILED),
+    (ReportError, EXIT_FAILED),
+    (EdgeLocError, EXIT_FAILED),
+    (RosError, EXIT_FAILED),
+)
+#: What a verb turns into a message and an exit code instead of a traceback.
+KNOWN_ERRORS = tuple(kind for kind, _ in EXIT_CODES)
+
+
+def exit_code(err: BaseException) -> int:
+    """The exit code `err` means (EXIT_CODES); 1 for anything else."""
+    return next((code for kind, code in EXIT_CODES if isinstance(err, kind)), EXIT_FAILED)
+
 
 app = typer.Typer(
     name="testbed",
@@ -48,10 +81,10 @@ JsonFlag = Annotated[bool, typer.Option("--json", help="Print machine-readable J
 RunsDir = Annotated[Path, typer.Option("--runs-dir", help="Where run folders go.", file_okay=False)]
 
 
-def _fail(err: TestbedError) -> typer.Exit:
+def _fail(err: BaseException) -> typer.Exit:
     for line in str(err).splitlines():
         con.error(line)
-    return typer.Exit(err.exit_code)
+    return typer.Exit(exit_code(err))
 
 
 @app.command()
@@ -117,7 +150,7 @@ def up(
         raise _fail(err) from None
     try:
         net = build(scenario, dry_run=dry_run, echo=con.plain if dry_run else None)
-    except TestbedError as err:
+    except KNOWN_ERRORS as err:
         raise _fail(err) from None
     if dry_run:
         return
@@ -152,7 +185,7 @@ def run(
         raise _fail(err) from None
     try:
         result = run_scenario(scenario, runs_dir, progress=con.plain)
-    except (TestbedError, KeyboardInterrupt) as err:
+    except (*KNOWN_ERRORS, KeyboardInterrupt) as err:
         folder = getattr(err, "run_folder", None)
         if folder is not None and scenario.report.enabled:
             _report_after_run(Path(folder), scenario.report.formats, scenario.report.plots)
@@ -179,7 +212,7 @@ def run(
 def _report_after_run(folder: Path, formats: tuple[str, ...], plots: bool) -> None:
     """Build a run's report from its run.mcap and print the headline and the report's path.
     A report that cannot be built is a warning: the run's own outcome decides the exit code."""
-    from reports.build import ReportInputError, build_report
+    from reports.build import build_report
 
     if not (folder / "run.mcap").is_file():
         con.warn(f"no report: {folder} has no run.mcap (record.enabled off, or nothing recorded)")
@@ -222,7 +255,7 @@ def report(
 
     Exits 2 when the folder has no readable run.mcap.
     """
-    from reports.build import FORMATS, ReportInputError, build_report
+    from reports.build import FORMATS, build_report
 
     folder = run_folder
     if not folder.exists() and not folder.is_absolute() and (Path("runs") / folder).is_dir():
@@ -239,9 +272,8 @@ def report(
         raise typer.Exit(EXIT_BAD_INPUT)
     try:
         built = build_report(folder, formats=wanted, plots=not no_plots)
-    except ReportInputError as err:
-        con.error(str(err))
-        raise typer.Exit(EXIT_BAD_INPUT) from None
+    except KNOWN_ERRORS as err:
+        raise _fail(err) from None
     for line in built.summary["recording"]["problems"]:
         con.warn(line)
     con.plain(built.headline)
@@ -260,11 +292,57 @@ def replay(
 
     Example: testbed replay scenarios/default.yaml
     """
-    from testbed.replay_cmd import replay_command
+    from testbed.replay import replay_scenario
+    from testbed.scenario import load
 
-    code = replay_command(file, runs_dir, json_out=json_out)
-    if code:
-        raise typer.Exit(code)
+    try:
+        done = replay_scenario(load(file), runs_dir)
+    except KNOWN_ERRORS as err:
+        raise _fail(err) from None
+    if json_out:
+        sys.stdout.write(json.dumps(done.summary, indent=2) + "\n")
+        return
+    con.table(REPLAY_HEADERS, replay_rows(done.summary))
+    for line in replay_phase_lines(done.summary):
+        con.plain(line)
+    resets = done.summary["learner"]["resets"]
+    con.plain(f"detector resets: {len(resets)}; compute: {done.result.latency.compute.source}")
+    con.plain(f"wrote {done.folder}/ (summary.json, *.tum) in {done.result.wall_s:.1f} s")
+    con.plain(str(done.summary["headline"]))
+
+
+REPLAY_HEADERS = ["method", "total m", "mean m", "median m", "rmse m", "p95 m", "max m", "yaw deg"]
+
+
+def replay_rows(summary: dict[str, Any]) -> list[list[str]]:
+    """Per method, the replay's position error figures and its mean heading error."""
+    rows = []
+    for m in ("vo", "dnn", "kalman", "edgeloc"):
+        p, h = summary["methods"][m]["position_m"], summary["methods"][m]["heading_deg"]
+        figures = [p["total"], p["mean"], p["median"], p["rmse"], p["p95"], p["max"], h["mean"]]
+        rows.append([m, f"{figures[0]:.1f}", *(f"{x:.2f}" for x in figures[1:])])
+    return rows
+
+
+def replay_phase_lines(summary: dict[str, Any]) -> list[str]:
+    """One line per bandwidth phase: what the learner chose against the best in hindsight."""
+    lines = []
+    for ph in summary["learner"]["phases"]:
+        rate = ph["uplink_rate_bps"]
+        uplink = "unlimited" if rate is None or rate == math.inf else f"{rate / 1e6:g} Mbit/s"
+        converged = (
+            "never converged)"
+            if ph["converged_after_s"] is None
+            else f"converged after {ph['converged_after_plays']} plays, "
+            f"{ph['converged_after_s']:.1f} s)"
+        )
+        lines.append(
+            f"phase {ph['start_s']:g}-{ph['end_s']:g} s, uplink {uplink}: "
+            f"chose {ph['chosen']}, best in hindsight {ph['best_in_hindsight']} "
+            f"({100 * ph['share_best']:.0f}% of {ph['plays']} plays, "
+            f"{100 * ph['share_best_last_third']:.0f}% in the last third; " + converged
+        )
+    return lines
 
 
 @app.command()
@@ -318,7 +396,7 @@ def sweep(
 
     try:
         report = run_sweep(file, sets, out=out, real=real, progress=con.plain, duration=duration)
-    except TestbedError as err:
+    except KNOWN_ERRORS as err:
         raise _fail(err) from None
     for name in ("sweep.md", "sweep.json", "sweep.png"):
         con.plain(f"wrote {report.out / name}")
@@ -352,7 +430,7 @@ def link_test(
         raise _fail(err) from None
     try:
         report = measure(scenario, quick=quick, progress=None if json_out else con.plain)
-    except TestbedError as err:
+    except KNOWN_ERRORS as err:
         raise _fail(err) from None
     if json_out:
         sys.stdout.write(json.dumps(report.to_dict(), indent=2) + "\n")
@@ -379,7 +457,7 @@ def down(
 
     try:
         removed = teardown_run(run_id)
-    except TestbedError as err:
+    except KNOWN_ERRORS as err:
         raise _fail(err) from None
     con.ok(f"run {removed.run_id} is down ({removed.summary()})")
 
@@ -423,7 +501,7 @@ def clean(
     try:
         folders = unfinished_folders(include_detached=all_runs)  # before state files go
         report = clean_runs(include_detached=all_runs)
-    except TestbedError as err:
+    except KNOWN_ERRORS as err:
         raise _fail(err) from None
     con.ok(report)
     failed = False

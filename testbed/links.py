@@ -36,8 +36,9 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any, Literal, Protocol
 
 from netem.profile import LinkProfile
-from netem.tc import IngressShaper, ShapedInterface, TcLinkBackend, shaping_end
-from netem.tc_plan import UNLIMITED_BPS, needs_netem
+from netem.shaping import NodeShaper, check_caps
+from netem.tc import TcLinkBackend, shaping_end
+from netem.tc_plan import needs_netem
 from netem.traces import OPPORTUNITY_BYTES, Trace, load_trace
 from netem.userspace import RelayError, UserspaceLink
 from testbed import check
@@ -358,8 +359,8 @@ class _Base:
         self._lock = threading.RLock()
         self._stop = threading.Event()
         self._threads: list[threading.Thread] = []
-        # Per shaped node: its egress tree and its ingress (IFB) shaper, sockets held open.
-        self._caps: dict[str, tuple[ShapedInterface, IngressShaper]] = {}
+        # Per shaped node: its caps' sockets, held open.
+        self._caps: dict[str, NodeShaper] = {}
 
     def _link(self, name: str) -> Link:
         if name not in self.net.links:
@@ -377,46 +378,27 @@ class _Base:
     def prepare(self, events: Sequence[Event]) -> None:
         for event in events:
             if isinstance(event, ShapeEvent | ClearEvent):
-                egress, ingress = self._cap_shapers(event.node)
+                shaper = self._shaper(event.node)
             if isinstance(event, ShapeEvent):
-                # Install the cap trees now, unlimited, so the event itself is one in-place
-                # HTB class change (a few ms) instead of building a tree (tens of ms).
-                if event.uplink_bps is not None and egress.state() is None:
-                    egress.set_cap(UNLIMITED_BPS)
-                if event.downlink_bps is not None and ingress.state() is None:
-                    ingress.set_cap(UNLIMITED_BPS)
+                shaper.prepare(event.uplink_bps is not None, event.downlink_bps is not None)
 
-    def _cap_shapers(self, node: str) -> tuple[ShapedInterface, IngressShaper]:
-        """What `shape` changes on a node, opened once (as `netem.shaping.shape` does per
-        call, which costs tens of ms of socket set-up)."""
+    def _shaper(self, node: str) -> NodeShaper:
+        """What `shape` changes on a node, opened once per run."""
         if node not in self._caps:
             where, ifname = shaped_interface(self.net, node)
-            egress = ShapedInterface(where.netns, ifname)
-            try:
-                self._caps[node] = (egress, IngressShaper(where.netns, ifname))
-            except BaseException:
-                egress.close()
-                raise
+            self._caps[node] = NodeShaper(where.netns, ifname)
         return self._caps[node]
 
     def shape(self, node: str, uplink_bps: float | None, downlink_bps: float | None) -> None:
-        if uplink_bps is None and downlink_bps is None:
-            raise BadInput(f"shape {node}: needs an uplink rate, a downlink rate or both")
-        for value in (uplink_bps, downlink_bps):
-            if value is not None and not value >= MIN_RATE_BPS:
-                raise BadInput(f"shape {node}: {value!r} is not a rate of at least 8 bit/s")
-        egress, ingress = self._cap_shapers(node)
+        check_caps(uplink_bps, downlink_bps)
+        shaper = self._shaper(node)
         with self._lock:
-            if uplink_bps is not None:
-                egress.set_cap(uplink_bps)
-            if downlink_bps is not None:
-                ingress.set_cap(downlink_bps)
+            shaper.shape(uplink_bps, downlink_bps)
 
     def clear(self, node: str) -> None:
-        egress, ingress = self._cap_shapers(node)
+        shaper = self._shaper(node)
         with self._lock:
-            egress.set_cap(None)
-            ingress.set_cap(None)
+            shaper.clear()
 
     def _later(self, name: str, fn: Callable[[], None]) -> None:
         thread = threading.Thread(target=fn, name=name, daemon=True)
@@ -427,9 +409,8 @@ class _Base:
         self._stop.set()
         for thread in self._threads:
             thread.join(timeout=2)
-        for egress, ingress in self._caps.values():
-            egress.close()
-            ingress.close()
+        for shaper in self._caps.values():
+            shaper.close()
         self._caps.clear()
 
 

@@ -27,8 +27,9 @@ from typing import TYPE_CHECKING, Protocol
 
 from pyroute2 import IPRoute
 
+from netem.errors import NetlinkError
 from netem.tun import in_netns, setns
-from testbed.errors import HostError, NetlinkError
+from testbed.errors import HostError
 
 if TYPE_CHECKING:
     from testbed.topology import Link, Net

@@ -1,31 +1,21 @@
-"""Recording a run to one MCAP file, `runs/<id>/run.mcap`, that ROS tools and Foxglove open.
+"""Recording a run, the orchestrator's side: what it writes at the start, samples while the run
+goes, and merges at the end into `runs/<id>/run.mcap`, a file ROS tools and Foxglove open.
 
-Publisher-side recording: every node process writes what it publishes (CDR bytes from
-`rclpy.serialization.serialize_message`) into its own part file `runs/<id>/parts/<process>.mcap`
-(`PartWriter`), and the orchestrator writes its own part (`/links/counters`, sampled from the
-link backend by `CounterSampler`). No recorder subscribes to anything, so recording adds no
-packet to the emulated links. At the end of the run (success, failure, Ctrl-C), or from
-`testbed clean` after the orchestrator was killed, `finalise` merges the parts into `run.mcap`
-ordered by log time, with:
+Publisher-side recording: every node process writes what it publishes into its own part file
+(`nodes.recording.parts.PartWriter`), and the orchestrator writes its own part
+(`/links/counters`, sampled from the link backend by `CounterSampler`). No recorder subscribes
+to anything, so recording adds no packet to the emulated links. At the end of the run (success,
+failure, Ctrl-C), or from `testbed clean` after the orchestrator was killed, `finalise` merges
+the parts (`nodes.recording.merge`) with:
 
-- profile `ros2`, message encoding `cdr`, schema encoding `ros2msg` carrying the full `.msg`
-  text of each type and of every type it uses (rosbag2's concatenated format, `schema_text`),
-  so mcap_ros2 and rosbags decode it with no ROS installed;
-- chunks compressed as the scenario's `record.compression` says (zstd, lz4 or none), and a
-  summary section with statistics and indexes;
 - metadata records `edgeloc.run`, `edgeloc.nodes`, `edgeloc.timeline`, `edgeloc.linktest`
   (values are strings; structured values are JSON);
 - attachments: the scenario YAML, its trace files, `linktest.json`, `links.json` (the applied
   link configuration), `events.jsonl`.
 
-Parts are written in small chunks, flushed at least every `PART_FLUSH_S`: a process killed
-with SIGKILL leaves a part that `read_part` reads up to its last complete chunk. Writing
-happens on a background thread, so a publisher only pays for serialising and a queue put.
-
 What the orchestrator knows at the start and `testbed clean` needs later (scenario, seed,
 backend, namespaces, trace files, compression) is kept in `parts/manifest.json`.
-
-No rclpy import at module level: the merge and its tests need only `mcap`.
+The format itself (names, schemas, parts, merge) lives in `nodes.recording`.
 """
 
 from __future__ import annotations
@@ -34,458 +24,26 @@ import contextlib
 import datetime as dt
 import importlib.metadata
 import json
-import math
 import os
 import platform
-import queue
-import re
 import shutil
-import sys
 import threading
 import time
 from collections.abc import Callable, Iterable, Sequence
-from dataclasses import dataclass, field
 from pathlib import Path
-from typing import IO, Any
+from typing import Any
 
-from mcap.exceptions import McapError
-from mcap.records import Channel, Message, Schema
-from mcap.stream_reader import StreamReader
-from mcap.writer import CompressionType, Writer
-
+from nodes.recording import RecordingError
+from nodes.recording import layout as names
+from nodes.recording.jsonfile import dumps, write_json
+from nodes.recording.merge import Attachment, MergeReport, merge
+from nodes.recording.parts import PartWriter
 from testbed import __version__
-from testbed.errors import TestbedError
 
-PROFILE = "ros2"
-MESSAGE_ENCODING = "cdr"
-SCHEMA_ENCODING = "ros2msg"
-#: rosbag2's separator between the definitions of a type and of the types it uses.
-SEPARATOR = "=" * 80
-LIBRARY = f"edgeloc-testbed {__version__}"
-
-PARTS_DIR = "parts"
-MANIFEST = "manifest.json"
-RUN_MCAP = "run.mcap"
-#: Uncompressed bytes per chunk of a part: small, so a killed writer loses little.
-PART_CHUNK_BYTES = 64 * 1024
-#: A part's open chunk is written out at least this often (a quiet topic is not held back).
-PART_FLUSH_S = 1.0
-#: Chunk size of the merged file (mcap's default; readers seek by chunk).
-MERGED_CHUNK_BYTES = 1024 * 1024
 #: How often the orchestrator samples the link counters.
 COUNTERS_EVERY_S = 0.5
 #: Log lines quoted in `edgeloc.nodes` for a node that failed.
 TAIL_LINES = 20
-
-COMPRESSION = {
-    "zstd": CompressionType.ZSTD,
-    "lz4": CompressionType.LZ4,
-    "none": CompressionType.NONE,
-}
-
-PRIMITIVES = frozenset(
-    [
-        "bool",
-        "byte",
-        "char",
-        "float32",
-        "float64",
-        "int8",
-        "uint8",
-        "int16",
-        "uint16",
-        "int32",
-        "uint32",
-        "int64",
-        "uint64",
-        "string",
-        "wstring",
-    ]
-)
-
-
-class RecordingError(TestbedError):
-    """The recording could not be written or merged."""
-
-
-# ---- schemas ---------------------------------------------------------------------------------
-
-
-def full_type_name(name: str) -> str:
-    """`pkg/msg/Type` for `pkg/msg/Type` or `pkg/Type`."""
-    parts = name.split("/")
-    if len(parts) == 2:
-        return f"{parts[0]}/msg/{parts[1]}"
-    if len(parts) == 3 and parts[1] == "msg":
-        return name
-    raise RecordingError(f"not a ROS message type name: {name!r} (expected pkg/msg/Type)")
-
-
-def msg_search_paths() -> list[Path]:
-    """Where `.msg` files are looked for: `share/` of every ament prefix (a sourced ROS), of
-    this interpreter's prefix (the PyPI ROS wheels and the built interfaces install there),
-    then the repository's own interface sources (for `edgeloc_interfaces` before a build)."""
-    prefixes = [Path(p) for p in os.environ.get("AMENT_PREFIX_PATH", "").split(os.pathsep) if p]
-    prefixes += [Path(sys.prefix), Path(sys.base_prefix)]
-    paths = [p / "share" for p in prefixes]
-    paths.append(Path(__file__).resolve().parents[1] / "nodes")
-    return paths
-
-
-def find_msg_file(type_name: str, search: Sequence[Path] | None = None) -> Path:
-    """The `.msg` file of `pkg/msg/Type` (first found in `search`)."""
-    pkg, _, name = full_type_name(type_name).split("/")
-    paths = list(search) if search is not None else msg_search_paths()
-    for base in paths:
-        candidate = base / pkg / "msg" / f"{name}.msg"
-        if candidate.is_file():
-            return candidate
-    raise RecordingError(
-        f"no definition of {type_name} ({pkg}/msg/{name}.msg) under "
-        + ", ".join(str(p) for p in paths)
-    )
-
-
-def _field_type(line: str) -> str | None:
-    """The type of a field or constant line of a .msg (comments stripped), else None."""
-    text = line.split("#", 1)[0].strip()
-    if not text:
-        return None
-    return text.split()[0]
-
-
-def msg_dependencies(text: str, package: str) -> list[str]:
-    """The non-primitive types a .msg text uses, as `pkg/msg/Type`, in order of first use."""
-    out: list[str] = []
-    for line in text.splitlines():
-        typ = _field_type(line)
-        if typ is None:
-            continue
-        base = re.sub(r"\[[^\]]*\]$", "", typ)  # arrays: T[], T[3], T[<=3]
-        base = re.sub(r"<=\d+$", "", base)  # bounded strings: string<=10
-        if base in PRIMITIVES:
-            continue
-        if base == "Header":  # the one short name ROS 2 still resolves outside the package
-            full = "std_msgs/msg/Header"
-        elif "/" in base:
-            full = full_type_name(base)
-        else:
-            full = f"{package}/msg/{base}"
-        if full not in out:
-            out.append(full)
-    return out
-
-
-def schema_text(type_name: str, search: Sequence[Path] | None = None) -> str:
-    """The `ros2msg` schema of a type: its .msg text, then each type it uses (transitively,
-    each once) after a separator line and `MSG: pkg/msg/Type`, as rosbag2 writes it."""
-    root = full_type_name(type_name)
-    texts: dict[str, str] = {}
-    pending = [root]
-    while pending:
-        name = pending.pop(0)
-        if name in texts:
-            continue
-        text = find_msg_file(name, search).read_text()
-        texts[name] = text
-        pending += [d for d in msg_dependencies(text, name.split("/")[0]) if d not in texts]
-    out = texts.pop(root).rstrip("\n") + "\n"
-    for name, text in texts.items():
-        out += f"{SEPARATOR}\nMSG: {name}\n{text.rstrip(chr(10))}\n"
-    return out
-
-
-def type_name_of(msg_class: type) -> str:
-    """`pkg/msg/Type` of a generated rclpy message class (module `pkg.msg._type`)."""
-    package = msg_class.__module__.split(".")[0]
-    return f"{package}/msg/{msg_class.__name__}"
-
-
-# ---- part files ------------------------------------------------------------------------------
-
-
-class PartWriter:
-    """One process's part file: messages given as CDR bytes, written by a background thread.
-
-    `write` only queues (the caller may be a real-time thread); the thread registers each
-    topic's schema and channel the first time it sees it, adds messages to the current chunk,
-    and writes the chunk out when it is full or `flush_s` old. `close` drains the queue and
-    writes the summary. If writing fails, the next `write` raises `RecordingError` with why
-    (a node then fails loudly instead of recording nothing).
-    """
-
-    def __init__(
-        self,
-        path: Path,
-        compression: str = "lz4",
-        chunk_bytes: int = PART_CHUNK_BYTES,
-        flush_s: float = PART_FLUSH_S,
-        search: Sequence[Path] | None = None,
-    ) -> None:
-        if compression not in COMPRESSION:
-            raise RecordingError(
-                f"compression {compression!r}: use one of {', '.join(COMPRESSION)}"
-            )
-        self.path = Path(path)
-        self.path.parent.mkdir(parents=True, exist_ok=True)
-        self.flush_s = flush_s
-        self.search = search
-        self.counts: dict[str, int] = {}  # messages queued per topic
-        self.error: str | None = None
-        self._file: IO[bytes] = open(self.path, "wb")  # noqa: SIM115 (closed by the thread)
-        self._writer = Writer(
-            self._file, chunk_size=chunk_bytes, compression=COMPRESSION[compression]
-        )
-        self._writer.start(profile=PROFILE, library=LIBRARY)
-        self._channels: dict[tuple[str, str], int] = {}
-        self._schemas: dict[str, int] = {}
-        self._sequence: dict[int, int] = {}
-        self._queue: queue.SimpleQueue[tuple[str, str, bytes, int, int] | None] = (
-            queue.SimpleQueue()
-        )
-        self._closed = False
-        self._thread = threading.Thread(target=self._run, name="mcap-part", daemon=True)
-        self._thread.start()
-
-    def write(
-        self, topic: str, type_name: str, data: bytes, log_time_ns: int | None = None
-    ) -> None:
-        """Queue one message (CDR bytes of `type_name`) on `topic`, logged now by default."""
-        if self.error is not None:
-            raise RecordingError(f"recording to {self.path} failed: {self.error}")
-        if self._closed:
-            raise RecordingError(f"recording to {self.path} is closed")
-        t = time.time_ns() if log_time_ns is None else log_time_ns
-        self.counts[topic] = self.counts.get(topic, 0) + 1
-        self._queue.put((topic, type_name, data, t, t))
-
-    def close(self) -> None:
-        """Write what is queued and the summary; idempotent. Raises if writing failed."""
-        if not self._closed:
-            self._closed = True
-            self._queue.put(None)
-            self._thread.join()
-        if self.error is not None:
-            raise RecordingError(f"recording to {self.path} failed: {self.error}")
-
-    # -- the writer thread -----------------------------------------------------------------
-
-    def _channel(self, topic: str, type_name: str) -> int:
-        key = (topic, type_name)
-        if key not in self._channels:
-            if type_name not in self._schemas:
-                text = schema_text(type_name, self.search)
-                self._schemas[type_name] = self._writer.register_schema(
-                    full_type_name(type_name), SCHEMA_ENCODING, text.encode()
-                )
-            self._channels[key] = self._writer.register_channel(
-                topic, MESSAGE_ENCODING, self._schemas[type_name]
-            )
-        return self._channels[key]
-
-    def _run(self) -> None:
-        pending_since: float | None = None  # when the open chunk got its first message
-        try:
-            while True:
-                timeout = None
-                if pending_since is not None:
-                    timeout = max(0.0, pending_since + self.flush_s - time.monotonic())
-                try:
-                    item = self._queue.get(timeout=timeout)
-                except queue.Empty:
-                    item = ()  # the open chunk is due
-                if item is None:
-                    break
-                if item:
-                    topic, type_name, data, log_time, publish_time = item
-                    cid = self._channel(topic, type_name)
-                    seq = self._sequence.get(cid, 0)
-                    self._sequence[cid] = seq + 1
-                    self._writer.add_message(cid, log_time, data, publish_time, sequence=seq)
-                    if pending_since is None:
-                        pending_since = time.monotonic()
-                if pending_since is not None and time.monotonic() - pending_since >= self.flush_s:
-                    self._writer.flush()  # ends the chunk: readable if we are killed now
-                    pending_since = None
-            self._writer.finish()
-        except Exception as err:  # reported by write/close: a node must not record silently
-            self.error = f"{type(err).__name__}: {err}"
-        finally:
-            self._file.close()
-
-
-@dataclass
-class PartContents:
-    """What `read_part` recovered from one part file."""
-
-    path: Path
-    schemas: dict[int, Schema] = field(default_factory=dict)
-    channels: dict[int, Channel] = field(default_factory=dict)
-    messages: list[Message] = field(default_factory=list)
-    complete: bool = False  # the file ended with its footer (the writer closed it)
-    problem: str = ""  # why reading stopped early, when it did
-
-
-def read_part(path: Path) -> PartContents:
-    """Every schema, channel and message of a part, up to its last complete chunk.
-
-    Reads records in file order (no index needed), so a file cut anywhere, e.g. by SIGKILL
-    in the middle of a chunk, yields everything before that chunk; `problem` says where it
-    stopped and `complete` whether the file was closed properly.
-    """
-    out = PartContents(Path(path))
-    with open(path, "rb") as f:
-        reader = StreamReader(f, skip_magic=False, emit_chunks=False, validate_crcs=True)
-        try:
-            for record in reader.records:
-                if isinstance(record, Schema):
-                    out.schemas[record.id] = record
-                elif isinstance(record, Channel):
-                    out.channels[record.id] = record
-                elif isinstance(record, Message):
-                    out.messages.append(record)
-            out.complete = True
-        except (McapError, EOFError, ValueError, OSError) as err:
-            out.problem = f"{type(err).__name__}: {err}" if str(err) else type(err).__name__
-        except Exception as err:  # a torn chunk can fail inside the decompressor
-            out.problem = f"{type(err).__name__}: {err}"
-    # A message whose channel was lost with a torn chunk cannot be decoded: drop it.
-    out.messages = [m for m in out.messages if m.channel_id in out.channels]
-    return out
-
-
-# ---- merge -----------------------------------------------------------------------------------
-
-
-@dataclass(frozen=True)
-class Attachment:
-    name: str
-    media_type: str
-    data: bytes
-    create_time_ns: int = 0
-
-
-@dataclass
-class MergeReport:
-    """What `merge` wrote: per-topic message counts and each part's state."""
-
-    path: Path
-    counts: dict[str, int]
-    parts: dict[str, dict[str, Any]]
-
-    @property
-    def messages(self) -> int:
-        return sum(self.counts.values())
-
-
-def merge(
-    parts: Sequence[Path],
-    out: Path,
-    compression: str = "zstd",
-    metadata: dict[str, dict[str, str]] | None = None,
-    attachments: Sequence[Attachment] = (),
-) -> MergeReport:
-    """Merge part files into one MCAP at `out`, messages ordered by log time (ties keep part
-    order, then sequence). Schemas are shared by name, channels by (topic, schema). The file
-    is written to a temporary name and renamed, so `out` is never half written."""
-    if compression not in COMPRESSION:
-        raise RecordingError(f"compression {compression!r}: use one of {', '.join(COMPRESSION)}")
-    contents = [read_part(p) for p in parts]
-    tmp = out.with_name(f".{out.name}.tmp")
-    counts: dict[str, int] = {}
-    with open(tmp, "wb") as f:
-        writer = Writer(f, chunk_size=MERGED_CHUNK_BYTES, compression=COMPRESSION[compression])
-        writer.start(profile=PROFILE, library=LIBRARY)
-        schema_ids: dict[str, int] = {}
-        schema_data: dict[str, bytes] = {}
-        channel_ids: dict[tuple[str, str], int] = {}
-        mapped: list[dict[int, int]] = []  # per part: its channel id -> merged channel id
-        for part in contents:
-            ids: dict[int, int] = {}
-            for cid, ch in part.channels.items():
-                schema = part.schemas.get(ch.schema_id)
-                if schema is None:
-                    raise RecordingError(f"{part.path}: channel {ch.topic} has no schema")
-                if schema.name not in schema_ids:
-                    schema_ids[schema.name] = writer.register_schema(
-                        schema.name, schema.encoding, schema.data
-                    )
-                    schema_data[schema.name] = schema.data
-                elif schema_data[schema.name] != schema.data:
-                    raise RecordingError(
-                        f"{part.path}: type {schema.name} has a different definition than in "
-                        "another part (mixed interface builds in one run)"
-                    )
-                key = (ch.topic, schema.name)
-                if key not in channel_ids:
-                    channel_ids[key] = writer.register_channel(
-                        ch.topic, ch.message_encoding, schema_ids[schema.name], dict(ch.metadata)
-                    )
-                ids[cid] = channel_ids[key]
-            mapped.append(ids)
-        order = sorted(
-            (m.log_time, i, m.sequence, j)
-            for i, part in enumerate(contents)
-            for j, m in enumerate(part.messages)
-        )
-        topic_of = {cid: topic for (topic, _), cid in channel_ids.items()}
-        sequence: dict[int, int] = {}
-        for _, i, _, j in order:
-            m = contents[i].messages[j]
-            cid = mapped[i][m.channel_id]
-            seq = sequence.get(cid, 0)
-            sequence[cid] = seq + 1
-            writer.add_message(cid, m.log_time, m.data, m.publish_time, sequence=seq)
-            counts[topic_of[cid]] = counts.get(topic_of[cid], 0) + 1
-        for name, values in (metadata or {}).items():
-            writer.add_metadata(name, values)
-        for a in attachments:
-            writer.add_attachment(a.create_time_ns, time.time_ns(), a.name, a.media_type, a.data)
-        writer.finish()
-    tmp.replace(out)
-    report_parts = {
-        p.path.name: {
-            "messages": len(p.messages),
-            "complete": p.complete,
-            **({"problem": p.problem} if p.problem else {}),
-        }
-        for p in contents
-    }
-    return MergeReport(out, counts, report_parts)
-
-
-# ---- the orchestrator's side ----------------------------------------------------------------
-
-
-def parts_dir(folder: Path) -> Path:
-    return Path(folder) / PARTS_DIR
-
-
-def part_path(folder: Path, process: str) -> Path:
-    """Where process `process` (e.g. `av1.fusion`, `orchestrator`) writes its part."""
-    return parts_dir(folder) / f"{process}.mcap"
-
-
-def write_json(path: Path, data: object) -> None:
-    tmp = path.with_name(f".{path.name}.tmp")
-    tmp.write_text(json.dumps(strict_json(data), indent=2, default=_json_default) + "\n")
-    tmp.replace(path)
-
-
-def _json_default(value: object) -> object:
-    return str(value)
-
-
-def strict_json(value: Any) -> Any:
-    """`value` with NaN/inf floats as None: metadata must be JSON any reader parses (json.dumps
-    would write the non-standard `NaN`)."""
-    if isinstance(value, float) and not math.isfinite(value):
-        return None
-    if isinstance(value, dict):
-        return {k: strict_json(v) for k, v in value.items()}
-    if isinstance(value, list | tuple):
-        return [strict_json(v) for v in value]
-    return value
 
 
 def utc_text(t: float) -> str:
@@ -537,8 +95,8 @@ def host_capabilities(backend_reason: str) -> dict[str, Any]:
 
 def write_manifest(folder: Path, manifest: dict[str, Any]) -> None:
     """What `finalise` needs that only the orchestrator knows, written at the run's start."""
-    parts_dir(folder).mkdir(parents=True, exist_ok=True)
-    write_json(parts_dir(folder) / MANIFEST, manifest)
+    names.parts_dir(folder).mkdir(parents=True, exist_ok=True)
+    write_json(names.parts_dir(folder) / names.MANIFEST, manifest)
 
 
 def _read_json(path: Path) -> Any:
@@ -567,10 +125,7 @@ def _media_type(name: str) -> str:
 
 
 def _attachments(folder: Path, manifest: dict[str, Any]) -> list[Attachment]:
-    found: list[tuple[str, Path]] = [
-        (name, folder / name)
-        for name in ("scenario.yaml", "linktest.json", "links.json", "events.jsonl")
-    ]
+    found: list[tuple[str, Path]] = [(name, folder / name) for name in names.ATTACHED_FILES]
     for trace in manifest.get("traces", []):
         found.append((f"traces/{Path(trace).name}", Path(trace)))
     out = []
@@ -589,7 +144,7 @@ def _lateness(folder: Path) -> dict[str, Any]:
 
     applied, failed = [], 0
     try:
-        lines = (folder / "events.jsonl").read_text().splitlines()
+        lines = (folder / names.EVENTS_FILE).read_text().splitlines()
     except OSError:
         lines = []
     for line in lines:
@@ -622,7 +177,7 @@ def _nodes_metadata(
         }
         if code != 0 and not (ok and code is None):
             entry["log_tail"] = _tail(folder / "logs" / f"{name}.log")
-        out[name] = json.dumps(strict_json(entry), default=_json_default, allow_nan=False)
+        out[name] = dumps(entry, indent=None)
     return out
 
 
@@ -642,8 +197,8 @@ def finalise(
     the nodes' own files. `notes` are added to `edgeloc.run` (e.g. why a topic is missing).
     """
     folder = Path(folder)
-    pdir = parts_dir(folder)
-    manifest = _read_json(pdir / MANIFEST) or {}
+    pdir = names.parts_dir(folder)
+    manifest = _read_json(pdir / names.MANIFEST) or {}
     ended = time.time() if ended is None else ended
     started = float(manifest.get("started", ended))
     run = {
@@ -662,7 +217,7 @@ def finalise(
         **(notes or {}),
     }
     timeline = _lateness(folder)
-    linktest = _read_json(folder / "linktest.json")
+    linktest = _read_json(folder / names.LINKTEST_FILE)
     metadata = {
         "edgeloc.run": run,
         "edgeloc.nodes": _nodes_metadata(folder, manifest, nodes, status == "ok"),
@@ -679,7 +234,7 @@ def finalise(
                 "ran": "true",
                 "ok": str(bool(linktest.get("ok"))).lower(),
                 "seconds": str(linktest.get("seconds", "")),
-                "file": "linktest.json",
+                "file": names.LINKTEST_FILE,
             }
         ),
     }
@@ -687,7 +242,7 @@ def finalise(
     try:
         report = merge(
             parts,
-            folder / RUN_MCAP,
+            folder / names.RUN_MCAP,
             compression=run["compression"],
             metadata=metadata,
             attachments=_attachments(folder, manifest),
@@ -738,7 +293,7 @@ class CounterSampler:
     run's own checks report dead relays.
     """
 
-    TOPIC = "/links/counters"
+    TOPIC = names.LINK_COUNTERS_TOPIC
     TYPE = "edgeloc_interfaces/msg/LinkCounters"
 
     def __init__(
@@ -798,7 +353,7 @@ def unfinished_folders(include_detached: bool = False) -> list[Path]:
         live = run.liveness()
         if run.folder and (live == "dead" or (include_detached and live == "detached")):
             folder = Path(run.folder)
-            if parts_dir(folder).is_dir():
+            if names.parts_dir(folder).is_dir():
                 out.append(folder)
     return out
 

@@ -29,6 +29,10 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from nodes.recording import RecordingError
+from nodes.recording import layout as names
+from nodes.recording.jsonfile import write_json
+from nodes.recording.parts import PartWriter
 from testbed import __version__, recording
 from testbed.connectivity import EchoResult, vehicles_reach_cores
 from testbed.errors import TestbedError
@@ -69,18 +73,12 @@ class RunResult:
             else {
                 "ok": self.linktest.ok,
                 "seconds": self.linktest.seconds,
-                "file": "linktest.json",
+                "file": names.LINKTEST_FILE,
             },
             "timeline": self.timeline,
             "nodes": self.nodes,
             "link_counters": self.link_counters,
         }
-
-
-def _write_json(path: Path, data: object) -> None:
-    tmp = path.with_suffix(path.suffix + ".tmp")
-    tmp.write_text(json.dumps(data, indent=2) + "\n")
-    tmp.replace(path)
 
 
 #: Seconds between progress lines while the timeline plays.
@@ -110,7 +108,7 @@ def play_timeline(
         progress(f"  {event.text()}")
 
     player = TimelinePlayer(
-        scenario.timeline, net.control, on_event=shown, log_path=folder / "events.jsonl"
+        scenario.timeline, net.control, on_event=shown, log_path=folder / names.EVENTS_FILE
     )
     progress(
         f"playing the timeline: {len(scenario.timeline)} event(s) over "
@@ -226,7 +224,7 @@ class Recording:
         scenario = net.scenario
         self.folder, self.progress, self.net = folder, progress, net
         self.sampler: recording.CounterSampler | None = None
-        self.part: recording.PartWriter | None = None
+        self.part: PartWriter | None = None
         self.counters_note = ""
         reason = net.link_backend.reason if net.link_backend is not None else backend
         recording.write_manifest(
@@ -248,7 +246,7 @@ class Recording:
                 "timeline_events": len(scenario.timeline),
             },
         )
-        recording.write_json(folder / "links.json", links_config(net, backend))
+        write_json(folder / names.LINKS_CONFIG_FILE, links_config(net, backend))
 
     def start_counters(self, ros_ok: bool) -> None:
         """Sample the link counters into `/links/counters` (userspace relays; the tc
@@ -277,7 +275,7 @@ class Recording:
         def encode(row: dict[str, Any], t: float) -> bytes:
             return serialize_message(LinkCounters(stamp=to_stamp(t), backend=backend, **row))
 
-        self.part = recording.PartWriter(recording.part_path(self.folder, "orchestrator"))
+        self.part = PartWriter(names.part_path(self.folder, "orchestrator"))
         self.sampler = recording.CounterSampler(self.part, read, encode)
         self.sampler.sample()  # one sample now: the counters at the nodes' start
         self.sampler.start()
@@ -294,7 +292,7 @@ class Recording:
             self.part.close()
 
     def _final_profiles(self) -> None:
-        ctl, path = self.net.control, self.folder / "links.json"
+        ctl, path = self.net.control, self.folder / names.LINKS_CONFIG_FILE
         if ctl is None:
             return
         try:
@@ -303,7 +301,7 @@ class Recording:
                 name: {d: ctl.profile(name, d).to_dict() for d in ("uplink", "downlink")}
                 for name in self.net.links
             }
-            recording.write_json(path, data)
+            write_json(path, data)
         except (OSError, ValueError) as err:
             self.progress(f"  warning: links.json not updated: {err}")
 
@@ -311,7 +309,7 @@ class Recording:
         """Merge the parts into run.mcap (raises RecordingError if that fails)."""
         try:
             self.stop_counters()
-        except recording.RecordingError as err:
+        except RecordingError as err:
             self.progress(f"  warning: {err}")
         t = time.perf_counter()
         notes = {"link_counters": self.counters_note} if self.counters_note else None
@@ -346,7 +344,7 @@ def run_scenario(scenario: Scenario, runs_dir: Path, progress: Progress) -> RunR
             failing = sys.exc_info()[0] is not None
             try:
                 run.recording.finish(status, run.result.nodes if run.result else None)
-            except recording.RecordingError as err:
+            except RecordingError as err:
                 if not failing:
                     raise
                 progress(f"  warning: {err}")  # the run's own error is the one to see
@@ -373,7 +371,7 @@ class _Run:
             if net.state is not None:  # `testbed clean` finalises the recording from here
                 net.state.record_folder(result.folder)
             if scenario.source is not None:
-                shutil.copyfile(scenario.source, result.folder / "scenario.yaml")
+                shutil.copyfile(scenario.source, result.folder / names.SCENARIO_FILE)
             progress(
                 f"run {net.run_id}: {len(net.nodes)} namespaces, {len(net.links)} links up "
                 f"in {t_up * 1000:.0f} ms; link backend: {result.link_backend}"
@@ -387,8 +385,8 @@ class _Run:
             "down": time.perf_counter() - t1,
             "total": time.perf_counter() - t0,
         }
-        _write_json(result.folder / "connectivity.json", [r.to_dict() for r in result.connectivity])
-        _write_json(
+        write_json(result.folder / "connectivity.json", [r.to_dict() for r in result.connectivity])
+        write_json(
             result.folder / "run.json",
             {
                 "scenario": scenario.name,
@@ -409,7 +407,7 @@ class _Run:
         if scenario.report.link_test:
             report = LinkTest(net, quick=True, progress=progress).run()
             result.linktest = report
-            _write_json(result.folder / "linktest.json", report.to_dict())
+            write_json(result.folder / names.LINKTEST_FILE, report.to_dict())
             for line in report.text().splitlines():
                 progress(f"  {line}")
             if not report.ok:
@@ -442,7 +440,7 @@ class _Run:
                 "events": len(scenario.timeline),
                 "applied": len(player.applied),
                 "lateness": player.lateness(),
-                "file": "events.jsonl",
+                "file": names.EVENTS_FILE,
             }
         finally:
             # Nodes stop before teardown (they write their stats and close their MCAP

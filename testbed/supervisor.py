@@ -7,10 +7,10 @@ What runs where (one process per node, `python -m nodes.ros.<module>`):
 - every core namespace: `edge` (edge_inference), serving the vehicles of its cell;
 - the first gNB namespace: `link_events`, which publishes the timeline's `events.jsonl`.
 
-Every process gets the run's ROS environment (`nodes.ros_env.RosEnv`: the run's domain id,
+Every process gets the run's ROS environment (`nodes.ros.env.RosEnv`: the run's domain id,
 UDP-only Fast DDS with 4 MiB buffers, unicast peers beyond its gNB plus 127.0.0.1 for the
 participants of its own namespace), the run's node settings (`nodes/config.json`: the
-scenario's workload as `testbed.replay_cmd.replay_config` makes it, so a replay and a real run
+scenario's workload as `testbed.replay.replay_config` makes it, so a replay and a real run
 of one scenario use the same settings), a log `logs/<name>.log`, a stats file
 `nodes/<name>.json` it writes when stopped and, when the scenario records, the MCAP part
 `parts/<name>.mcap` of everything it publishes (`testbed.recording`).
@@ -49,12 +49,13 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from nodes.recording import layout as names
 from nodes.ros.common import READY, config_to_dict
-from nodes.ros_env import RosEnv, domain_id_for
-from testbed import cgroups, recording
+from nodes.ros.env import RosEnv, domain_id_for
+from testbed import cgroups
 from testbed.cgroups import CpuBudget
 from testbed.errors import BadInput, TestbedError
-from testbed.replay_cmd import replay_config
+from testbed.replay import replay_config
 from testbed.topology import Net
 
 Progress = Callable[[str], None]
@@ -161,7 +162,7 @@ def ros_available() -> tuple[bool, str]:
     """Whether this interpreter can run the nodes (rclpy and the built interfaces), and why not."""
     for module, fix in (
         ("rclpy", "install ROS 2 Jazzy's rclpy wheels (`make setup`)"),
-        ("edgeloc_interfaces", "build the interfaces (`python -m nodes.ros_build`)"),
+        ("edgeloc_interfaces", "build the interfaces (`python -m nodes.ros.build`)"),
     ):
         if importlib.util.find_spec(module) is None:
             return False, f"{module} is not importable: {fix}"
@@ -205,7 +206,7 @@ class Supervisor:
             if role in ("edge", "inference") and budget is not None and budget.compute:
                 extra = [*extra, "--compute-cgroup", str(budget.compute.path)]
             if record.enabled and role != "edge":  # the edge serves an action, publishes nothing
-                extra = [*extra, "--record", str(recording.part_path(self.folder, name))]
+                extra = [*extra, "--record", str(names.part_path(self.folder, name))]
                 if record.images:
                     extra.append("--record-images")
             out.append(
@@ -236,7 +237,7 @@ class Supervisor:
             gnb = topo.cells[0].gnb
             peers = [str(self.net[v.name].address_towards(v.gnb)) for v in topo.vehicles]
             peers += [str(self.net[c.core].address_towards(c.gnb)) for c in topo.cells]
-            events = ["--events", str(self.folder / "events.jsonl")]
+            events = ["--events", str(self.folder / names.EVENTS_FILE)]
             add(gnb, "link_events", "link_events", events, peers)
         return out
 

@@ -41,7 +41,9 @@ from typing import Any
 
 import yaml
 
-from testbed.errors import BadInput, TestbedError
+from netem.errors import NetemError
+from nodes.recording import RecordingError
+from testbed.errors import BadInput, HostError, TestbedError
 from testbed.scenario.issues import Issue, ScenarioError
 from testbed.scenario.model import Scenario
 from testbed.scenario.spec import LINK_NAME_PATTERN
@@ -398,7 +400,7 @@ class _ReplayEngine:
         from nodes.edgeloc.dataset import open_dataset
         from nodes.edgeloc.replay import InferenceCache, run_replay
         from nodes.edgeloc.train import load_model
-        from testbed.replay_cmd import latency_model, replay_config
+        from testbed.replay import latency_model, replay_config
 
         cfg = replay_config(scenario)
         dkey = (cfg.dataset, cfg.seed, cfg.rate_hz, cfg.duration_s, cfg.corruption)
@@ -597,11 +599,9 @@ def run_sweep(
                 rows = _real_rows(scenario, out / "runs", i, values, progress)
             else:
                 rows = engine.run(scenario, out / "replay" / f"v{i + 1:02d}", i, values)
-        except BadInput:
+        except (BadInput, HostError):  # wrong for every variant, or this host cannot run any
             raise
-        except TestbedError as err:
-            if err.exit_code == 3:  # this host cannot run it: no point trying the others
-                raise
+        except (TestbedError, NetemError, RecordingError) as err:
             rows = [_failed_row(i, values, v.name, str(err)) for v in scenario.topology.vehicles]
         report.rows += rows
         for r in rows:

@@ -37,12 +37,13 @@ from typing import Any, Literal
 from pyroute2 import IPRoute
 from pyroute2.netlink.exceptions import NetlinkError as PyNetlinkError
 
+from netem.errors import NetlinkError
 from netem.profile import LinkProfile
-from nodes.ros_env import domain_id_for
+from nodes.ros.env import domain_id_for
 from testbed import cgroups, check, links
 from testbed import state as st
 from testbed.addressing import LinkAddresses, assign, choose_pool, host_networks
-from testbed.errors import BadInput, NetlinkError, TestbedError
+from testbed.errors import BadInput, TestbedError
 from testbed.net import (
     EndNames,
     LinkEnds,

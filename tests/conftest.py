@@ -101,7 +101,7 @@ def state_dir(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Iterator[Path]
 @pytest.fixture(scope="session")
 def interfaces() -> None:
     """edgeloc_interfaces installed in this interpreter's prefix (built once if needed)."""
-    from nodes.ros_build import BuildError, ensure_built
+    from nodes.ros.build import BuildError, ensure_built
 
     try:
         ensure_built()

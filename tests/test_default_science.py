@@ -27,7 +27,7 @@ import pytest
 
 from nodes.edgeloc.bandit import lead_for_good
 from nodes.edgeloc.replay import ReplayResult, run_replay
-from testbed.replay_cmd import latency_model, replay_config
+from testbed.replay import latency_model, replay_config
 from testbed.scenario import load
 
 DEFAULT = Path(__file__).resolve().parents[1] / "scenarios" / "default.yaml"

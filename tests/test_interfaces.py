@@ -3,7 +3,7 @@
 edgeloc_interfaces (tests marked `ros`): every message and the action's parts survive CDR
 serialization, carry the fields the nodes rely on, and the installed .msg definitions describe
 the bytes rclpy writes (checked with rosbags, an independent CDR reader: what an MCAP reader
-will do with them). nodes.ros_env (pure): the environment and profile it writes."""
+will do with them). nodes.ros.env (pure): the environment and profile it writes."""
 
 from __future__ import annotations
 
@@ -76,7 +76,7 @@ _ARRAY_CODES = {"uint8": "B", "int32": "i", "uint32": "I", "double": "d", "float
 @pytest.fixture(scope="module")
 def iface() -> Any:
     """The installed package (built once into this interpreter's prefix if needed)."""
-    from nodes.ros_build import BuildError, ensure_built
+    from nodes.ros.build import BuildError, ensure_built
 
     try:
         ensure_built()
@@ -223,11 +223,11 @@ def _plain(value: Any) -> Any:
     return value.item() if hasattr(value, "item") else value
 
 
-# ---- nodes.ros_env: pure, no ROS needed ----------------------------------------------------
+# ---- nodes.ros.env: pure, no ROS needed ----------------------------------------------------
 
 
 def test_ros_env_sets_domain_peers_and_profile(tmp_path: Path) -> None:
-    from nodes.ros_env import PROFILE_NAME, RMW, RosEnv
+    from nodes.ros.env import PROFILE_NAME, RMW, RosEnv
 
     base = {"PATH": "/usr/bin", "ROS_LOCALHOST_ONLY": "1", "ROS_STATIC_PEERS": "10.9.9.9"}
     env = RosEnv(tmp_path / "run", 42).environ(["10.200.0.2", "10.200.0.6", "10.200.0.2"], base)
@@ -244,7 +244,7 @@ def test_ros_env_sets_domain_peers_and_profile(tmp_path: Path) -> None:
 
 
 def test_ros_env_adds_the_prefix_for_apt_installs(tmp_path: Path) -> None:
-    from nodes.ros_env import RosEnv
+    from nodes.ros.env import RosEnv
 
     env = RosEnv(tmp_path, 1, prefix=tmp_path / "venv").environ(
         base={"LD_LIBRARY_PATH": "/opt/ros/jazzy/lib"}
@@ -268,14 +268,14 @@ def test_ros_env_adds_the_prefix_for_apt_installs(tmp_path: Path) -> None:
 def test_ros_env_refuses_bad_input(
     tmp_path: Path, kwargs: dict[str, Any], peers: list[str], message: str
 ) -> None:
-    from nodes.ros_env import RosEnv, RosEnvError
+    from nodes.ros.env import RosEnv, RosEnvError
 
     with pytest.raises(RosEnvError, match=re.escape(message)):
         RosEnv(tmp_path, **kwargs).environ(peers, base={})
 
 
 def test_domain_id_for_run_ids() -> None:
-    from nodes.ros_env import RosEnvError, domain_id_for
+    from nodes.ros.env import RosEnvError, domain_id_for
 
     ids = {domain_id_for(f"{i:06x}") for i in range(300)}
     assert ids == set(range(1, 101))
@@ -286,7 +286,7 @@ def test_domain_id_for_run_ids() -> None:
 def test_fastdds_profile_is_xml_with_fast_reliable_repair() -> None:
     import xml.etree.ElementTree as ET
 
-    from nodes.ros_env import HEARTBEAT_PERIOD_NS, fastdds_profile
+    from nodes.ros.env import HEARTBEAT_PERIOD_NS, fastdds_profile
 
     ns = {"d": "http://www.eprosima.com/XMLSchemas/fastRTPS_Profiles"}
     root = ET.fromstring(fastdds_profile())

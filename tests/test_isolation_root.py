@@ -16,7 +16,7 @@ import pytest
 from pyroute2 import IPRoute
 from pyroute2.netlink.exceptions import NetlinkError
 
-from nodes.ros_env import domain_id_for
+from nodes.ros.env import domain_id_for
 from testbed import state as st
 from testbed.net import list_netns
 from testbed.topology import Net, build, example_scenario

@@ -22,6 +22,8 @@ from mcap_ros2.decoder import DecoderFactory
 from rosbags.highlevel import AnyReader
 from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 
+from nodes.recording import RecordingError, layout, parts, schemas
+from nodes.recording import merge as mrg
 from testbed import recording as rec
 
 REPO = Path(__file__).resolve().parents[1]
@@ -35,8 +37,8 @@ TYPES = [f"edgeloc_interfaces/msg/{name}" for name in OWN_MSGS] + [
 
 def _std_reason() -> str | None:
     try:
-        rec.find_msg_file("sensor_msgs/msg/Image")
-    except rec.RecordingError as err:
+        schemas.find_msg_file("sensor_msgs/msg/Image")
+    except RecordingError as err:
         return f"ROS message definitions not installed (`make setup`): {err}"
     return None
 
@@ -59,7 +61,7 @@ def test_msg_dependencies_reads_fields_arrays_bounds_and_constants() -> None:
         "int32 LIMIT=5\n"
         "float64 x 0.5\n"
     )
-    assert rec.msg_dependencies(text, "pkg") == [
+    assert schemas.msg_dependencies(text, "pkg") == [
         "std_msgs/msg/Header",
         "builtin_interfaces/msg/Time",
         "pkg/msg/Other",
@@ -68,10 +70,10 @@ def test_msg_dependencies_reads_fields_arrays_bounds_and_constants() -> None:
 
 
 def test_full_type_name_accepts_both_spellings_and_refuses_others() -> None:
-    assert rec.full_type_name("a/B") == "a/msg/B"
-    assert rec.full_type_name("a/msg/B") == "a/msg/B"
-    with pytest.raises(rec.RecordingError, match="pkg/msg/Type"):
-        rec.full_type_name("B")
+    assert schemas.full_type_name("a/B") == "a/msg/B"
+    assert schemas.full_type_name("a/msg/B") == "a/msg/B"
+    with pytest.raises(RecordingError, match="pkg/msg/Type"):
+        schemas.full_type_name("B")
 
 
 def test_every_interface_message_is_covered() -> None:
@@ -82,25 +84,25 @@ def test_every_interface_message_is_covered() -> None:
 @needs_std
 @pytest.mark.parametrize("type_name", TYPES)
 def test_schema_text_is_complete_and_both_readers_parse_it(type_name: str) -> None:
-    text = rec.schema_text(type_name)
-    own = rec.find_msg_file(type_name).read_text().rstrip("\n")
+    text = schemas.schema_text(type_name)
+    own = schemas.find_msg_file(type_name).read_text().rstrip("\n")
     assert text.startswith(own)
-    sections = text.split(rec.SEPARATOR + "\n")
+    sections = text.split(schemas.SEPARATOR + "\n")
     names = [s.splitlines()[0].removeprefix("MSG: ") for s in sections[1:]]
     assert len(names) == len(set(names)), names  # each dependency once
     # Every type used anywhere in the text is defined in it (transitively complete).
-    used = set(rec.msg_dependencies(own, type_name.split("/")[0]))
+    used = set(schemas.msg_dependencies(own, type_name.split("/")[0]))
     for section in sections[1:]:
         head, body = section.split("\n", 1)
-        used |= set(rec.msg_dependencies(body, head.removeprefix("MSG: ").split("/")[0]))
+        used |= set(schemas.msg_dependencies(body, head.removeprefix("MSG: ").split("/")[0]))
     assert used <= set(names), used - set(names)
     assert type_name in get_types_from_msg(text, type_name)
     assert type_name in generate_dynamic(type_name, text)
 
 
 def test_missing_definition_names_the_type_and_where_it_looked(tmp_path: Path) -> None:
-    with pytest.raises(rec.RecordingError, match=r"nope/msg/Gone.*" + str(tmp_path)):
-        rec.schema_text("nope/msg/Gone", search=[tmp_path])
+    with pytest.raises(RecordingError, match=r"nope/msg/Gone.*" + str(tmp_path)):
+        schemas.schema_text("nope/msg/Gone", search=[tmp_path])
 
 
 # ---- encoding helpers (rosbags: independent of rclpy) ----------------------------------------
@@ -112,7 +114,7 @@ def store() -> Any:
         pytest.skip(str(_std_reason()))
     ts = get_typestore(Stores.EMPTY)
     for t in TYPES:
-        ts.register(get_types_from_msg(rec.schema_text(t), t))
+        ts.register(get_types_from_msg(schemas.schema_text(t), t))
     return ts
 
 
@@ -159,8 +161,8 @@ def _write_parts(store: Any, folder: Path, n: int = 200) -> dict[str, list[tuple
     """Two parts with interleaved, shuffled-between-parts log times; returns what was sent
     per topic as (log time, CDR bytes)."""
     sent: dict[str, list[tuple[int, bytes]]] = {"/av1/vo": [], "/links/counters": []}
-    a = rec.PartWriter(rec.part_path(folder, "av1.sensor"), chunk_bytes=2048)
-    b = rec.PartWriter(rec.part_path(folder, "orchestrator"), compression="zstd")
+    a = parts.PartWriter(layout.part_path(folder, "av1.sensor"), chunk_bytes=2048)
+    b = parts.PartWriter(layout.part_path(folder, "orchestrator"), compression="zstd")
     base = 1_700_000_000_000_000_000
     for i in range(n):
         t = base + i * 50_000_000
@@ -185,11 +187,11 @@ def test_merge_orders_by_log_time_with_summary_metadata_and_attachments(
     store: Any, tmp_path: Path, compression: str
 ) -> None:
     sent = _write_parts(store, tmp_path)
-    parts = sorted(rec.parts_dir(tmp_path).glob("*.mcap"))
+    parts = sorted(layout.parts_dir(tmp_path).glob("*.mcap"))
     out = tmp_path / "run.mcap"
     meta = {"edgeloc.run": {"run_id": "abc123", "seed": "7"}}
-    attachment = rec.Attachment("scenario.yaml", "application/yaml", b"name: x\n", 5)
-    report = rec.merge(parts, out, compression, metadata=meta, attachments=[attachment])
+    attachment = mrg.Attachment("scenario.yaml", "application/yaml", b"name: x\n", 5)
+    report = mrg.merge(parts, out, compression, metadata=meta, attachments=[attachment])
     assert report.counts == {t: len(v) for t, v in sent.items()}
     assert all(p["complete"] for p in report.parts.values())
 
@@ -226,7 +228,7 @@ def test_merge_orders_by_log_time_with_summary_metadata_and_attachments(
 def test_both_readers_decode_every_message(store: Any, tmp_path: Path) -> None:
     sent = _write_parts(store, tmp_path, n=60)
     out = tmp_path / "run.mcap"
-    rec.merge(sorted(rec.parts_dir(tmp_path).glob("*.mcap")), out, "zstd")
+    mrg.merge(sorted(layout.parts_dir(tmp_path).glob("*.mcap")), out, "zstd")
 
     decoded: dict[str, list[Any]] = {}
     with open(out, "rb") as f:
@@ -249,9 +251,9 @@ def test_both_readers_decode_every_message(store: Any, tmp_path: Path) -> None:
 
 
 def test_a_part_cut_by_a_kill_merges_up_to_its_last_chunk(store: Any, tmp_path: Path) -> None:
-    path = rec.part_path(tmp_path, "av1.fusion")
+    path = layout.part_path(tmp_path, "av1.fusion")
     # Big chunks, short flush interval: each quiet pause ends one chunk.
-    part = rec.PartWriter(path, chunk_bytes=1 << 20, flush_s=0.1)
+    part = parts.PartWriter(path, chunk_bytes=1 << 20, flush_s=0.1)
     data = store.serialize_cdr(pose(store, 1.0, 1), POSE)
     for batch in range(3):
         for i in range(10):
@@ -259,16 +261,16 @@ def test_a_part_cut_by_a_kill_merges_up_to_its_last_chunk(store: Any, tmp_path: 
         time.sleep(0.5)
     part.close()
     full = path.read_bytes()
-    whole = rec.read_part(path)
+    whole = parts.read_part(path)
     assert whole.complete and len(whole.messages) == 30 and not whole.problem
     # Cut the file inside its third chunk, as a SIGKILL during that write would.
     offsets = _chunk_offsets(path)
     assert len(offsets) == 3
     path.write_bytes(full[: offsets[2] + 40])
-    torn = rec.read_part(path)
+    torn = parts.read_part(path)
     assert not torn.complete and torn.problem
     assert len(torn.messages) == 20
-    report = rec.merge([path], tmp_path / "run.mcap", "zstd")
+    report = mrg.merge([path], tmp_path / "run.mcap", "zstd")
     assert report.counts == {"/av1/pose": 20}
     assert not report.parts["av1.fusion.mcap"]["complete"]
     with AnyReader([tmp_path / "run.mcap"]) as reader:
@@ -283,13 +285,13 @@ def _chunk_offsets(path: Path) -> list[int]:
 
 
 def test_part_writer_flushes_a_quiet_topic_within_its_interval(store: Any, tmp_path: Path) -> None:
-    path = rec.part_path(tmp_path, "gnb1.link_events")
-    part = rec.PartWriter(path, flush_s=0.2)
+    path = layout.part_path(tmp_path, "gnb1.link_events")
+    part = parts.PartWriter(path, flush_s=0.2)
     try:
         part.write("/av1/vo", POSE, store.serialize_cdr(pose(store, 1.0, 1), POSE))
         time.sleep(0.6)
         # The writer is still open (as when a node is SIGKILLed now), yet the message is there.
-        got = rec.read_part(path)
+        got = parts.read_part(path)
         assert not got.complete and len(got.messages) == 1
         assert got.channels[got.messages[0].channel_id].topic == "/av1/vo"
     finally:
@@ -298,17 +300,17 @@ def test_part_writer_flushes_a_quiet_topic_within_its_interval(store: Any, tmp_p
 
 
 def test_a_writer_failure_is_reported_not_swallowed(tmp_path: Path) -> None:
-    part = rec.PartWriter(tmp_path / "x.mcap", search=[tmp_path])
+    part = parts.PartWriter(tmp_path / "x.mcap", search=[tmp_path])
     part.write("/t", "nope/msg/Gone", b"\x00\x01\x00\x00")
-    with pytest.raises(rec.RecordingError, match="nope/msg/Gone"):
+    with pytest.raises(RecordingError, match="nope/msg/Gone"):
         part.close()
-    with pytest.raises(rec.RecordingError, match="failed"):
+    with pytest.raises(RecordingError, match="failed"):
         part.write("/t", "nope/msg/Gone", b"")
 
 
 def test_bad_compression_is_refused(tmp_path: Path) -> None:
-    with pytest.raises(rec.RecordingError, match="zstd, lz4, none"):
-        rec.merge([], tmp_path / "run.mcap", "gzip")
+    with pytest.raises(RecordingError, match="zstd, lz4, none"):
+        mrg.merge([], tmp_path / "run.mcap", "gzip")
 
 
 def test_counter_rows_from_a_relay_reply() -> None:
@@ -368,7 +370,7 @@ def _fake_run(store: Any, folder: Path) -> None:
     (folder / "logs").mkdir()
     (folder / "logs" / "av1.sensor.log").write_text("\n".join(f"line {i}" for i in range(30)))
     (folder / "logs" / "gnb1.link_events.log").write_text("ok\n")
-    part = rec.PartWriter(rec.part_path(folder, "av1.sensor"))
+    part = parts.PartWriter(layout.part_path(folder, "av1.sensor"))
     for i in range(5):
         part.write("/av1/vo", POSE, store.serialize_cdr(pose(store, 1.0 + i, i), POSE))
     part.close()
@@ -387,7 +389,7 @@ def test_finalise_writes_run_metadata_and_attachments_and_removes_parts(
     }
     report = rec.finalise(folder, "failed: node av1.sensor exited with -9", nodes=nodes)
     assert report.counts == {"/av1/vo": 5}
-    assert not rec.parts_dir(folder).exists()
+    assert not layout.parts_dir(folder).exists()
     with open(folder / "run.mcap", "rb") as f:
         reader = make_reader(f, decoder_factories=[DecoderFactory()])
         summary = reader.get_summary()
@@ -430,12 +432,12 @@ def test_finalise_keeps_the_parts_when_the_merge_fails(store: Any, tmp_path: Pat
     other = tmp_path / "other"
     (other / "edgeloc_interfaces" / "msg").mkdir(parents=True)
     (other / "edgeloc_interfaces" / "msg" / "PoseEstimate.msg").write_text("int8 x\n")
-    bad = rec.PartWriter(rec.part_path(folder, "av1.fusion"), search=[other])
+    bad = parts.PartWriter(layout.part_path(folder, "av1.fusion"), search=[other])
     bad.write("/av1/pose", POSE, b"\x00\x01\x00\x00\x05")
     bad.close()
-    with pytest.raises(rec.RecordingError, match="different definition"):
+    with pytest.raises(RecordingError, match="different definition"):
         rec.finalise(folder, "ok")
-    assert (rec.parts_dir(folder) / "av1.fusion.mcap").is_file()
+    assert (layout.parts_dir(folder) / "av1.fusion.mcap").is_file()
     assert not (folder / "run.mcap").exists()
 
 
@@ -444,13 +446,13 @@ def test_merge_of_many_random_parts_is_a_sorted_union(store: Any, tmp_path: Path
     data = store.serialize_cdr(pose(store, 1.0, 1), POSE)
     want = []
     for p in range(4):
-        part = rec.PartWriter(rec.part_path(tmp_path, f"p{p}"), chunk_bytes=512)
+        part = parts.PartWriter(layout.part_path(tmp_path, f"p{p}"), chunk_bytes=512)
         times = sorted(rng.randrange(10**6) for _ in range(50))
         for t in times:
             part.write(f"/v{p}/vo", POSE, data, t)
             want.append(t)
         part.close()
-    report = rec.merge(sorted(rec.parts_dir(tmp_path).glob("*.mcap")), tmp_path / "m.mcap")
+    report = mrg.merge(sorted(layout.parts_dir(tmp_path).glob("*.mcap")), tmp_path / "m.mcap")
     assert report.messages == 200
     with open(tmp_path / "m.mcap", "rb") as f:
         got = [m.log_time for _, _, m in make_reader(f).iter_messages(log_time_order=False)]

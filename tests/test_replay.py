@@ -9,6 +9,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from typer.testing import CliRunner
 
 from nodes.edgeloc.gate import GateSettings, PlausibilityGate
 from nodes.edgeloc.latency import (
@@ -22,7 +23,8 @@ from nodes.edgeloc.latency import (
 from nodes.edgeloc.metrics import read_tum
 from nodes.edgeloc.model import SPLITS
 from nodes.edgeloc.replay import ReplayConfig, convergence, run_replay
-from testbed.replay_cmd import latency_model, replay_command, replay_config, replay_scenario
+from testbed.cli import app
+from testbed.replay import latency_model, replay_config, replay_scenario
 from testbed.scenario import load
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -173,7 +175,8 @@ def test_outage_and_set_events_change_the_path() -> None:
 @pytest.fixture(scope="module")
 def smoke_run(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, dict, object]:
     sc = load(ROOT / "scenarios" / "smoke.yaml")
-    folder, result, summary = replay_scenario(sc, tmp_path_factory.mktemp("runs"), COMPUTE)
+    done = replay_scenario(sc, tmp_path_factory.mktemp("runs"), COMPUTE)
+    folder, result, summary = done.folder, done.result, done.summary
     return folder, summary, result
 
 
@@ -213,7 +216,7 @@ def test_default_replay_edgeloc_beats_every_baseline_and_the_learner_holds_the_b
     2 Mbit/s phase the best split leads the next by ~16 ms, a few times the std of a request's
     four jittered messages, so UCB1-normal keeps sampling the runner-up more)."""
     sc = load(ROOT / "scenarios" / "default.yaml")
-    _, _, summary = replay_scenario(sc, tmp_path, COMPUTE)
+    summary = replay_scenario(sc, tmp_path, COMPUTE).summary
     red = {r["versus"]: r for r in summary["paper_comparison"]["reductions"]}
     assert red["vo"]["ours_pct"] >= red["vo"]["paper_pct"]
     assert red["dnn"]["ours_pct"] >= red["dnn"]["paper_pct"]
@@ -273,21 +276,27 @@ def test_slow_vehicle_makes_the_split_move_with_bandwidth(smoke_run) -> None:
     assert all(p["best_in_hindsight"] is not None for p in phases)
 
 
-def test_unknown_split_and_bad_file_give_clear_errors(tmp_path: Path, capsys) -> None:
+def test_unknown_split_and_bad_file_give_clear_errors(tmp_path: Path) -> None:
     with pytest.raises(ValueError, match="unknown split point"):
         ReplayConfig(splits=("conv9",))
     bad = tmp_path / "bad.yaml"
     bad.write_text("version: 1\nname: x\n")
-    assert replay_command(bad, tmp_path) == 2
-    assert "error" in capsys.readouterr().err
+    out = CliRunner().invoke(app, ["replay", str(bad), "--runs-dir", str(tmp_path)])
+    assert out.exit_code == 2, out.output
+    assert "error" in out.output and "bad.yaml" in out.output
+    assert list(tmp_path.iterdir()) == [bad]  # no run folder
 
 
 def test_command_prints_table_and_headline(tmp_path: Path, monkeypatch) -> None:
-    import testbed.replay_cmd as rc
+    import testbed.replay as rc
 
     monkeypatch.setattr(rc, "compute_profile", lambda codec, weights: COMPUTE)
-    lines: list[str] = []
-    assert replay_command(ROOT / "scenarios" / "smoke.yaml", tmp_path, echo=lines.append) == 0
+    monkeypatch.setenv("COLUMNS", "200")  # one table row a line
+    out = CliRunner().invoke(
+        app, ["replay", str(ROOT / "scenarios" / "smoke.yaml"), "--runs-dir", str(tmp_path)]
+    )
+    assert out.exit_code == 0, out.output
+    lines = [line.strip() for line in out.output.splitlines() if line.strip()]
     assert lines[0].split()[0] == "method"
     assert lines[-1].startswith("EdgeLoc total error")
     assert "(paper 67.75%)" in lines[-1] and "(paper 30.26%)" in lines[-1]

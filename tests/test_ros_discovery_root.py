@@ -1,5 +1,5 @@
 """ROS 2 across the emulated 5G path: an action server in the core namespace answers a vehicle's
-1 MiB split-inference goal through the gNB router, with the environment `nodes.ros_env` gives.
+1 MiB split-inference goal through the gNB router, with the environment `nodes.ros.env` gives.
 
 Also shows why that environment exists: without unicast peers, DDS discovery (multicast,
 TTL 1) does not cross the router and the vehicle never finds the server.
@@ -242,7 +242,7 @@ def _ask(net: Any, env: dict[str, str], timeout_s: float) -> tuple[int, list[dic
 
 @pytest.mark.parametrize("peers", ["both", "vehicle-only"])
 def test_goal_of_1mib_crosses_the_gnb(net: Any, tmp_path: Path, peers: str) -> None:
-    from nodes.ros_env import SOCKET_BUFFER_BYTES, RosEnv, domain_id_for
+    from nodes.ros.env import SOCKET_BUFFER_BYTES, RosEnv, domain_id_for
 
     ros = RosEnv(tmp_path / "run", domain_id_for(net.run_id))
     core_ip = net["core1"].address_towards("gnb1")
@@ -287,7 +287,7 @@ def test_goal_of_1mib_crosses_the_gnb(net: Any, tmp_path: Path, peers: str) -> N
 
 
 def test_without_static_peers_discovery_fails_across_the_gnb(net: Any, tmp_path: Path) -> None:
-    from nodes.ros_env import RosEnv, domain_id_for
+    from nodes.ros.env import RosEnv, domain_id_for
 
     ros = RosEnv(tmp_path / "run", domain_id_for(net.run_id))
     server_env = ros.environ(static_peers=False)

@@ -19,7 +19,7 @@ from nodes.edgeloc.replay import ReplayConfig
 from nodes.ros.common import ComputeThread, NodeArgs, config_from_dict, config_to_dict
 from nodes.ros.fusion_node import Scoreboard, VehicleEstimators
 from nodes.ros.link_events import LineFollower
-from testbed.replay_cmd import replay_config
+from testbed.replay import replay_config
 from testbed.scenario.loader import load
 from testbed.supervisor import MIN_PROCESS_CORES, Supervisor, applied_cores
 

@@ -11,6 +11,7 @@ from pathlib import Path
 
 import pytest
 
+from testbed.cli import exit_code
 from testbed.errors import BadInput
 from testbed.scenario import Issue, ScenarioError, load, loads
 
@@ -59,7 +60,7 @@ def test_scenario_error_is_bad_input_with_exit_code_2() -> None:
     with pytest.raises(ScenarioError) as info:
         load(BAD / "rate_mbps.yaml")
     assert isinstance(info.value, BadInput)
-    assert info.value.exit_code == 2
+    assert exit_code(info.value) == 2
     issue = info.value.issues[0]
     assert isinstance(issue, Issue)
     assert (issue.path, issue.found) == ("links.air.uplink.rate", "'20mbps'")

@@ -24,7 +24,7 @@ from netem.traces import load_trace
 from nodes.edgeloc.geometry import wrap
 from nodes.edgeloc.metrics import position_errors
 from nodes.edgeloc.replay import ReplayResult, run_replay
-from testbed.replay_cmd import latency_model, replay_config
+from testbed.replay import latency_model, replay_config
 from testbed.scenario import json_schema, load
 from testbed.scenario.model import OutageEvent, Scenario, TraceEvent
 from testbed.sweep import load_tree, read_tree, shorten

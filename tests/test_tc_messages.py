@@ -13,6 +13,7 @@ from pathlib import Path
 
 import pytest
 
+from netem.errors import ProfileError
 from netem.profile import GilbertElliott, LinkProfile
 from netem.shaping import render_clear, shape
 from netem.tc import render_commands, shaping_end
@@ -40,7 +41,6 @@ from netem.tc_plan import (
     rate_text,
     ticks_per_us,
 )
-from testbed.errors import BadInput
 
 U32_MAX = 2**32 - 1
 
@@ -266,7 +266,7 @@ def test_leaf_choice_and_queue_limits() -> None:
     ],
 )
 def test_bad_profiles_are_bad_input(changes: dict[str, object], field: str) -> None:
-    with pytest.raises(BadInput, match=field.replace(".", r"\.")):
+    with pytest.raises(ProfileError, match=field.replace(".", r"\.")):
         leaf_for(LinkProfile().replace(**changes))
 
 
@@ -288,7 +288,7 @@ def test_shape_dry_run_and_clear_lines() -> None:
         "tc -n N qdisc del dev eth0 ingress",
         "ip -n N link del ifb-eth0",
     ]
-    with pytest.raises(BadInput, match="uplink_bps"):
+    with pytest.raises(ProfileError, match="shape uplink"):
         shape("N", "eth0", uplink_bps=-1, dry_run=True)
 
 

@@ -20,13 +20,13 @@ from dataclasses import dataclass
 import pytest
 from pyroute2 import IPRoute, netns
 
+from netem.errors import NetlinkError
 from netem.profile import GilbertElliott, LinkProfile
 from netem.shaping import clear as clear_shape
 from netem.shaping import shape
 from netem.tc import IngressShaper, ShapedInterface, TcLinkBackend
 from netem.tc_netlink import dump_htb_classes, dump_qdiscs
 from testbed.check import netem_status
-from testbed.errors import NetlinkError
 from tests.machine import CpuTimes, tcp_retransmits
 
 pytestmark = pytest.mark.root

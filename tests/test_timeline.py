@@ -12,6 +12,7 @@ import pytest
 
 from netem.profile import LinkProfile
 from netem.traces import parse_csv, parse_mahimahi
+from testbed.cli import exit_code
 from testbed.errors import HostError
 from testbed.links import choose_backend, netem_needs, trace_rate_steps
 from testbed.scenario.model import (
@@ -219,7 +220,7 @@ def test_explicit_tc_without_netem_is_refused_only_when_netem_is_needed() -> Non
     assert netem_needs(outage) == ["the outage of av1-gnb1 at 1 s"]
     with pytest.raises(HostError) as info:
         choose_backend(outage, no)
-    assert info.value.exit_code == 3
+    assert exit_code(info.value) == 3
     set_rate = (SetEvent(1.0, "av1-gnb1", "uplink", {"rate_bps": 1e6, "loss": 0.0}),)
     assert netem_needs(_with("tc", LinkProfile(), set_rate)) == []
 

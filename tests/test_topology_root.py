@@ -21,9 +21,10 @@ from pathlib import Path
 import pytest
 from typer.testing import CliRunner
 
+from netem.errors import NetlinkError
 from testbed import state as st
 from testbed.cli import app
-from testbed.errors import BadInput, NetlinkError
+from testbed.errors import BadInput
 from testbed.net import Netns, VethEnds, delete_netns, list_netns
 from testbed.topology import Link, Net, build, clean, example_scenario, teardown_run
 

@@ -33,6 +33,8 @@ from typing import TYPE_CHECKING
 import numpy as np
 import torch
 
+from nodes.edgeloc.errors import EdgeLocError
+
 if TYPE_CHECKING:
     from nodes.edgeloc.model import LocNet
 
@@ -52,7 +54,7 @@ _HEAD = struct.Struct("<2sBBB")
 _METRICS = Path(__file__).resolve().parent / "weights" / "metrics.json"
 
 
-class CodecError(ValueError):
+class CodecError(EdgeLocError, ValueError):
     """A codec name or a blob that cannot be used."""
 
 

@@ -37,6 +37,7 @@ from typing import Protocol, runtime_checkable
 import numpy as np
 from numpy.typing import NDArray
 
+from nodes.edgeloc.errors import EdgeLocError
 from nodes.edgeloc.metrics import read_tum, write_tum
 from nodes.edgeloc.world import (
     DEFAULT_TOWN_SEED,
@@ -51,7 +52,7 @@ F64 = NDArray[np.float64]
 U8 = NDArray[np.uint8]
 
 
-class DatasetError(ValueError):
+class DatasetError(EdgeLocError, ValueError):
     """A dataset folder or argument that cannot be used; the message says what to fix."""
 
 

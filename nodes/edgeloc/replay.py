@@ -3,7 +3,7 @@
 The same algorithm objects the ROS nodes use (`EdgeLocFuser`, `KalmanBaseline`, `DnnHold`,
 `AdaptiveSplitLearner`, the real `LocNet` and codec) run on a dataset, with the network and
 the compute replaced by a `LatencyModel` (see `latency`). Nothing here imports ROS or the
-testbed; `testbed.replay_cmd` turns a scenario into a `ReplayConfig` + `LatencyModel`.
+testbed; `testbed.replay` turns a scenario into a `ReplayConfig` + `LatencyModel`.
 
 Thread 1 (every frame, at the dataset rate): VO pose L_beta(t) → `EdgeLocFuser.on_vo`, Kalman
 predict, DNN-hold, VO alone. Thread 2 (an event simulation): when it is free it takes the

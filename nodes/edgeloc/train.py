@@ -33,6 +33,7 @@ from numpy.typing import NDArray
 from nodes.edgeloc import geometry as se2
 from nodes.edgeloc.codec import CODECS, split_table
 from nodes.edgeloc.dataset import SyntheticDataset
+from nodes.edgeloc.errors import EdgeLocError
 from nodes.edgeloc.latency import ComputeProfile
 from nodes.edgeloc.model import IMAGE_SHAPE, SPLITS, LocNet, street_anchors, to_pose
 from nodes.edgeloc.world import DEFAULT_TOWN_SEED, Camera, Lighting, Obstacle, Town
@@ -45,7 +46,7 @@ HELD_OUT_SEEDS = (101, 102, 103)  # drives never used for training
 OUTLIER_M = 10.0  # a DNN pose this far off counts as an outlier
 
 
-class WeightsMissing(FileNotFoundError):
+class WeightsMissing(EdgeLocError, FileNotFoundError):
     """The trained weights are not where they should be."""
 
 

@@ -2,7 +2,7 @@
 the JSON lines it logs and the stats file it writes at exit.
 
 The settings are the replay's (`nodes.edgeloc.replay.ReplayConfig`, written as JSON by the
-supervisor from the scenario through `testbed.replay_cmd.replay_config`), so a real run and a
+supervisor from the scenario through `testbed.replay.replay_config`), so a real run and a
 replay of the same scenario use the same learner, fusion, Kalman and gate settings.
 
 Lifecycle (Jazzy aborts at exit otherwise, SPEC §8): our own SIGTERM/SIGINT handler sets a
@@ -30,6 +30,7 @@ from typing import Any, TypeVar
 
 from nodes.edgeloc.gate import GateSettings
 from nodes.edgeloc.settings import KalmanSettings, LearnerSettings, ReplayConfig
+from nodes.recording.jsonfile import write_json
 
 #: Extra seconds of dataset beyond the scenario's duration: nodes start before the timeline.
 DATASET_MARGIN_S = 60.0
@@ -205,20 +206,7 @@ def write_stats(path: Path | None, stats: dict[str, Any]) -> None:
     if path is None:
         return
     path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_suffix(".tmp")
-    tmp.write_text(json.dumps(stats, indent=2, default=_json_default) + "\n")
-    tmp.replace(path)
-
-
-def _json_default(value: object) -> object:
-    if isinstance(value, float) and not math.isfinite(value):
-        return None
-    return str(value)
-
-
-def topic(vehicle: str, name: str) -> str:
-    """A vehicle's topic, e.g. `/av1/pose`."""
-    return f"/{vehicle}/{name}"
+    write_json(path, stats)
 
 
 def action_name(edge: str) -> str:
@@ -267,7 +255,7 @@ class RecordedPublisher:
     def __init__(self, publisher: Any, topic: str, msg_type: type, recorder: Any) -> None:
         from rclpy.serialization import serialize_message
 
-        from testbed.recording import type_name_of
+        from nodes.recording.schemas import type_name_of
 
         self._publisher, self.topic, self._recorder = publisher, topic, recorder
         self.type_name = type_name_of(msg_type)
@@ -329,7 +317,7 @@ def ros_node(name: str, spin: bool = True, record: Path | None = None) -> Iterat
     from rclpy.executors import SingleThreadedExecutor
     from rclpy.signals import SignalHandlerOptions
 
-    from testbed.recording import PartWriter
+    from nodes.recording.parts import PartWriter
 
     recorder = PartWriter(record) if record is not None else None
     rclpy.init(signal_handler_options=SignalHandlerOptions.NO)

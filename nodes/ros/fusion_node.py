@@ -27,6 +27,7 @@ from nodes.edgeloc.gate import PlausibilityGate
 from nodes.edgeloc.kalman import KalmanBaseline
 from nodes.edgeloc.metrics import position_errors
 from nodes.edgeloc.settings import ReplayConfig
+from nodes.recording.layout import vehicle_topic
 from nodes.ros.common import (
     READY,
     NodeArgs,
@@ -34,7 +35,6 @@ from nodes.ros.common import (
     from_stamp,
     ros_node,
     run_main,
-    topic,
     write_stats,
 )
 
@@ -167,7 +167,7 @@ def main() -> int:
     stats: dict[str, Any] = {"node": "fusion_node", "vehicle": args.vehicle, "answers": 0}
     with ros_node(f"{args.vehicle}_fusion", record=args.record) as ros:
         node = ros.node
-        out = ros.publisher(PoseEstimate, topic(args.vehicle, "pose"), 100)
+        out = ros.publisher(PoseEstimate, vehicle_topic(args.vehicle, "pose"), 100)
         first: list[float] = []
         per_second: list[int] = []
 
@@ -205,9 +205,11 @@ def main() -> int:
         def on_gt(msg: PoseEstimate) -> None:
             board.truth(msg.frame_id, np.array([msg.x, msg.y, msg.yaw]))
 
-        node.create_subscription(PoseEstimate, topic(args.vehicle, "vo"), on_vo, 50)
-        node.create_subscription(PoseEstimate, topic(args.vehicle, "dnn_answer"), on_answer, 50)
-        node.create_subscription(PoseEstimate, topic(args.vehicle, "gt"), on_gt, 50)
+        node.create_subscription(PoseEstimate, vehicle_topic(args.vehicle, "vo"), on_vo, 50)
+        node.create_subscription(
+            PoseEstimate, vehicle_topic(args.vehicle, "dnn_answer"), on_answer, 50
+        )
+        node.create_subscription(PoseEstimate, vehicle_topic(args.vehicle, "gt"), on_gt, 50)
         emit(READY, node="fusion_node")
         ros.stop.wait(1e9)
         stats["first_pose_s"] = first[0] if first else None

@@ -33,6 +33,7 @@ from nodes.edgeloc.codec import encode
 from nodes.edgeloc.detector import ChangeEvent, KLChangeDetector
 from nodes.edgeloc.model import SPLITS, split_index
 from nodes.edgeloc.train import load_model
+from nodes.recording.layout import vehicle_topic
 from nodes.ros.common import (
     READY,
     ComputeThread,
@@ -43,7 +44,6 @@ from nodes.ros.common import (
     ros_node,
     run_main,
     to_stamp,
-    topic,
     write_stats,
 )
 
@@ -184,13 +184,13 @@ def main() -> int:
             img = img.reshape(msg.height, msg.width, 3)
             latest.put(int(msg.header.frame_id), from_stamp(msg.header.stamp), img)
 
-        node.create_subscription(Image, topic(args.vehicle, "camera"), on_image, 10)
+        node.create_subscription(Image, vehicle_topic(args.vehicle, "camera"), on_image, 10)
         from edgeloc_interfaces.msg import InferenceResult, SplitDecision
 
-        answers = ros.publisher(PoseEstimate, topic(args.vehicle, "dnn_answer"), 50)
-        decisions = ros.publisher(SplitDecision, topic(args.vehicle, "split_decision"), 50)
-        detector = ros.publisher(DetectorEvent, topic(args.vehicle, "detector"), 50)
-        outcomes = ros.publisher(InferenceResult, topic(args.vehicle, "inference"), 50)
+        answers = ros.publisher(PoseEstimate, vehicle_topic(args.vehicle, "dnn_answer"), 50)
+        decisions = ros.publisher(SplitDecision, vehicle_topic(args.vehicle, "split_decision"), 50)
+        detector = ros.publisher(DetectorEvent, vehicle_topic(args.vehicle, "detector"), 50)
+        outcomes = ros.publisher(InferenceResult, vehicle_topic(args.vehicle, "inference"), 50)
         streaks: dict[str, int] = {}  # per arm: updates in a row with KL above threshold
         client = ros.owns(ActionClient(node, SplitInference, action_name(args.edge)))
         emit(READY, node="inference_request", action=action_name(args.edge))

@@ -15,6 +15,7 @@ import time
 from pathlib import Path
 from typing import Any
 
+from nodes.recording.layout import LINK_EVENTS_TOPIC
 from nodes.ros.common import READY, NodeArgs, emit, ros_node, run_main, to_stamp, write_stats
 
 POLL_S = 0.05
@@ -73,7 +74,7 @@ def main() -> int:
     follower = LineFollower(args.events)
     stats: dict[str, Any] = {"node": "link_events", "published": 0, "bad_lines": 0}
     with ros_node("link_events", spin=False, record=args.record) as ros:
-        pub = ros.publisher(LinkEvent, "/links/events", 20)
+        pub = ros.publisher(LinkEvent, LINK_EVENTS_TOPIC, 20)
         emit(READY, node="link_events", file=str(args.events))
         while not ros.stop.wait(POLL_S):
             for line in follower.lines():

@@ -18,6 +18,7 @@ import time
 import numpy as np
 
 from nodes.edgeloc.dataset import open_dataset
+from nodes.recording.layout import vehicle_topic
 from nodes.ros.common import (
     DATASET_MARGIN_S,
     READY,
@@ -26,7 +27,6 @@ from nodes.ros.common import (
     ros_node,
     run_main,
     to_stamp,
-    topic,
     write_stats,
 )
 
@@ -65,9 +65,9 @@ def main() -> int:
     with ros_node(f"{args.vehicle}_sensor", spin=False, record=args.record) as ros:
         stop = ros.stop
         # Camera frames are recorded only when the scenario asks (`record.images`).
-        camera = ros.publisher(Image, topic(args.vehicle, "camera"), 10, args.record_images)
-        vo_pub = ros.publisher(PoseEstimate, topic(args.vehicle, "vo"), 50)
-        gt_pub = ros.publisher(PoseEstimate, topic(args.vehicle, "gt"), 50)
+        camera = ros.publisher(Image, vehicle_topic(args.vehicle, "camera"), 10, args.record_images)
+        vo_pub = ros.publisher(PoseEstimate, vehicle_topic(args.vehicle, "vo"), 50)
+        gt_pub = ros.publisher(PoseEstimate, vehicle_topic(args.vehicle, "gt"), 50)
         emit(READY, node="vehicle_sensor", frames=len(dataset), rate_hz=dataset.rate_hz)
         deadline = time.monotonic() + WAIT_FOR_SUBSCRIBERS_S
         while not stop and time.monotonic() < deadline:

@@ -33,7 +33,7 @@ import torch
 from nodes.edgeloc.dataset import open_dataset
 from nodes.edgeloc.replay import Answer, InferenceCache, run_replay
 from nodes.edgeloc.train import load_model
-from testbed.replay_cmd import compute_profile, latency_model, replay_config
+from testbed.replay import compute_profile, latency_model, replay_config
 from testbed.scenario import load
 from tests.bench.bench_replay import totals_line
 

@@ -102,7 +102,7 @@ def part_head(cpu: float, calls: int) -> None:
 
 
 def part_realtime(seconds: int, cpu: float, uplink: str) -> None:
-    from nodes.ros_build import ensure_built
+    from nodes.ros.build import ensure_built
     from testbed import linktest
     from testbed.scenario.loader import load
     from testbed.supervisor import Supervisor

@@ -44,7 +44,7 @@ from nodes.edgeloc.gate import GateSettings
 from nodes.edgeloc.latency import LatencyModel, PathSchedule
 from nodes.edgeloc.replay import InferenceCache, ReplayResult, run_replay, sweep_rows
 from nodes.edgeloc.train import load_model
-from testbed.replay_cmd import compute_profile, latency_model, replay_config
+from testbed.replay import compute_profile, latency_model, replay_config
 from testbed.scenario import load
 
 ROOT = Path(__file__).resolve().parents[2]

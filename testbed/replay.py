@@ -2,7 +2,7 @@
 
 This module only adapts: it turns a `Scenario` into the plain `ReplayConfig` and
 `LatencyModel` that `nodes.edgeloc.replay` runs, writes runs/<id>/ (summary.json, TUM
-trajectories, scenario.yaml) and prints a table and the headline line.
+trajectories, scenario.yaml) and returns what it wrote (`ReplayRun`); the CLI prints it.
 
 How the scenario becomes a latency model (for the first vehicle, or `vehicle=`):
 
@@ -23,12 +23,12 @@ How the scenario becomes a latency model (for the first vehicle, or `vehicle=`):
 
 from __future__ import annotations
 
-import json
 import math
 import secrets
 import shutil
-from collections.abc import Callable
+from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 from netem.profile import LinkProfile
 from netem.traces import OPPORTUNITY_BYTES, Trace, load_trace
@@ -47,6 +47,8 @@ from nodes.edgeloc.replay import (
     ReplayResult,
     run_replay,
 )
+from nodes.recording import layout as names
+from nodes.recording.jsonfile import write_json
 from testbed.errors import BadInput
 from testbed.scenario.model import (
     ClearEvent,
@@ -327,104 +329,46 @@ def latency_model(
 # ---- the command -------------------------------------------------------------------------------
 
 
+@dataclass(frozen=True)
+class ReplayRun:
+    """What a replay wrote: its folder (`runs/<id>/`), the result, and summary.json's content."""
+
+    folder: Path
+    result: ReplayResult
+    summary: dict[str, Any]
+
+    @property
+    def run_id(self) -> str:
+        return self.folder.name
+
+
 def replay_scenario(
     scenario: Scenario,
     runs_dir: Path,
     compute: ComputeProfile | None = None,
     gate: GateSettings | None = DEFAULT_GATE,
-) -> tuple[Path, ReplayResult, dict[str, object]]:
-    """Replay and write runs/<id>/; returns the folder, the result and the summary."""
+) -> ReplayRun:
+    """Replay and write runs/<id>/ (summary.json, TUM trajectories, scenario.yaml).
+    Raises BadInput for a dataset or weights the scenario names that cannot be used."""
     config = replay_config(scenario, gate=gate)
     model = latency_model(scenario, compute)
     try:
         result = run_replay(config, model)
     except ValueError as err:  # a bad dataset folder, weights that do not fit
         raise BadInput(f"{scenario.name}: {err}") from None
-    run_id = secrets.token_hex(3)
-    folder = Path(runs_dir) / run_id
+    folder = Path(runs_dir) / secrets.token_hex(3)
     summary = result.write(folder)
-    summary_path = folder / "summary.json"
-    summary["run_id"] = run_id
-    summary_path.write_text(json.dumps(summary, indent=2) + "\n")
+    summary["run_id"] = folder.name
+    write_json(folder / names.SUMMARY_FILE, summary)
     if scenario.source is not None and Path(scenario.source).is_file():
-        shutil.copyfile(scenario.source, folder / "scenario.yaml")
-    return folder, result, summary
-
-
-def summary_lines(summary: dict[str, object]) -> list[list[str]]:
-    rows = []
-    for m in ("vo", "dnn", "kalman", "edgeloc"):
-        p = summary["methods"][m]["position_m"]  # type: ignore[index]
-        h = summary["methods"][m]["heading_deg"]  # type: ignore[index]
-        rows.append(
-            [
-                m,
-                f"{p['total']:.1f}",
-                f"{p['mean']:.2f}",
-                f"{p['median']:.2f}",
-                f"{p['rmse']:.2f}",
-                f"{p['p95']:.2f}",
-                f"{p['max']:.2f}",
-                f"{h['mean']:.2f}",
-            ]
-        )
-    return rows
-
-
-def replay_command(
-    path: Path,
-    runs_dir: Path = Path("runs"),
-    json_out: bool = False,
-    echo: Callable[[str], None] | None = None,
-) -> int:
-    """Load `path`, replay it, write runs/<id>/, print the table and the headline; exit code."""
-    from testbed import console as con
-    from testbed.errors import TestbedError
-    from testbed.scenario import load
-
-    say = echo or con.plain
-    try:
-        scenario = load(path)
-        folder, result, summary = replay_scenario(scenario, runs_dir)
-    except TestbedError as err:
-        for line in str(err).splitlines():
-            con.error(line)
-        return err.exit_code
-    if json_out:
-        say(json.dumps(summary, indent=2))
-        return 0
-    headers = ["method", "total m", "mean m", "median m", "rmse m", "p95 m", "max m", "yaw deg"]
-    if echo is None:
-        con.table(headers, summary_lines(summary))
-    else:
-        for row in [headers, *summary_lines(summary)]:
-            say("  ".join(row))
-    for ph in summary["learner"]["phases"]:  # type: ignore[index]
-        rate = ph["uplink_rate_bps"]
-        say(
-            f"phase {ph['start_s']:g}-{ph['end_s']:g} s, uplink "
-            f"{'unlimited' if rate is None or rate == math.inf else f'{rate / 1e6:g} Mbit/s'}: "
-            f"chose {ph['chosen']}, best in hindsight {ph['best_in_hindsight']} "
-            f"({100 * ph['share_best']:.0f}% of {ph['plays']} plays, "
-            f"{100 * ph['share_best_last_third']:.0f}% in the last third; "
-            + (
-                "never converged)"
-                if ph["converged_after_s"] is None
-                else f"converged after {ph['converged_after_plays']} plays, "
-                f"{ph['converged_after_s']:.1f} s)"
-            )
-        )
-    resets = summary["learner"]["resets"]  # type: ignore[index]
-    say(f"detector resets: {len(resets)}; compute: {result.latency.compute.source}")
-    say(f"wrote {folder}/ (summary.json, *.tum) in {result.wall_s:.1f} s")
-    say(str(summary["headline"]))
-    return 0
+        shutil.copyfile(scenario.source, folder / names.SCENARIO_FILE)
+    return ReplayRun(folder, result, summary)
 
 
 __all__ = [
+    "ReplayRun",
     "compute_profile",
     "latency_model",
-    "replay_command",
     "replay_config",
     "replay_scenario",
 ]

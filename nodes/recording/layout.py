@@ -1,0 +1,46 @@
+"""Names in a run folder and the topics recorded into its `run.mcap`.
+
+A run folder (`runs/<id>/`, the user's results) holds `run.mcap` and, while the run goes,
+`parts/<process>.mcap` with `parts/manifest.json`; beside them the orchestrator's files. These
+names are written by the orchestrator, attached to `run.mcap` by the merge and read back by the
+report, so they are spelled once, here.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+RUN_MCAP = "run.mcap"
+PARTS_DIR = "parts"
+MANIFEST = "manifest.json"
+#: The scenario as run (a copy of the YAML).
+SCENARIO_FILE = "scenario.yaml"
+#: The link self-test's measurements (`testbed.linktest.LinkTestReport.to_dict`).
+LINKTEST_FILE = "linktest.json"
+#: Per link and direction, the profile applied at the start and left at the end.
+LINKS_CONFIG_FILE = "links.json"
+#: One JSON line per timeline event as the player applied it.
+EVENTS_FILE = "events.jsonl"
+#: The report's machine-readable figures.
+SUMMARY_FILE = "summary.json"
+#: Files of the run folder attached to run.mcap, when the run wrote them.
+ATTACHED_FILES = (SCENARIO_FILE, LINKTEST_FILE, LINKS_CONFIG_FILE, EVENTS_FILE)
+
+LINK_EVENTS_TOPIC = "/links/events"
+LINK_COUNTERS_TOPIC = "/links/counters"
+#: The per-vehicle topics the report reads, by their last path element.
+VEHICLE_TOPICS = ("gt", "vo", "dnn_answer", "pose", "split_decision", "detector", "inference")
+
+
+def vehicle_topic(vehicle: str, name: str) -> str:
+    """A vehicle's topic, e.g. `/av1/pose`."""
+    return f"/{vehicle}/{name}"
+
+
+def parts_dir(folder: Path) -> Path:
+    return Path(folder) / PARTS_DIR
+
+
+def part_path(folder: Path, process: str) -> Path:
+    """Where process `process` (e.g. `av1.fusion`, `orchestrator`) writes its part."""
+    return parts_dir(folder) / f"{process}.mcap"

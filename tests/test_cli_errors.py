@@ -1,0 +1,107 @@
+"""Errors and exit codes: every package has its own error root, and the CLI alone turns an
+error's type into an exit code, in one table (`testbed.cli.EXIT_CODES`)."""
+
+from __future__ import annotations
+
+import ast
+import importlib
+import inspect
+import pkgutil
+from pathlib import Path
+
+import pytest
+from typer.testing import CliRunner
+
+from netem.errors import NetemError, NetlinkError, ProfileError
+from netem.traces import TraceError
+from netem.tun import TunError
+from netem.userspace import RelayError
+from nodes.edgeloc.errors import EdgeLocError
+from nodes.recording import RecordingError
+from nodes.ros.env import RosEnvError
+from nodes.ros.errors import RosError
+from reports.errors import ReportError, ReportInputError
+from testbed.cli import EXIT_CODES, app, exit_code
+from testbed.errors import BadInput, HostError, TestbedError
+from testbed.scenario import ScenarioError
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+@pytest.mark.parametrize(
+    ("err", "code"),
+    [
+        (ScenarioError([]), 2),
+        (BadInput("x"), 2),
+        (ProfileError("x"), 2),
+        (TraceError("x", []), 2),
+        (ReportInputError("x"), 2),
+        (RosEnvError("x"), 2),
+        (HostError("x"), 3),
+        (TestbedError("x"), 1),
+        (NetlinkError("x"), 1),
+        (RelayError("x"), 1),
+        (TunError("x"), 1),
+        (RecordingError("x"), 1),
+        (ReportError("x"), 1),
+        (EdgeLocError("x"), 1),
+        (RosError("x"), 1),
+        (RuntimeError("x"), 1),
+    ],
+    ids=lambda v: type(v).__name__ if isinstance(v, Exception) else str(v),
+)
+def test_the_table_maps_each_error_type_to_its_exit_code(err: Exception, code: int) -> None:
+    assert exit_code(err) == code
+
+
+def test_every_package_error_has_a_root_in_the_table() -> None:
+    roots = {kind for kind, _ in EXIT_CODES}
+    for root in (TestbedError, NetemError, RecordingError, ReportError, EdgeLocError, RosError):
+        assert root in roots
+    for err in (TraceError, TunError, RelayError, ProfileError, NetlinkError):
+        assert issubclass(err, NetemError), err
+
+
+def _error_classes() -> list[type]:
+    found = []
+    for pkg in ("testbed", "netem", "reports", "nodes.recording", "nodes.ros"):
+        module = importlib.import_module(pkg)
+        names = [pkg] + [f"{pkg}.{m.name}" for m in pkgutil.iter_modules(module.__path__)]
+        for name in names:
+            mod = importlib.import_module(name)
+            found += [
+                obj
+                for _, obj in inspect.getmembers(mod, inspect.isclass)
+                if issubclass(obj, BaseException) and obj.__module__ == name
+            ]
+    return found
+
+
+def test_no_error_type_carries_its_own_exit_code() -> None:
+    classes = _error_classes()
+    assert len(classes) > 10
+    assert [c.__qualname__ for c in classes if "exit_code" in vars(c)] == []
+
+
+def test_netem_raises_no_testbed_error() -> None:
+    """netem is below testbed: it cannot even name testbed's errors (the layer check too)."""
+    for path in (REPO / "netem").glob("*.py"):
+        tree = ast.parse(path.read_text())
+        for node in ast.walk(tree):
+            if isinstance(node, ast.ImportFrom) and node.module:
+                assert not node.module.startswith("testbed"), (path, node.module)
+
+
+def test_replay_of_a_bad_scenario_exits_2_with_the_position(tmp_path: Path) -> None:
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("version: 1\nname: x\nlinks:\n  air:\n    uplink: {rate: 20mbps}\n")
+    out = CliRunner().invoke(app, ["replay", str(bad), "--runs-dir", str(tmp_path / "runs")])
+    assert out.exit_code == 2
+    assert f"{bad}:5:" in out.output, out.output
+    assert not (tmp_path / "runs").exists()
+
+
+def test_report_of_a_folder_without_a_recording_exits_2(tmp_path: Path) -> None:
+    out = CliRunner().invoke(app, ["report", str(tmp_path)])
+    assert out.exit_code == 2
+    assert "run.mcap" in out.output

@@ -1,0 +1,77 @@
+"""The house's layers (pyproject's import-linter contract, run by `make lint`): the tree keeps
+them, and the check really fails on an upward import, TYPE_CHECKING ones included.
+
+The broken trees are copies of the packages in a temporary folder with one import added, put
+first on the path of a fresh `lint-imports` process, so the real tree is never touched."""
+
+from __future__ import annotations
+
+import os
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+REPO = Path(__file__).resolve().parents[1]
+PACKAGES = ("testbed", "netem", "nodes", "reports")
+LINT_IMPORTS = Path(sys.executable).with_name("lint-imports")
+
+pytestmark = pytest.mark.skipif(
+    not LINT_IMPORTS.exists(), reason="import-linter is not installed (`make setup` installs it)"
+)
+
+
+def _lint(root: Path) -> subprocess.CompletedProcess[str]:
+    env = {**os.environ, "PYTHONPATH": str(root)}
+    return subprocess.run(
+        [str(LINT_IMPORTS), "--no-cache", str(root / "pyproject.toml")],
+        cwd=root,
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+
+
+def _copy_tree(tmp: Path) -> Path:
+    root = tmp / "tree"
+    for pkg in PACKAGES:
+        shutil.copytree(
+            REPO / pkg, root / pkg, ignore=shutil.ignore_patterns("__pycache__", "*.pt", "*.csv")
+        )
+    shutil.copy(REPO / "pyproject.toml", root / "pyproject.toml")
+    return root
+
+
+def test_the_tree_keeps_its_layers(tmp_path: Path) -> None:
+    out = _lint(_copy_tree(tmp_path))
+    assert out.returncode == 0, out.stdout + out.stderr
+    assert "1 kept, 0 broken" in out.stdout
+
+
+@pytest.mark.parametrize(
+    ("module", "added", "says"),
+    [
+        ("netem/profile.py", "from testbed.errors import BadInput", "netem.profile -> testbed"),
+        (
+            "nodes/edgeloc/kalman.py",
+            "from typing import TYPE_CHECKING\nif TYPE_CHECKING:\n    from reports import build",
+            "nodes.edgeloc.kalman -> reports",
+        ),
+        ("reports/html.py", "import testbed.cli", "reports.html -> testbed.cli"),
+        ("reports/html.py", "from nodes.ros import common", "reports.html -> nodes.ros"),
+        ("nodes/recording/layout.py", "import netem.traces", "nodes.recording.layout -> netem"),
+    ],
+    ids=["up-two-layers", "type-checking-only", "middle-to-top", "across-a-layer", "sideways"],
+)
+def test_an_upward_or_sideways_import_breaks_the_check(
+    tmp_path: Path, module: str, added: str, says: str
+) -> None:
+    root = _copy_tree(tmp_path)
+    path = root / module
+    path.write_text(path.read_text() + "\n" + added + "  # noqa\n")
+    out = _lint(root)
+    assert out.returncode != 0, out.stdout
+    assert "BROKEN" in out.stdout and says in out.stdout, out.stdout
