@@ -683,3 +683,20 @@ def build_report(
 
 
 __all__ = ["FORMATS", "Report", "ReportInputError", "build_report"]
+
+
+def report_after_run(
+    run_folder: Path, formats: Iterable[str] = FORMATS, plots: bool = True
+) -> tuple[Report | None, str | None]:
+    """The report at the end of a run (`testbed run`, each real variant of `testbed sweep`):
+    `(report, None)`, or `(None, why not)` when the run recorded nothing or the report cannot
+    be built. Never raises for a report's own failure: the run's outcome is what counts."""
+    folder = Path(run_folder)
+    if not (folder / RUN_MCAP).is_file():
+        return None, f"{folder} has no {RUN_MCAP} (record.enabled off, or nothing recorded)"
+    try:
+        return build_report(folder, formats=formats, plots=plots), None
+    except ReportInputError as err:
+        return None, str(err)
+    except Exception as err:  # a report bug must not hide the run's result
+        return None, f"the report of {folder} could not be built: {type(err).__name__}: {err}"

@@ -212,18 +212,11 @@ def run(
 def _report_after_run(folder: Path, formats: tuple[str, ...], plots: bool) -> None:
     """Build a run's report from its run.mcap and print the headline and the report's path.
     A report that cannot be built is a warning: the run's own outcome decides the exit code."""
-    from reports.build import build_report
+    from reports.build import report_after_run
 
-    if not (folder / "run.mcap").is_file():
-        con.warn(f"no report: {folder} has no run.mcap (record.enabled off, or nothing recorded)")
-        return
-    try:
-        built = build_report(folder, formats=formats, plots=plots)
-    except ReportInputError as err:
-        con.warn(f"no report: {err}")
-        return
-    except Exception as err:  # a report bug must not hide the run's result
-        con.warn(f"the report of {folder} could not be built: {type(err).__name__}: {err}")
+    built, why_not = report_after_run(folder, formats, plots)
+    if built is None:
+        con.warn(f"no report: {why_not}")
         return
     con.plain(built.headline)
     con.plain(f"report: {built.main_file}" + (" (partial)" if built.partial else ""))

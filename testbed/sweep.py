@@ -43,6 +43,7 @@ import yaml
 
 from netem.errors import NetemError
 from nodes.recording import RecordingError
+from nodes.recording import layout as names
 from testbed.errors import BadInput, HostError, TestbedError
 from testbed.scenario.issues import Issue, ScenarioError
 from testbed.scenario.model import Scenario
@@ -519,18 +520,22 @@ def _real_rows(
 
 
 def _report_summary(scenario: Scenario, folder: Path, progress: Progress) -> dict[str, Any] | None:
-    """Build the run's report as `testbed run` does (when the scenario asks for one and the run
-    recorded) and return its summary.json; None when there is none. A report that cannot be
-    built is a warning: the node statistics still fill the row."""
-    if not scenario.report.enabled or not (folder / "run.mcap").is_file():
+    """Build the run's report as `testbed run` does (when the scenario asks for one) and return
+    its summary; None when there is none. A report that cannot be built is a warning: the node
+    statistics still fill the row."""
+    if not scenario.report.enabled:
         return None
-    try:
-        from reports.build import build_report
+    from reports.build import report_after_run
 
-        build_report(folder, formats=scenario.report.formats, plots=scenario.report.plots)
-        data = json.loads((folder / "summary.json").read_text())
-    except Exception as err:  # a report bug must not lose the variant's result
-        progress(f"    warning: no report for {folder}: {type(err).__name__}: {err}")
+    built, why_not = report_after_run(folder, scenario.report.formats, scenario.report.plots)
+    if built is None:
+        if (folder / names.RUN_MCAP).is_file():
+            progress(f"    warning: no report: {why_not}")
+        return None
+    try:  # the file, as a reader of the run folder sees it (NaN as null)
+        data = json.loads((folder / names.SUMMARY_FILE).read_text())
+    except (OSError, ValueError) as err:
+        progress(f"    warning: no summary.json in {folder}: {err}")
         return None
     return data if isinstance(data, dict) else None
 
