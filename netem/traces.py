@@ -31,6 +31,8 @@ TRACE_FORMATS: tuple[str, ...] = ("mahimahi", "csv")
 
 #: Bytes one delivery opportunity may carry (Mahimahi's PACKET_SIZE).
 OPPORTUNITY_BYTES = 1500
+#: The window a mahimahi trace's opportunities are counted over where only a rate can be set.
+RATE_WINDOW_S = 0.1
 
 
 @dataclass(frozen=True)
@@ -58,6 +60,31 @@ class Trace:
             end = self.steps[i + 1][0] if i + 1 < len(self.steps) else self.duration_s
             bits += rate * (end - t)
         return bits / self.duration_s
+
+    def rate_steps(self, window_s: float = RATE_WINDOW_S) -> list[tuple[float, float]]:
+        """One period as `(offset_s, rate_bps)` steps: csv rows as they are; mahimahi
+        opportunities counted per `window_s` window, for a backend that can only set rates
+        (tc's HTB) and for the replay's latency model, which must agree with it.
+
+        Window k holds the opportunities at times in (k·w, (k+1)·w] (time 0 in window 0): an
+        opportunity at t delivers by t, so it counts in the window that ends at or after it,
+        and the trace's last timestamp (its period) falls in its last window. Times are binned
+        as whole milliseconds, as the trace wrote them, so 300 ms is never 0.29999 s. A last
+        window cut short by the period has its rate over its own length."""
+        if self.format == "csv":
+            return list(self.steps)
+        window_ms = round(window_s * 1000)
+        period_ms = round(self.duration_s * 1000)
+        windows = max(1, -(-period_ms // window_ms))
+        counts = [0] * windows
+        for t in self.opportunities_s:
+            ms = round(t * 1000)
+            counts[min(windows - 1, max(0, (ms - 1) // window_ms))] += 1
+        steps = []
+        for k, n in enumerate(counts):
+            length_ms = min(window_ms, period_ms - k * window_ms) if period_ms > 0 else window_ms
+            steps.append((k * window_ms / 1000, n * OPPORTUNITY_BYTES * 8 / (length_ms / 1000)))
+        return steps
 
     def opportunities(self, start_s: float, loop: bool) -> Iterator[float]:
         """Absolute times of delivery opportunities, for a replay that starts at `start_s`.

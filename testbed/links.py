@@ -17,7 +17,7 @@ Nouns:
 
 Trace replay on the tc backend (the relay replays traces itself): a csv trace's rows become
 HTB rate changes at their times; a mahimahi trace is turned into a rate per 100 ms window
-(`opportunities in the window x 1500 B x 8 / 0.1 s`), applied window by window. A rate of 0
+(`netem.traces.Trace.rate_steps`, the same binning the replay uses), applied window by window. A rate of 0
 (no opportunity in a window) becomes 8 bit/s, HTB's smallest useful rate.
 """
 
@@ -39,7 +39,7 @@ from netem.profile import LinkProfile
 from netem.shaping import NodeShaper, check_caps
 from netem.tc import TcLinkBackend, shaping_end
 from netem.tc_plan import needs_netem
-from netem.traces import OPPORTUNITY_BYTES, Trace, load_trace
+from netem.traces import Trace, load_trace
 from netem.userspace import RelayError, UserspaceLink
 from testbed import check
 from testbed import state as st
@@ -66,8 +66,6 @@ DIRECTIONS: tuple[Direction, Direction] = ("uplink", "downlink")
 #: Bytes a link carries per IP packet beyond the packet itself: HTB on a veth counts the
 #: 14-byte Ethernet header, the relay counts IP packets as read from the TUN device.
 FRAME_OVERHEAD = {"tc": 14, "userspace": 0}
-#: Window of a mahimahi trace replayed as HTB rate steps on the tc backend.
-TRACE_WINDOW_S = 0.1
 #: HTB cannot send at 0 bit/s; a trace's zero-rate step becomes this.
 MIN_RATE_BPS = 8.0
 #: The netem fields a profile may change; `set` events naming any of them need netem on tc.
@@ -555,18 +553,9 @@ class TcController(_Base):
 
 
 def trace_rate_steps(trace: Trace) -> tuple[list[tuple[float, float]], float]:
-    """A trace as `(time_s, rate_bps)` steps over one period, and the period: csv rows as
-    they are; mahimahi opportunities counted per `TRACE_WINDOW_S` window."""
-    if trace.format == "csv":
-        return list(trace.steps), trace.duration_s
-    windows = max(1, round(trace.duration_s / TRACE_WINDOW_S))
-    counts = [0] * windows
-    for t in trace.opportunities_s:
-        # an opportunity at t ms delivers in the window that ends at or after it
-        index = min(windows - 1, max(0, int((t - 1e-9) / TRACE_WINDOW_S)))
-        counts[index] += 1
-    per_bit = OPPORTUNITY_BYTES * 8 / TRACE_WINDOW_S
-    return [(i * TRACE_WINDOW_S, n * per_bit) for i, n in enumerate(counts)], trace.duration_s
+    """A trace as `(time_s, rate_bps)` steps over one period (`Trace.rate_steps`, the
+    binning the replay uses too), and the period."""
+    return trace.rate_steps(), trace.duration_s
 
 
 def _steps_forever(

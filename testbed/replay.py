@@ -12,8 +12,8 @@ How the scenario becomes a latency model (for the first vehicle, or `vehicle=`):
 - `shape` caps the vehicle's uplink (its air-uplink hop) and downlink, and a core's egress and
   ingress (its backhaul hops), as Wondershaper does; `clear` lifts them; `set` changes profile
   fields; `outage` stalls both directions of a link for its duration; `trace` drives a link
-  direction's rate (csv steps as given; mahimahi opportunities averaged over 100 ms bins; a
-  zero-rate step or the end of a non-looping trace stalls the link like an outage);
+  direction's rate (csv steps as given; mahimahi opportunities counted per 100 ms window by
+  `Trace.rate_steps`, the binning the tc backend applies; a zero-rate step or the end of a non-looping trace stalls the link like an outage);
 - compute: head/tail per split from the reference profile committed with the weights (or
   measured on this machine, torch, one thread), stretched by the vehicle's `cpu` and the
   cell's `core_cpu` budgets (`latency.ComputeProfile`);
@@ -31,7 +31,7 @@ from pathlib import Path
 from typing import Any
 
 from netem.profile import LinkProfile
-from netem.traces import OPPORTUNITY_BYTES, Trace, load_trace
+from netem.traces import Trace, load_trace
 from nodes.edgeloc.gate import GateSettings
 from nodes.edgeloc.latency import (
     ComputeProfile,
@@ -60,7 +60,6 @@ from testbed.scenario.model import (
     TraceEvent,
 )
 
-MAHIMAHI_BIN_S = 0.1
 DEFAULT_GATE = GateSettings()  # beyond the paper; see nodes.edgeloc.gate
 # The ROS nodes ask the edge through the SplitInference action (nodes/ros/inference_request.py):
 # SendGoal (with the activation) up, "accepted" down, GetResult up, the result down, so one
@@ -226,22 +225,8 @@ class _PathPlan:
         return PathSchedule(tuple(times), tuple(ups)), PathSchedule(tuple(times), tuple(downs))
 
 
-def _trace_period_rates(trace: Trace) -> list[tuple[float, float]]:
-    """(offset_s, rate_bps) steps of one period of a trace."""
-    if trace.format == "csv":
-        return list(trace.steps)
-    bins = max(1, math.ceil(trace.duration_s / MAHIMAHI_BIN_S))
-    counts = [0] * bins
-    for t in trace.opportunities_s:
-        counts[min(int(t / MAHIMAHI_BIN_S), bins - 1)] += 1
-    return [
-        (i * MAHIMAHI_BIN_S, c * OPPORTUNITY_BYTES * 8 / MAHIMAHI_BIN_S)
-        for i, c in enumerate(counts)
-    ]
-
-
 def _trace_steps(ev: TraceEvent, trace: Trace, horizon: float) -> list[float]:
-    steps = _trace_period_rates(trace)
+    steps = trace.rate_steps()
     out, offset = [], ev.at_s
     while offset < horizon:
         out += [offset + s for s, _ in steps]
@@ -261,7 +246,7 @@ def _trace_rate(ev: TraceEvent, trace: Trace, t: float) -> float:
             return 0.0  # the trace has ended: the link delivers nothing more
         u = math.fmod(u, trace.duration_s)
     rate = 0.0
-    for s, r in _trace_period_rates(trace):
+    for s, r in trace.rate_steps():
         if s <= u + 1e-12:
             rate = r
     return rate

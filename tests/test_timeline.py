@@ -232,3 +232,30 @@ def test_traces_become_rate_steps_for_htb() -> None:
     steps, period = trace_rate_steps(parse_mahimahi("10\n50\n100\n300\n"))
     assert period == pytest.approx(0.3)
     assert [round(r) for _, r in steps] == [3 * 1500 * 8 * 10, 0, 1500 * 8 * 10]
+
+
+@pytest.mark.parametrize(
+    ("text", "counts"),
+    [
+        ("100\n200\n", [1, 1]),  # 100 ms ends window 0; the replay used to put it in window 1
+        ("0\n1\n100\n101\n300\n", [3, 1, 1]),  # 300 ms: in window 2, never 0.2999 s -> window 2
+        ("300\n600\n900\n", [0, 0, 1, 0, 0, 1, 0, 0, 1]),
+        ("50\n250\n", [1, 0, 1]),  # the last window is 50 ms long
+    ],
+)
+def test_the_tc_path_and_the_replay_bin_a_mahimahi_trace_alike(
+    text: str, counts: list[int]
+) -> None:
+    """One binning: window k holds (k*100 ms, (k+1)*100 ms]; the tc backend's HTB steps and
+    the replay's latency model read the same steps (`Trace.rate_steps`)."""
+    from testbed.replay import _trace_rate
+
+    trace = parse_mahimahi(text)
+    steps, period = trace_rate_steps(trace)
+    assert [round(t, 3) for t, _ in steps] == [round(0.1 * k, 3) for k in range(len(counts))]
+    lengths = [min(0.1, period - 0.1 * k) for k in range(len(counts))]
+    want = [n * 1500 * 8 / length for n, length in zip(counts, lengths, strict=True)]
+    assert [r for _, r in steps] == pytest.approx(want)
+    event = TraceEvent(0.0, "av1-gnb1", "uplink", Path("t.mahi"), "mahimahi", loop=True)
+    for (start, rate), end in zip(steps, [*(t for t, _ in steps[1:]), period], strict=True):
+        assert _trace_rate(event, trace, (start + end) / 2) == pytest.approx(rate)
