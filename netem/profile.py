@@ -9,8 +9,11 @@ backend a new profile, which it applies in place.
 from __future__ import annotations
 
 import dataclasses
+import math
 from dataclasses import dataclass
 from typing import Any, Literal
+
+from netem.errors import ProfileError
 
 JitterDistribution = Literal["normal", "uniform", "pareto"]
 JITTER_DISTRIBUTIONS: tuple[str, ...] = ("normal", "uniform", "pareto")
@@ -79,3 +82,52 @@ class LinkProfile:
 
 #: Fields of `LinkProfile` that a timeline `set` event may change.
 PROFILE_FIELDS: tuple[str, ...] = tuple(f.name for f in dataclasses.fields(LinkProfile))
+
+
+#: The smallest rate each backend can keep: HTB's is 8 bit/s; the relay's rate stage takes any
+#: rate >= 0 (0 stalls the direction).
+MIN_RATE_BPS = {"tc": 8.0, "userspace": 0.0}
+
+
+def check_profile(profile: LinkProfile, backend: Literal["tc", "userspace"] = "userspace") -> None:
+    """Raise `ProfileError` (a ValueError) naming the field if `profile` holds a value the
+    backend cannot apply: the one check that both backends, the relay's control protocol and
+    the tc planner run before touching a link."""
+
+    def bad(field: str, value: object, allowed: str) -> ProfileError:
+        return ProfileError(f"link profile field `{field}` = {value!r}: must be {allowed}")
+
+    def number(value: object) -> bool:
+        return isinstance(value, int | float) and not isinstance(value, bool)
+
+    def fraction(field: str, value: object) -> None:
+        if not number(value) or not 0.0 <= value <= 1.0:  # type: ignore[operator]
+            raise bad(field, value, "a fraction in [0, 1]")
+
+    def seconds(field: str, value: object) -> None:
+        if not number(value) or not math.isfinite(value) or value < 0:  # type: ignore[arg-type,operator]
+            raise bad(field, value, "a finite number of seconds >= 0")
+
+    floor = MIN_RATE_BPS[backend]
+    rate = profile.rate_bps
+    if rate is not None and (not number(rate) or not math.isfinite(rate) or not rate >= floor):
+        raise bad("rate_bps", rate, f"a rate of at least {floor:g} bit/s, or null for unlimited")
+    seconds("delay_s", profile.delay_s)
+    seconds("jitter_s", profile.jitter_s)
+    if profile.jitter_distribution not in JITTER_DISTRIBUTIONS:
+        raise bad(
+            "jitter_distribution", profile.jitter_distribution, " or ".join(JITTER_DISTRIBUTIONS)
+        )
+    fraction("loss", profile.loss)
+    ge = profile.gilbert_elliott
+    if ge is not None:
+        for name in ("p", "r", "good_loss", "bad_loss"):
+            fraction(f"gilbert_elliott.{name}", getattr(ge, name))
+    queue = profile.queue_packets
+    if queue is not None and (not isinstance(queue, int) or isinstance(queue, bool) or queue < 1):
+        raise bad("queue_packets", queue, "a whole number of packets >= 1, or null")
+    qt = profile.queue_time_s
+    if qt is not None and (not number(qt) or not qt > 0):  # type: ignore[operator]
+        raise bad("queue_time_s", qt, "a number of seconds > 0, or null")
+    if not isinstance(profile.reorder, bool):
+        raise bad("reorder", profile.reorder, "true or false")

@@ -45,8 +45,8 @@ from collections.abc import Callable
 from typing import Any
 
 from netem.errors import NetemError
-from netem.profile import PROFILE_FIELDS, LinkProfile
-from netem.stages import Pipeline, validate_profile
+from netem.profile import PROFILE_FIELDS, LinkProfile, check_profile
+from netem.stages import Pipeline
 from netem.traces import TRACE_FORMATS, load_trace
 from netem.tun import MAX_MTU, TunConfig, TunError, open_tun_in
 
@@ -267,7 +267,7 @@ class Relay:
             for d in targets:
                 merged = {**self.pipelines[d].profile.to_dict(), **changes}
                 profile = LinkProfile.from_dict(merged)
-                validate_profile(profile)
+                check_profile(profile)
                 new[d] = profile
             for d, profile in new.items():  # all validated first: both or neither change
                 self.pipelines[d].apply(profile)
@@ -409,7 +409,7 @@ def _profile_arg(text: str) -> LinkProfile:
         if unknown:
             raise ValueError(f"unknown field(s) {unknown}; allowed: {', '.join(PROFILE_FIELDS)}")
         profile = LinkProfile.from_dict(data)
-        validate_profile(profile)
+        check_profile(profile)
     except (ValueError, TypeError) as exc:
         raise argparse.ArgumentTypeError(str(exc)) from None
     return profile

@@ -30,7 +30,7 @@ from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
-from netem.profile import JITTER_DISTRIBUTIONS, LinkProfile
+from netem.profile import LinkProfile, check_profile
 from netem.traces import OPPORTUNITY_BYTES, Trace
 
 # Pareto jitter: shape 3 has a finite variance; samples are shifted and scaled to mean 0 and
@@ -49,47 +49,6 @@ def jitter_sd(profile: LinkProfile) -> float:
     if profile.jitter_distribution == "uniform":
         return profile.jitter_s / math.sqrt(3.0)
     return profile.jitter_s
-
-
-def validate_profile(profile: LinkProfile) -> None:
-    """Raise `ValueError` naming the field if `profile` holds a value no stage can apply."""
-
-    def bad(name: str, value: object, allowed: str) -> ValueError:
-        return ValueError(f"link profile field {name}={value!r} is invalid: {allowed}")
-
-    def fraction(name: str, value: object) -> None:
-        if not isinstance(value, int | float) or not 0.0 <= value <= 1.0:
-            raise bad(name, value, "must be a fraction in [0, 1]")
-
-    def non_negative(name: str, value: object) -> None:
-        if not isinstance(value, int | float) or not math.isfinite(value) or value < 0:
-            raise bad(name, value, "must be a finite number >= 0")
-
-    if profile.rate_bps is not None:
-        non_negative("rate_bps", profile.rate_bps)
-    non_negative("delay_s", profile.delay_s)
-    non_negative("jitter_s", profile.jitter_s)
-    if profile.jitter_distribution not in JITTER_DISTRIBUTIONS:
-        raise bad(
-            "jitter_distribution",
-            profile.jitter_distribution,
-            f"allowed: {', '.join(JITTER_DISTRIBUTIONS)}",
-        )
-    fraction("loss", profile.loss)
-    ge = profile.gilbert_elliott
-    if ge is not None:
-        for name in ("p", "r", "good_loss", "bad_loss"):
-            fraction(f"gilbert_elliott.{name}", getattr(ge, name))
-    if profile.queue_packets is not None and (
-        not isinstance(profile.queue_packets, int) or profile.queue_packets < 1
-    ):
-        raise bad("queue_packets", profile.queue_packets, "must be an integer >= 1 or null")
-    if profile.queue_time_s is not None and (
-        not isinstance(profile.queue_time_s, int | float) or not profile.queue_time_s > 0
-    ):
-        raise bad("queue_time_s", profile.queue_time_s, "must be a number > 0 or null")
-    if not isinstance(profile.reorder, bool):
-        raise bad("reorder", profile.reorder, "must be true or false")
 
 
 @dataclass
@@ -601,7 +560,7 @@ class Pipeline(Stage):
     @classmethod
     def from_profile(cls, profile: LinkProfile, seed: int | str = 0) -> Pipeline:
         """The standard chain for a `LinkProfile`; `seed` makes loss and jitter reproducible."""
-        validate_profile(profile)
+        check_profile(profile)
         rate = Rate()
         trace = TraceLink()
         pipeline = cls(
@@ -629,7 +588,7 @@ class Pipeline(Stage):
 
     def apply(self, profile: LinkProfile) -> None:
         """Switch to `profile` in place: queued packets stay, nothing is flushed or paused."""
-        validate_profile(profile)
+        check_profile(profile)
         for s in self.stages:
             s.configure(profile)
         self.profile = profile

@@ -28,8 +28,7 @@ import zlib
 from dataclasses import dataclass
 from typing import Literal
 
-from netem.errors import ProfileError
-from netem.profile import DEFAULT_QUEUE_PACKETS, GilbertElliott, LinkProfile
+from netem.profile import DEFAULT_QUEUE_PACKETS, GilbertElliott, LinkProfile, check_profile
 
 # ---- fixed handles ----------------------------------------------------------------------------
 
@@ -343,34 +342,6 @@ def render(ops: list[Op], netns: str | None) -> list[str]:
 # ---- from a profile to kernel objects ----------------------------------------------------------
 
 
-def check_profile(profile: LinkProfile) -> None:
-    """Reject values the kernel would refuse or silently misread, naming the field."""
-
-    def bad(field: str, value: object, allowed: str) -> ProfileError:
-        return ProfileError(f"link profile field `{field}` = {value!r}: must be {allowed}")
-
-    if profile.rate_bps is not None and not (profile.rate_bps >= 8):
-        raise bad("rate_bps", profile.rate_bps, "at least 8 bit/s, or null for unlimited")
-    if not profile.delay_s >= 0:
-        raise bad("delay_s", profile.delay_s, ">= 0 seconds")
-    if not profile.jitter_s >= 0:
-        raise bad("jitter_s", profile.jitter_s, ">= 0 seconds")
-    if not 0 <= profile.loss <= 1:
-        raise bad("loss", profile.loss, "a fraction in [0, 1]")
-    if profile.jitter_distribution not in ("normal", "uniform", "pareto"):
-        raise bad("jitter_distribution", profile.jitter_distribution, "normal, uniform or pareto")
-    if profile.queue_packets is not None and profile.queue_packets < 1:
-        raise bad("queue_packets", profile.queue_packets, ">= 1 packet, or null")
-    if profile.queue_time_s is not None and not profile.queue_time_s > 0:
-        raise bad("queue_time_s", profile.queue_time_s, "> 0 seconds, or null")
-    ge = profile.gilbert_elliott
-    if ge is not None:
-        for name in ("p", "r", "good_loss", "bad_loss"):
-            value = getattr(ge, name)
-            if not 0 <= value <= 1:
-                raise bad(f"gilbert_elliott.{name}", value, "a fraction in [0, 1]")
-
-
 def rate_bytes(rate_bps: float | None) -> int:
     """A profile rate (bit/s, None = unlimited) as the kernel's bytes/s."""
     return round((UNLIMITED_BPS if rate_bps is None else rate_bps) / 8)
@@ -397,7 +368,7 @@ def needs_netem(profile: LinkProfile) -> bool:
 
 def leaf_for(profile: LinkProfile) -> Leaf:
     """The leaf qdisc under the profile class: netem when needed, else a pfifo queue."""
-    check_profile(profile)
+    check_profile(profile, "tc")
     queue = queue_packets(profile)
     if not needs_netem(profile):
         return PfifoLeaf(limit=queue)

@@ -33,8 +33,7 @@ from typing import Any, Literal
 
 import netem
 from netem.errors import NetemError
-from netem.profile import LinkProfile
-from netem.stages import validate_profile
+from netem.profile import LinkProfile, check_profile
 
 Direction = Literal["uplink", "downlink", "both"]
 
@@ -90,7 +89,7 @@ class UserspaceLink:
             "downlink": downlink if downlink is not None else LinkProfile(),
         }
         for profile in self.profiles.values():
-            validate_profile(profile)
+            check_profile(profile)
         self.seed = seed
         self.die_with_parent = die_with_parent
         self.nice = nice
@@ -319,7 +318,7 @@ class UserspaceLink:
         """Change one direction (or both) in place: a `LinkProfile` replaces it whole, a
         dict changes only the fields it names."""
         if isinstance(profile, LinkProfile):
-            validate_profile(profile)
+            check_profile(profile)
             changes = profile.to_dict()
         else:
             changes = dict(profile)

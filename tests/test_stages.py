@@ -306,7 +306,7 @@ def test_apply_changes_rate_of_the_queue_in_place() -> None:
 
 
 def test_bad_profile_is_named() -> None:
-    with pytest.raises(ValueError, match=r"loss=1.5 is invalid"):
+    with pytest.raises(ValueError, match=r"`loss` = 1.5: must be a fraction"):
         Pipeline.from_profile(LinkProfile(loss=1.5))
     with pytest.raises(ValueError, match="jitter_distribution"):
         Pipeline.from_profile(LinkProfile(jitter_distribution="gamma"))  # type: ignore[arg-type]
@@ -395,7 +395,7 @@ def test_relay_control_errors_are_clear(fake_relay, tmp_path: Path) -> None:
         ({"op": "jump"}, "unknown op 'jump'"),
         ({"op": "set", "direction": "up", "profile": {}}, "direction must be"),
         ({"op": "set", "direction": "uplink", "profile": {"delai_s": 1}}, "unknown profile"),
-        ({"op": "set", "direction": "both", "profile": {"loss": 7}}, "loss=7 is invalid"),
+        ({"op": "set", "direction": "both", "profile": {"loss": 7}}, "`loss` = 7: must be"),
         ({"op": "outage", "seconds": -1}, "outage needs `seconds`"),
         ({"op": "trace", "direction": "uplink", "path": str(tmp_path / "no.csv")}, "cannot read"),
     ]
@@ -409,3 +409,26 @@ def test_relay_control_errors_are_clear(fake_relay, tmp_path: Path) -> None:
         assert "not JSON" in json.loads(s.recv(65536))["error"]
     # The relay kept both profiles as they were.
     assert ask(control, {"op": "counters"})["uplink"]["profile"]["loss"] == 0.0
+
+
+def test_one_profile_check_for_both_backends() -> None:
+    """`netem.profile.check_profile` is what the relay, its control protocol and the tc
+    planner all run; the backends differ only in the smallest rate they can keep."""
+    from netem.errors import ProfileError
+    from netem.profile import check_profile
+    from netem.tc_plan import leaf_for
+
+    slow = LinkProfile(rate_bps=4.0)
+    check_profile(slow)  # the relay's rate stage keeps 4 bit/s
+    with pytest.raises(ProfileError, match=r"`rate_bps` = 4\.0: must be a rate of at least 8"):
+        check_profile(slow, "tc")
+    with pytest.raises(ProfileError, match="rate_bps"):
+        leaf_for(slow)  # the tc planner runs the same check
+    for bad in (
+        LinkProfile(queue_packets=1.5),  # type: ignore[arg-type]
+        LinkProfile(delay_s=math.inf),
+        LinkProfile(loss=-0.1),
+    ):
+        for backend in ("tc", "userspace"):
+            with pytest.raises(ProfileError):
+                check_profile(bad, backend)  # type: ignore[arg-type]
