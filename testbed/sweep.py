@@ -47,7 +47,7 @@ from nodes.recording import layout as names
 from testbed.errors import BadInput, HostError, TestbedError
 from testbed.scenario.issues import Issue, ScenarioError
 from testbed.scenario.model import Scenario
-from testbed.scenario.spec import LINK_NAME_PATTERN
+from testbed.scenario.schema_v1 import LINK_NAME_PATTERN
 
 Progress = Callable[[str], None]
 

@@ -9,6 +9,6 @@
 
 from testbed.scenario.issues import Issue, ScenarioError
 from testbed.scenario.loader import load, loads, profile_changes
-from testbed.scenario.spec import json_schema
+from testbed.scenario.schema_v1 import json_schema
 
 __all__ = ["Issue", "ScenarioError", "json_schema", "load", "loads", "profile_changes"]

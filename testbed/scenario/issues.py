@@ -1,7 +1,10 @@
-"""What is wrong with a scenario file: one `Issue` per problem, all of them in a `ScenarioError`."""
+"""What is wrong with a scenario file: one `Issue` per problem, all of them in a `ScenarioError`,
+and the one "did you mean ...?" hint both the schema's kinds and the loader's rules give."""
 
 from __future__ import annotations
 
+import difflib
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 from testbed.errors import BadInput
@@ -43,3 +46,15 @@ class ScenarioError(BadInput):
     def __init__(self, issues: list[Issue]) -> None:
         self.issues: tuple[Issue, ...] = tuple(issues)
         super().__init__("\n".join(str(issue) for issue in self.issues))
+
+
+def did_you_mean(
+    word: str, choices: Sequence[str], cutoff: float, *, any_case: bool = False
+) -> str | None:
+    """The hint "did you mean 'x'?" for the choice closest to `word` (difflib ratio at least
+    `cutoff`), or None. `any_case`: also suggest `word` in lower case when that is a choice
+    (difflib compares case, so `SET` finds no `set`)."""
+    close = difflib.get_close_matches(word, list(choices), n=1, cutoff=cutoff)
+    if not close and any_case and word.lower() in choices:
+        close = [word.lower()]
+    return f"did you mean {close[0]!r}?" if close else None

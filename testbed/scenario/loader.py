@@ -3,8 +3,8 @@
 Three passes, each reporting `Issue`s with file:line:column and the field path:
 1. YAML syntax (PyYAML's composer keeps every node's position; nothing is constructed that
    is not a plain scalar, so loading never runs anything);
-2. the declarations of `spec.py` (types, units, ranges, allowed values, unknown and
-   duplicate keys);
+2. the declarations of `schema_v1.py`, made of the kinds of `kinds.py` (types, units, ranges,
+   allowed values, unknown and duplicate keys);
 3. the rules that join fields (`_Builder`): names defined once and referred to correctly,
    times inside the run, trace files that exist and parse, paths relative to the file.
 All issues of a file are collected; a rule that depends on a broken part is skipped rather
@@ -14,7 +14,6 @@ than piling up errors that only repeat the first one.
 from __future__ import annotations
 
 import dataclasses
-import difflib
 import re
 from pathlib import Path
 from typing import Any
@@ -25,11 +24,15 @@ from yaml.nodes import Node
 from netem.profile import GilbertElliott, LinkProfile
 from netem.traces import TraceError, TraceProblem, default_format
 from testbed import units
-from testbed.scenario import model, spec
-from testbed.scenario.issues import ROOT_PATH, Issue, ScenarioError
-from testbed.scenario.spec import Context, Items, Section
+from testbed.scenario import model, schema_v1
+from testbed.scenario.issues import ROOT_PATH, Issue, ScenarioError, did_you_mean
+from testbed.scenario.kinds import Context, Invalid, Items, Section
 
 __all__ = ["load", "loads", "profile_changes"]
+
+#: Names of this scenario (nodes, links, splits) are short words, so a misspelt one is matched
+#: more loosely than a key of the schema (`kinds.SPELLING_CUTOFF`).
+NAME_CUTOFF = 0.5
 
 
 def load(path: str | Path) -> model.Scenario:
@@ -90,12 +93,12 @@ def _load(
     section: Section | None = None
     if root is not None:
         try:
-            section = spec.SCENARIO.check(root, ctx, "")
-        except spec.Invalid as err:
+            section = schema_v1.SCENARIO.check(root, ctx, "")
+        except Invalid as err:
             ctx.add(root, ROOT_PATH, err.expected, err.found, err.hint)
     elif not ctx.issues:
         ctx.issues.append(
-            Issue(source, 1, 1, ROOT_PATH, spec.SCENARIO.expected, "an empty document")
+            Issue(source, 1, 1, ROOT_PATH, schema_v1.SCENARIO.expected, "an empty document")
         )
     scenario = None
     if section is not None:
@@ -208,11 +211,6 @@ def _listing(names: list[str], limit: int = 8) -> str:
     return ", ".join(shown) if shown else "none"
 
 
-def _close(word: str, names: list[str]) -> str | None:
-    close = difflib.get_close_matches(word, names, n=1, cutoff=0.5)
-    return f"did you mean {close[0]!r}?" if close else None
-
-
 # ---- rules that join fields -----------------------------------------------------------------
 
 
@@ -292,7 +290,11 @@ class _Builder:
                 if gnb is None or gnb in gnbs:
                     continue
                 role = self.roles.get(gnb)
-                hint = f"{gnb!r} is a {role}, not a gNB" if role else _close(gnb, gnbs)
+                hint = (
+                    f"{gnb!r} is a {role}, not a gNB"
+                    if role
+                    else did_you_mean(gnb, gnbs, NAME_CUTOFF)
+                )
                 self.ctx.add(
                     vehicle.at("gnb"),
                     vehicle.path_of("gnb"),
@@ -325,8 +327,8 @@ class _Builder:
             return None
         assert cells is not None and vehicles is not None
         return model.Topology(
-            vehicles=tuple(spec.VEHICLE.build(v) for _, v, _ in vehicles.good()),
-            cells=tuple(spec.CELL.build(c) for _, c, _ in cells.good()),
+            vehicles=tuple(schema_v1.VEHICLE.build(v) for _, v, _ in vehicles.good()),
+            cells=tuple(schema_v1.CELL.build(c) for _, c, _ in cells.good()),
             address_pool=pool,
         )
 
@@ -343,7 +345,7 @@ class _Builder:
             hint = (
                 f"links are named lower-upper (vehicle-gnb, gnb-core): {reversed_name}"
                 if reversed_name in self.link_kinds
-                else _close(name, list(self.link_kinds))
+                else did_you_mean(name, list(self.link_kinds), NAME_CUTOFF)
             )
             self.ctx.add(
                 section.at(key),
@@ -363,7 +365,7 @@ class _Builder:
             section.path_of(key),
             f"the name of a node of this topology ({_listing(list(self.roles))})",
             repr(name),
-            _close(name, list(self.roles)),
+            did_you_mean(name, list(self.roles), NAME_CUTOFF),
         )
 
     # -- links --
@@ -561,9 +563,9 @@ class _Builder:
                 learner.path_of("fixed_split"),
                 f"one of the splits listed in workload.splits ({_listing(list(splits))})",
                 repr(fixed),
-                _close(fixed, list(splits)),
+                did_you_mean(fixed, list(splits), NAME_CUTOFF),
             )
         if not workload.clean or self.ctx.issues:
             return model.Workload()
-        built: model.Workload = spec.WORKLOAD.build(workload)
+        built: model.Workload = schema_v1.WORKLOAD.build(workload)
         return dataclasses.replace(built, **changes)

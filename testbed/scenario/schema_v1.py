@@ -1,0 +1,467 @@
+"""Schema v1, declared once: every field of a scenario file, its kind, unit, default, allowed
+values and doc string.
+
+`SCENARIO` is the whole file: `topology` (cells and vehicles), `links` (backend, air and
+backhaul profiles, per-link overrides), `timeline` (set / shape / clear / outage / trace
+events), `workload` (learner, fusion, Kalman), `record` and `report`. The loader checks a file
+against it (`SCENARIO.check`) and builds the model dataclasses from the sections
+(`CELL.build`...); `json_schema()` is what `testbed schema` writes. Defaults come from the
+dataclasses of `model.py`; the kinds themselves (how a duration or a mapping is checked) are
+in `kinds.py`, the rules that join fields in `loader.py`.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+from netem.profile import JITTER_DISTRIBUTIONS, GilbertElliott, LinkProfile
+from testbed.scenario import model
+from testbed.scenario.kinds import (
+    Bool,
+    Const,
+    Duration,
+    Either,
+    Enum,
+    Field,
+    Float,
+    Int,
+    ListOf,
+    Nullable,
+    Obj,
+    Percent,
+    PrivateNetwork,
+    Rate,
+    Str,
+    Tagged,
+)
+
+JSON_SCHEMA_DIALECT = "https://json-schema.org/draft/2020-12/schema"
+
+NODE_NAME_PATTERN = r"^[a-z][a-z0-9]{0,9}$"
+LINK_NAME_PATTERN = r"^[a-z][a-z0-9]{0,9}-[a-z][a-z0-9]{0,9}$"
+SCENARIO_NAME_PATTERN = r"^[a-z0-9][a-z0-9_-]{0,31}$"
+
+MAX_DURATION_S = 24 * 3600.0
+MAX_DELAY_S = 10.0
+
+NODE_NAME_WHY = (
+    "node names become interface, namespace and process names and appear in shell commands, "
+    "so they are short lowercase words"
+)
+
+
+def node_name(what: str) -> Str:
+    return Str(
+        f"{what}: a lowercase letter then up to 9 lowercase letters or digits, like av1",
+        NODE_NAME_PATTERN,
+        NODE_NAME_WHY,
+    )
+
+
+LINK_NAME = Str(
+    "a link name like av1-gnb1 (vehicle-gnb) or gnb1-core1 (gnb-core)",
+    LINK_NAME_PATTERN,
+)
+AT = Field(
+    "at",
+    Duration(MAX_DURATION_S, noun="a time"),
+    "When the event happens, from the start of the run (0 to the scenario's duration).",
+    required=True,
+)
+CPU = Nullable(Float(0.0, 1024.0, lo_open=True, noun="a number of CPU cores"))
+
+# Each profile key maps to one or more LinkProfile attributes; `loader.profile_changes` says how.
+PROFILE_FIELDS: tuple[Field, ...] = (
+    Field(
+        "rate",
+        Rate(unlimited=True),
+        "Bandwidth of this direction, tc units (bit, kbit, mbit, gbit; mbps is refused "
+        "because tc reads it as megabytes/s), or unlimited.",
+        attr="rate_bps",
+    ),
+    Field(
+        "delay",
+        Duration(MAX_DELAY_S, noun="a delay"),
+        "One-way delay added to every packet.",
+        attr="delay_s",
+    ),
+    Field(
+        "jitter",
+        Duration(MAX_DELAY_S, noun="a jitter"),
+        "Spread of the delay around its mean.",
+        attr="jitter_s",
+    ),
+    Field(
+        "jitter_distribution",
+        Enum(JITTER_DISTRIBUTIONS),
+        "Shape of the delay spread.",
+    ),
+    Field(
+        "loss",
+        Either(
+            Percent(noun="a loss"),
+            Obj(
+                "Gilbert-Elliott two-state loss (bursts).",
+                [
+                    Field(
+                        "model",
+                        Enum(("gilbert-elliott",)),
+                        "The loss model.",
+                        required=True,
+                        attr=None,
+                    ),
+                    Field("p", Percent(), "Chance per packet to go good -> bad.", required=True),
+                    Field("r", Percent(), "Chance per packet to go bad -> good.", required=True),
+                    Field("good_loss", Percent(), "Loss rate in the good state."),
+                    Field("bad_loss", Percent(), "Loss rate in the bad state."),
+                ],
+                model=GilbertElliott,
+                ref="gilbert_elliott",
+            ),
+        ),
+        "Random loss as a percentage (0.5%), or a Gilbert-Elliott mapping for bursty loss.",
+    ),
+    Field(
+        "queue",
+        Either(
+            Int(1, 1_000_000, noun="a queue limit in packets"),
+            Duration(MAX_DELAY_S, lo_open=True, noun="a queue time limit"),
+        ),
+        "Queue limit: a number of packets, or a duration (packets waiting longer are dropped).",
+        attr="queue_packets",
+    ),
+    Field("reorder", Bool(), "Let jitter reorder packets (otherwise order is kept)."),
+)
+
+PROFILE = Obj(
+    "One direction of a link. Keys left out keep the value they merge over "
+    "(the links.air/backhaul default, or no shaping at all).",
+    PROFILE_FIELDS,
+    model=LinkProfile,
+    fill_defaults=False,
+    ref="profile",
+)
+
+
+def _direction_pair(doc: str) -> Obj:
+    return Obj(
+        doc,
+        [
+            Field("uplink", PROFILE, "Towards the core (vehicle -> gNB -> core)."),
+            Field("downlink", PROFILE, "Towards the vehicle."),
+        ],
+        fill_defaults=False,
+    )
+
+
+OVERRIDE = Obj(
+    "Per-link profile fields that merge over the air/backhaul defaults.",
+    [
+        Field("link", LINK_NAME, "The link to change, e.g. av2-gnb1.", required=True),
+        Field("uplink", PROFILE, "Fields of the uplink direction."),
+        Field("downlink", PROFILE, "Fields of the downlink direction."),
+    ],
+    require_any=("uplink", "downlink"),
+)
+
+LINKS = Obj(
+    "How links behave: the backend that emulates them and per-direction profiles.",
+    [
+        Field(
+            "backend",
+            Enum(("auto", "tc", "userspace")),
+            "auto: tc if the kernel has sch_netem, else the userspace relay.",
+            default="auto",
+        ),
+        Field(
+            "air",
+            _direction_pair("Default of every vehicle-gNB link (named like av1-gnb1)."),
+            "Default of every vehicle-gNB link (named like av1-gnb1).",
+        ),
+        Field(
+            "backhaul",
+            _direction_pair("Default of every gNB-core link (named like gnb1-core1)."),
+            "Default of every gNB-core link (named like gnb1-core1).",
+        ),
+        Field(
+            "overrides",
+            ListOf(OVERRIDE),
+            "Per-link changes, merged over the defaults.",
+        ),
+    ],
+)
+
+CELL = Obj(
+    "A cell: a gNB (router) and the core/edge server behind it.",
+    [
+        Field("gnb", node_name("a gNB name"), "Name of the gNB node.", required=True),
+        Field(
+            "core", node_name("a core name"), "Name of the core/edge-server node.", required=True
+        ),
+        Field("core_cpu", CPU, "CPU cores for the edge server (null: unlimited)."),
+    ],
+    model=model.Cell,
+)
+
+VEHICLE = Obj(
+    "A vehicle (UE) attached to one gNB.",
+    [
+        Field("name", node_name("a vehicle name"), "Name of the vehicle node.", required=True),
+        Field("gnb", node_name("a gNB name"), "The gNB it attaches to.", required=True),
+        Field("cpu", CPU, "CPU cores for this vehicle's processes (null: unlimited)."),
+    ],
+    model=model.Vehicle,
+)
+
+TOPOLOGY = Obj(
+    "Nodes: cells (gNB + core) and vehicles. Names are unique across all of them.",
+    [
+        Field(
+            "address_pool",
+            Nullable(PrivateNetwork()),
+            "Private IPv4 network for link addresses (one /30 per link); null: pick a free /16.",
+            default=None,
+        ),
+        Field("cells", ListOf(CELL, min_items=1), "At least one cell.", required=True),
+        Field("vehicles", ListOf(VEHICLE, min_items=1), "At least one vehicle.", required=True),
+    ],
+)
+
+_DIRECTION_BOTH = Field(
+    "direction",
+    Enum(("uplink", "downlink", "both")),
+    "Which direction(s) of the link to change.",
+    default="both",
+)
+
+SET_EVENT = Obj(
+    "Change profile fields of a link direction (or both) in place.",
+    [
+        AT,
+        Field("set", LINK_NAME, "The link to change.", required=True),
+        _DIRECTION_BOTH,
+        *PROFILE_FIELDS,
+    ],
+    require_any=tuple(f.key for f in PROFILE_FIELDS),
+)
+SHAPE_EVENT = Obj(
+    "Wondershaper-style cap on a node's uplink (egress) and/or downlink (ingress).",
+    [
+        AT,
+        Field("shape", node_name("a node name"), "The node to cap.", required=True),
+        Field("uplink", Rate(unlimited=False), "Cap on what the node sends."),
+        Field("downlink", Rate(unlimited=False), "Cap on what the node receives."),
+    ],
+    require_any=("uplink", "downlink"),
+)
+CLEAR_EVENT = Obj(
+    "Remove what `shape` put on a node, and only that.",
+    [AT, Field("clear", node_name("a node name"), "The node to uncap.", required=True)],
+)
+OUTAGE_EVENT = Obj(
+    "Drop everything on a link (both directions) for a while.",
+    [
+        AT,
+        Field("outage", LINK_NAME, "The link to cut.", required=True),
+        Field(
+            "for",
+            Duration(MAX_DURATION_S, lo_open=True, noun="an outage length"),
+            "How long the outage lasts.",
+            required=True,
+        ),
+    ],
+)
+TRACE_EVENT = Obj(
+    "Replay a bandwidth trace on one direction of a link.",
+    [
+        AT,
+        Field("trace", LINK_NAME, "The link to drive.", required=True),
+        Field("direction", Enum(("uplink", "downlink")), "Which direction.", required=True),
+        Field(
+            "file",
+            Str("a path to a trace file, relative to the scenario file"),
+            "Trace file, relative to the scenario file.",
+            required=True,
+        ),
+        Field(
+            "format",
+            Enum(("mahimahi", "csv")),
+            "mahimahi: one ms timestamp per 1500-byte delivery opportunity per line; "
+            "csv: time_s,mbit rows. Default: csv for a .csv file, else mahimahi.",
+        ),
+        Field("loop", Bool(), "Start over at the end of the trace.", default=False),
+    ],
+)
+EVENT = Tagged(
+    "a timeline event",
+    {
+        "set": SET_EVENT,
+        "shape": SHAPE_EVENT,
+        "clear": CLEAR_EVENT,
+        "outage": OUTAGE_EVENT,
+        "trace": TRACE_EVENT,
+    },
+)
+
+LEARNER = Obj(
+    "Split-point learner (sliding-window UCB1-normal) and its KL change detector.",
+    [
+        Field("window", Int(2, noun="a window of plays"), "W: plays kept by the sliding window."),
+        Field("cost", Enum(("latency", "error")), "What the learner minimizes."),
+        Field(
+            "fixed_split",
+            Nullable(Str("a split name")),
+            "Play only this split (a baseline); null: learn.",
+        ),
+        Field("detector", Bool(), "Reset the learner when the cost distribution changes."),
+        Field(
+            "kl_threshold",
+            Float(0.0, lo_open=True, noun="a KL divergence"),
+            "KL divergence that counts as a change.",
+        ),
+        Field(
+            "consecutive",
+            Int(1, noun="a count"),
+            "C: consecutive exceedances that trigger a reset.",
+        ),
+        Field(
+            "detector_window",
+            Int(2, noun="a number of samples"),
+            "Samples per Gaussian fit of the detector.",
+        ),
+    ],
+    model=model.Learner,
+)
+FUSION = Obj(
+    "Latency-aware fusion weight 1 / (1 + exp(-k_s (dt - dt0))).",
+    [
+        Field("k_s", Float(0.0, lo_open=True, noun="a slope (1/s)"), "Slope k_s, in 1/s."),
+        Field(
+            "dt0",
+            Duration(MAX_DELAY_S, lo=-MAX_DELAY_S, noun="a latency offset", signed=True),
+            "Midpoint latency dt0 of the sigmoid; may be negative (the weight u is then below"
+            " 1/2 even for an instant answer).",
+            attr="dt0_s",
+        ),
+    ],
+    model=model.Fusion,
+)
+_VARIANCE = Float(0.0, noun="a variance")
+_POSITIVE_VARIANCE = Float(0.0, lo_open=True, noun="a variance")
+KALMAN = Obj(
+    "Kalman-filter baseline noise (per-axis variances, m^2 and rad^2).",
+    [
+        Field("q_pos", _VARIANCE, "Process noise of x and y (m^2)."),
+        Field("q_yaw", _VARIANCE, "Process noise of the heading (rad^2)."),
+        Field("r_pos", _POSITIVE_VARIANCE, "Measurement noise of x and y (m^2)."),
+        Field("r_yaw", _POSITIVE_VARIANCE, "Measurement noise of the heading (rad^2)."),
+    ],
+    model=model.Kalman,
+)
+WORKLOAD = Obj(
+    "The EdgeLoc workload: rates, data, model and algorithm knobs.",
+    [
+        Field(
+            "rate_hz",
+            Float(0.0, 1000.0, lo_open=True, noun="a rate in Hz"),
+            "Real-time thread rate (VO and fused pose).",
+        ),
+        Field(
+            "dataset",
+            Str("'synthetic' or a path to a folder of recorded data"),
+            "'synthetic', or a folder of recorded data relative to the scenario file.",
+        ),
+        Field("codec", Enum(("fp16-zlib", "int8-zlib")), "How intermediate features are sent."),
+        Field(
+            "weights",
+            Nullable(Str("a path to a weights file")),
+            "Model weights relative to the scenario file; null: the repo's trained model.",
+        ),
+        Field(
+            "splits",
+            Nullable(ListOf(Str("a split name"), min_items=1, unique=True)),
+            "Split points the learner may play; null: every split point of the model.",
+        ),
+        Field(
+            "corruption",
+            Percent(noun="a corruption rate"),
+            "Experiment knob: share of corrupted requests (off by default; reports name it).",
+        ),
+        Field("learner", LEARNER, "Split-point learner."),
+        Field("fusion", FUSION, "Latency-aware fusion."),
+        Field("kalman", KALMAN, "Kalman-filter baseline."),
+    ],
+    model=model.Workload,
+)
+RECORD = Obj(
+    "What the run records into run.mcap.",
+    [
+        Field("enabled", Bool(), "Record the run."),
+        Field("compression", Enum(("zstd", "lz4", "none")), "MCAP chunk compression."),
+        Field("images", Bool(), "Also record camera frames (large)."),
+    ],
+    model=model.Record,
+)
+REPORT = Obj(
+    "What the run reports at the end.",
+    [
+        Field("enabled", Bool(), "Write a report."),
+        Field(
+            "formats",
+            ListOf(Enum(("html", "md", "json")), min_items=1, unique=True),
+            "Report formats.",
+        ),
+        Field("plots", Bool(), "Draw plots."),
+        Field("link_test", Bool(), "Measure each link briefly before the workload."),
+    ],
+    model=model.Report,
+)
+
+SCENARIO = Obj(
+    "An edgeloc-testbed scenario (schema v1): topology, links, timeline, workload.",
+    [
+        Field(
+            "version",
+            Const(1, "1 (this testbed reads schema v1)"),
+            "Schema version.",
+            default=1,
+        ),
+        Field(
+            "name",
+            Str(
+                "a scenario name: lowercase letters, digits, '_' or '-', up to 32 characters",
+                SCENARIO_NAME_PATTERN,
+                "the name is used in run folders and reports",
+            ),
+            "Scenario name (used in run folders and reports).",
+            required=True,
+        ),
+        Field("seed", Int(0, 2**32 - 1, noun="a seed"), "Seed of every random choice.", default=0),
+        Field(
+            "duration",
+            Duration(MAX_DURATION_S, lo_open=True, noun="a run length"),
+            "How long the run lasts.",
+            required=True,
+        ),
+        Field("topology", TOPOLOGY, "Nodes of the emulated network.", required=True),
+        Field("links", LINKS, "Link behaviour."),
+        Field("timeline", ListOf(EVENT), "Link and shaping changes during the run."),
+        Field("workload", WORKLOAD, "The EdgeLoc workload."),
+        Field("record", RECORD, "Recording."),
+        Field("report", REPORT, "Report."),
+    ],
+    extensions=True,
+)
+
+
+def json_schema() -> dict[str, Any]:
+    """The JSON Schema (draft 2020-12) of scenario files, derived from the declarations above."""
+    defs: dict[str, Any] = {}
+    body = SCENARIO.schema(defs)
+    return {
+        "$schema": JSON_SCHEMA_DIALECT,
+        "$id": "https://edgeloc-testbed.invalid/scenario.schema.json",
+        "title": "edgeloc-testbed scenario, schema v1",
+        **body,
+        "$defs": dict(sorted(defs.items())),
+    }
