@@ -19,5 +19,9 @@ class NetlinkError(NetemError):
     """The kernel refused a netlink request (a qdisc, a filter, a link, a namespace)."""
 
 
+class NamespaceError(NetemError, OSError):
+    """A network namespace cannot be entered (not there, or setns refused)."""
+
+
 class LinkStateError(NetemError):
     """A change asked of a link in a state that cannot take it (no tree yet, a dry run)."""

@@ -3,8 +3,7 @@
 A TUN device belongs to the namespace its creator was in when it called TUNSETIFF; the file
 descriptor keeps working from any namespace afterwards. So the relay enters namespace A, opens
 and configures end A (MTU, address, up, through pyroute2), enters namespace B for end B, and
-returns home. `setns` changes only the calling thread's namespace, so a thread (or a process)
-must do its own entering; `in_netns` is the context manager for that.
+returns home (`netem.netns.in_netns`: setns moves only the calling thread).
 """
 
 from __future__ import annotations
@@ -15,19 +14,16 @@ import fcntl
 import ipaddress
 import os
 import struct
-from collections.abc import Iterator
-from contextlib import contextmanager
 from dataclasses import dataclass
 
 from pyroute2 import IPRoute
 
 from netem.errors import NetemError
+from netem.netns import in_netns
 
 TUNSETIFF = 0x400454CA
 IFF_TUN = 0x0001
 IFF_NO_PI = 0x1000
-CLONE_NEWNET = 0x40000000
-NETNS_RUN_DIR = "/var/run/netns"
 IFNAMSIZ = 16
 #: Largest IP packet a TUN device can carry (the MTU may be at most this).
 MAX_MTU = 65535
@@ -37,42 +33,6 @@ _libc = ctypes.CDLL(None, use_errno=True)
 
 class TunError(NetemError, OSError):
     """Opening or configuring a TUN end failed; the message says which device and why."""
-
-
-def netns_path(netns: str) -> str:
-    """The bind-mount path of a named namespace (`ip netns` convention), or `netns` if a path."""
-    return netns if "/" in netns else os.path.join(NETNS_RUN_DIR, netns)
-
-
-def setns(fd: int) -> None:
-    """Move the calling thread into the network namespace open at `fd`."""
-    if _libc.setns(fd, CLONE_NEWNET) != 0:
-        err = ctypes.get_errno()
-        raise TunError(err, f"setns failed: {os.strerror(err)}")
-
-
-@contextmanager
-def in_netns(netns: str) -> Iterator[None]:
-    """Run the body inside network namespace `netns` (a name or a path), then come back.
-
-    Sockets and devices created in the body stay in `netns` after it ends.
-    """
-    try:
-        target = os.open(netns_path(netns), os.O_RDONLY | os.O_CLOEXEC)
-    except OSError as exc:
-        raise TunError(
-            exc.errno, f"network namespace {netns!r} not found ({exc.strerror})"
-        ) from None
-    home = os.open("/proc/thread-self/ns/net", os.O_RDONLY | os.O_CLOEXEC)
-    try:
-        setns(target)
-        try:
-            yield
-        finally:
-            setns(home)
-    finally:
-        os.close(target)
-        os.close(home)
 
 
 @dataclass(frozen=True)

@@ -30,7 +30,7 @@ from pathlib import Path
 from types import TracebackType
 from typing import Any, Literal
 
-from netem.tun import in_netns
+from netem.netns import NETNS_DIR, in_netns
 from testbed import cgroups
 from testbed.errors import BadInput
 
@@ -47,7 +47,6 @@ TUNSETIFF = 0x400454CA
 IFF_TUN, IFF_NO_PI = 0x0001, 0x1000
 TC_H_ROOT, TC_H_INGRESS = 0xFFFFFFFF, 0xFFFFFFF1
 ETH_P_ALL = 0x0003
-NETNS_DIR = Path("/var/run/netns")
 SUBPROCESS_TIMEOUT_S = 60.0
 
 # Parameters for trying each qdisc kind: small, valid values; only acceptance matters here.

@@ -17,8 +17,8 @@ Nouns:
 
 Trace replay on the tc backend (the relay replays traces itself): a csv trace's rows become
 HTB rate changes at their times; a mahimahi trace is turned into a rate per 100 ms window
-(`netem.traces.Trace.rate_steps`, the same binning the replay uses), applied window by window. A rate of 0
-(no opportunity in a window) becomes 8 bit/s, HTB's smallest useful rate.
+(`netem.traces.Trace.rate_steps`, the same binning the replay uses), applied window by
+window. A rate of 0 (no opportunity in a window) becomes 8 bit/s, HTB's smallest useful rate.
 """
 
 from __future__ import annotations
@@ -30,10 +30,10 @@ import re
 import shutil
 import threading
 import time
-from collections.abc import Callable, Iterator, Sequence
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, Literal, Protocol
+from typing import Any, Literal, Protocol
 
 from netem.profile import LinkProfile
 from netem.shaping import NodeShaper, check_caps
@@ -41,22 +41,71 @@ from netem.tc import TcLinkBackend, shaping_end
 from netem.tc_plan import needs_netem
 from netem.traces import Trace, load_trace
 from netem.userspace import RelayError, UserspaceLink
+from nodes.recording.jsonfile import write_json
 from testbed import check
 from testbed import state as st
 from testbed.errors import BadInput, HostError, TestbedError
-from testbed.net import EndNames, VethEnds
+from testbed.namespaces import EndNames, VethEnds
 from testbed.scenario.model import (
     ClearEvent,
     Event,
     Links,
+    LinkSpec,
     OutageEvent,
     Scenario,
     SetEvent,
     ShapeEvent,
 )
 
-if TYPE_CHECKING:
-    from testbed.topology import Link, Net, Node
+# ---- what the links need of the topology -------------------------------------------------------
+# Declared here, not imported: the topology builds on this module, so this module states the
+# little it reads of a built network (the topology's Node, Link and Net satisfy it).
+
+
+class Node(Protocol):
+    @property
+    def name(self) -> str: ...
+    @property
+    def role(self) -> str: ...
+    @property
+    def netns(self) -> str: ...
+
+
+class Link(Protocol):
+    @property
+    def name(self) -> str: ...
+    @property
+    def kind(self) -> Literal["air", "backhaul"]: ...
+    @property
+    def lower(self) -> Node: ...
+    @property
+    def upper(self) -> Node: ...
+    @property
+    def spec(self) -> LinkSpec | None: ...
+    @property
+    def ends(self) -> EndNames: ...
+
+
+class Net(Protocol):
+    """A built (or dry-run) network: its nodes and links by name, and how it was built."""
+
+    @property
+    def run_id(self) -> str: ...
+    @property
+    def mode(self) -> str: ...
+    @property
+    def dry_run(self) -> bool: ...
+    @property
+    def scenario(self) -> Scenario: ...
+    @property
+    def backend(self) -> object: ...
+    @property
+    def nodes(self) -> Mapping[str, Node]: ...
+    @property
+    def links(self) -> Mapping[str, Link]: ...
+
+    def record_pid(self, pid: int, what: str) -> None: ...
+
 
 BackendName = Literal["tc", "userspace"]
 Direction = Literal["uplink", "downlink"]
@@ -70,7 +119,9 @@ FRAME_OVERHEAD = {"tc": 14, "userspace": 0}
 MIN_RATE_BPS = 8.0
 #: The netem fields a profile may change; `set` events naming any of them need netem on tc.
 NETEM_FIELDS = ("delay_s", "jitter_s", "loss", "gilbert_elliott")
-RELAY_FILE = "links.json"
+#: In a run's link-state folder (state dir, not the results folder): the backend, and each
+#: relay's pid and control socket (what `down`, `status` and `clean` read).
+LINK_STATE_FILE = "link-backend.json"
 
 
 # ---- which backend -------------------------------------------------------------------------
@@ -140,8 +191,9 @@ def ends_for(choice: BackendChoice, mode: st.Mode, scenario: Scenario) -> VethEn
 # ---- the userspace backend's link ends -----------------------------------------------------
 
 
-def run_folder(run_id: str) -> Path:
-    """Where a run keeps its relays' control sockets and `links.json` (in the state dir)."""
+def link_state_dir(run_id: str) -> Path:
+    """Where a run keeps its relays' control sockets, logs and `link-backend.json`: in the
+    state dir, beside the run's state file (not the results folder under runs/)."""
     return st.state_dir() / run_id
 
 
@@ -190,7 +242,7 @@ class TunRelayEnds:
         return [" ".join(_shell_word(w) for w in relay.command()) + " &"]
 
     def create(self, link: Link, net: Net) -> None:
-        folder = run_folder(net.run_id)
+        folder = link_state_dir(net.run_id)
         folder.mkdir(parents=True, exist_ok=True)
         n = len(self.relays)
         control = folder / f"{n}.sock"  # short: unix socket paths are <108 B
@@ -213,7 +265,7 @@ def _shell_word(word: str) -> str:
 
 
 def _write_relay_file(folder: Path, relays: dict[str, UserspaceLink]) -> None:
-    """`links.json`: each relay's pid, control socket and log folder (for `down`/`clean`)."""
+    """`link-backend.json`: each relay's pid and control socket (for `down`/`clean`)."""
     data = {
         "backend": "userspace",
         "relays": [
@@ -225,29 +277,26 @@ def _write_relay_file(folder: Path, relays: dict[str, UserspaceLink]) -> None:
             for name, relay in relays.items()
         ],
     }
-    tmp = folder / f".{RELAY_FILE}.tmp"
-    tmp.write_text(json.dumps(data, indent=1) + "\n")
-    tmp.replace(folder / RELAY_FILE)
+    write_json(folder / LINK_STATE_FILE, data)
 
 
 def write_backend(run_id: str, choice: BackendChoice) -> None:
-    """Record the run's backend in its folder's `links.json` (what `down`/`status` read)."""
-    folder = run_folder(run_id)
+    """Record the run's backend in its `link-backend.json` (what `down`/`status` read)."""
+    folder = link_state_dir(run_id)
     folder.mkdir(parents=True, exist_ok=True)
-    path = folder / RELAY_FILE
+    path = folder / LINK_STATE_FILE
     try:
         data = json.loads(path.read_text())
     except (OSError, ValueError):
         data = {}
     data.update(backend=choice.name, reason=choice.reason)
-    tmp = folder / f".{RELAY_FILE}.tmp"
-    tmp.write_text(json.dumps(data, indent=1) + "\n")
-    tmp.replace(path)
+    write_json(path, data)
 
 
-def remove_run_folder(run_id: str) -> None:
-    """Remove a run's folder: relay sockets, relay logs, `links.json` (after relays stopped)."""
-    shutil.rmtree(run_folder(run_id), ignore_errors=True)
+def remove_link_state(run_id: str) -> None:
+    """Remove a run's link-state folder: relay sockets, relay logs, `link-backend.json` (after
+    the relays stopped)."""
+    shutil.rmtree(link_state_dir(run_id), ignore_errors=True)
 
 
 def relay_pids(namespaces: list[str]) -> list[int]:
@@ -277,6 +326,8 @@ class LinkController(Protocol):
 
     backend: BackendName
     frame_overhead: int
+    #: Whether `counters` counts packets (the relays do; the tc backend's are not read).
+    counts: bool
 
     def apply(self) -> None:
         """Put every link's scenario profiles in place."""
@@ -316,8 +367,24 @@ class LinkController(Protocol):
         """Why the links stopped working (a relay died), or None."""
         ...
 
+    def watch(self, on_death: Callable[[str], None] | None = None) -> None:
+        """Start noticing helpers that die (relays): `failure()` then says why, and `on_death`
+        is called. A backend with nothing that can die (qdiscs) has nothing to watch."""
+        ...
+
+    def counters(self, link: str) -> dict[str, Any] | None:
+        """The link's packet and byte counters per direction (a relay's `counters` reply), or
+        None where the backend does not count (the tc backend's qdisc statistics are not read)."""
+        ...
+
+    def realisation(self, link: str) -> dict[str, Any]:
+        """How the backend realises the link, for the run folder's links.json: the relay's
+        command line and stages; nothing per link on tc (see `commands`)."""
+        ...
+
     def commands(self) -> list[str]:
-        """What `apply` runs, as shell lines (dry run)."""
+        """The shell lines that `apply` amounts to now (on tc, rendered by a dry-run twin with
+        the live profiles; on the relays, none: their command lines carry the profiles)."""
         ...
 
     def close(self) -> None:
@@ -416,6 +483,7 @@ class UserspaceController(_Base):
     """Live links of the userspace backend: each link's relay does what is asked in place."""
 
     backend: BackendName = "userspace"
+    counts = True
 
     def __init__(self, net: Net, ends: TunRelayEnds) -> None:
         super().__init__(net)
@@ -462,8 +530,18 @@ class UserspaceController(_Base):
     def trace(self, link: str, direction: Direction, path: Path, fmt: str, loop: bool) -> None:
         self._relay(link).play_trace(direction, path, fmt, loop)
 
-    def counters(self, link: str) -> dict[str, Any]:
+    def counters(self, link: str) -> dict[str, Any] | None:
         return self._relay(link).counters()
+
+    def realisation(self, link: str) -> dict[str, Any]:
+        relay = self._relay(link)
+        out: dict[str, Any] = {"relay_command": relay.command()}
+        try:
+            counters = relay.counters()
+            out["stages"] = {d: list(counters[d]["stages"]) for d in DIRECTIONS if d in counters}
+        except Exception as err:  # the configuration is still worth keeping
+            out["stages"] = f"unavailable: {err}"
+        return out
 
     def commands(self) -> list[str]:
         return []  # the relays start with their profiles: see the relay command lines
@@ -479,6 +557,7 @@ class TcController(_Base):
     """Live links of the tc backend: a `TcLinkBackend` at the gNB end of each link."""
 
     backend: BackendName = "tc"
+    counts = False
 
     def __init__(self, net: Net, dry_run: bool = False) -> None:
         super().__init__(net)
@@ -497,10 +576,30 @@ class TcController(_Base):
             shaper.apply(self.profiles[name, "uplink"], self.profiles[name, "downlink"])
 
     def commands(self) -> list[str]:
-        return [line for shaper in self.shapers.values() for line in shaper.commands]
+        if self.dry_run:
+            return [line for shaper in self.shapers.values() for line in shaper.commands]
+        # The live shapers keep no text: a dry-run twin renders the same profiles.
+        twin = TcController(self.net, dry_run=True)
+        try:
+            twin.profiles = dict(self.profiles)
+            twin.apply()
+            return twin.commands()
+        finally:
+            twin.close()
 
     def failure(self) -> str | None:
         return None  # qdiscs cannot die on their own
+
+    def watch(self, on_death: Callable[[str], None] | None = None) -> None:
+        pass  # nothing of the tc backend runs on its own: nothing to watch
+
+    def counters(self, link: str) -> dict[str, Any] | None:
+        self._link(link)
+        return None
+
+    def realisation(self, link: str) -> dict[str, Any]:
+        self._link(link)
+        return {}
 
     def _change(self, link: str, direction: Direction, profile: LinkProfile) -> None:
         self.shapers[link].change(direction, profile)

@@ -37,12 +37,13 @@ import time
 from dataclasses import asdict, dataclass, field
 from typing import TYPE_CHECKING, Any, ClassVar
 
+from netem.netns import netns_path
 from netem.profile import LinkProfile
 from testbed.connectivity import echo_rtts
 from testbed.errors import TestbedError
 from testbed.hostload import CpuLoad, CpuSample, cpu_load_between
 from testbed.links import DIRECTIONS, Direction, LinkController, neutral
-from testbed.net import inside, netns_path
+from testbed.namespaces import inside
 
 if TYPE_CHECKING:
     from testbed.topology import Link, Net, Node

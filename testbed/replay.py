@@ -12,8 +12,9 @@ How the scenario becomes a latency model (for the first vehicle, or `vehicle=`):
 - `shape` caps the vehicle's uplink (its air-uplink hop) and downlink, and a core's egress and
   ingress (its backhaul hops), as Wondershaper does; `clear` lifts them; `set` changes profile
   fields; `outage` stalls both directions of a link for its duration; `trace` drives a link
-  direction's rate (csv steps as given; mahimahi opportunities counted per 100 ms window by
-  `Trace.rate_steps`, the binning the tc backend applies; a zero-rate step or the end of a non-looping trace stalls the link like an outage);
+  direction's rate (csv steps as given; mahimahi opportunities counted per 100 ms window
+  by `Trace.rate_steps`, the binning the tc backend applies; a zero-rate step or the end of
+  a non-looping trace stalls the link like an outage);
 - compute: head/tail per split from the reference profile committed with the weights (or
   measured on this machine, torch, one thread), stretched by the vehicle's `cpu` and the
   cell's `core_cpu` budgets (`latency.ComputeProfile`);

@@ -134,13 +134,12 @@ def play_timeline(
 def link_counters(net: Net) -> dict[str, Any]:
     """Per link and direction, the packets/bytes that entered and left it (userspace relays;
     empty for the tc backend, whose qdisc counters are not read here)."""
-    counters = getattr(net.control, "counters", None)
     out: dict[str, Any] = {}
-    if counters is None:
+    if net.control is None or not net.control.counts:
         return out
     for name in net.links:
         try:
-            c = counters(name)
+            c = net.control.counters(name) or {}
         except Exception as err:  # a dead relay must not hide the run's own result
             out[name] = {"error": str(err)}
             continue
@@ -191,26 +190,11 @@ def links_config(net: Net, backend: str) -> dict[str, Any]:
             "upper": link.upper.name,
             "profiles": {d: ctl.profile(name, d).to_dict() for d in ("uplink", "downlink")},
         }
-        relay = getattr(ctl, "relays", {}).get(name)
-        if relay is not None:
-            entry["relay_command"] = relay.command()
-            try:
-                counters = relay.counters()
-                entry["stages"] = {
-                    d: list(counters[d]["stages"]) for d in ("uplink", "downlink") if d in counters
-                }
-            except Exception as err:  # the configuration is still worth keeping
-                entry["stages"] = f"unavailable: {err}"
+        entry.update(ctl.realisation(name))
         out["links"][name] = entry
     if ctl.backend == "tc":
-        from testbed.links import TcController
-
-        try:  # the live controller keeps no text; a dry-run twin renders the same profiles
-            twin = TcController(net, dry_run=True)
-            twin.profiles = dict(ctl.profiles)  # type: ignore[attr-defined]
-            twin.apply()
-            out["tc_commands"] = twin.commands()
-            twin.close()
+        try:
+            out["tc_commands"] = ctl.commands()
         except Exception as err:
             out["tc_commands"] = f"unavailable: {err}"
     return out
@@ -251,8 +235,8 @@ class Recording:
     def start_counters(self, ros_ok: bool) -> None:
         """Sample the link counters into `/links/counters` (userspace relays; the tc
         backend's qdisc statistics are not read, as in run.json's link_counters)."""
-        counters = getattr(self.net.control, "counters", None)
-        if counters is None:
+        ctl = self.net.control
+        if ctl is None or not ctl.counts:
             self.counters_note = "not recorded: the tc backend's qdisc counters are not read"
             return
         if not ros_ok:
@@ -269,7 +253,7 @@ class Recording:
             return [
                 row
                 for link in self.net.links
-                for row in recording.counter_rows(link, counters(link))
+                for row in recording.counter_rows(link, ctl.counters(link) or {})
             ]
 
         def encode(row: dict[str, Any], t: float) -> bytes:
@@ -401,9 +385,8 @@ class _Run:
     def _steps(self, net: Net, result: RunResult) -> None:
         """Link test, connectivity, nodes + timeline (the network is up)."""
         scenario, progress = self.scenario, self.progress
-        watch = getattr(net.control, "watch", None)
-        if watch is not None:
-            watch()  # a relay that dies sets the failure `_check` raises within POLL_S
+        if net.control is not None:
+            net.control.watch()  # a relay that dies sets the failure `_check` raises in POLL_S
         if scenario.report.link_test:
             report = LinkTest(net, quick=True, progress=progress).run()
             result.linktest = report

@@ -38,23 +38,14 @@ from pyroute2 import IPRoute
 from pyroute2.netlink.exceptions import NetlinkError as PyNetlinkError
 
 from netem.errors import NetlinkError
+from netem.netns import delete_netns, list_netns, netns_identity, netns_path
 from netem.profile import LinkProfile
 from nodes.ros.env import domain_id_for
 from testbed import cgroups, check, links
 from testbed import state as st
 from testbed.addressing import LinkAddresses, assign, choose_pool, host_networks
 from testbed.errors import BadInput, TestbedError
-from testbed.net import (
-    EndNames,
-    LinkEnds,
-    Netns,
-    VethEnds,
-    delete_netns,
-    list_netns,
-    netns_identity,
-    netns_path,
-    require_root,
-)
+from testbed.namespaces import EndNames, LinkEnds, Netns, VethEnds, require_root
 from testbed.scenario.model import Cell, Links, LinkSpec, Role, Scenario, Topology, Vehicle
 
 NODE_NAME_RE = re.compile(r"^[a-z][a-z0-9]{0,9}$")
@@ -160,6 +151,10 @@ class Link:
             upper_netns=self.upper.netns,
             upper_ifname=self.lower.name,
         )
+
+    def end_namespaces(self) -> tuple[Netns, Netns]:
+        """The two nodes' namespaces (what a `LinkEnds` backend creates the interfaces in)."""
+        return self.lower._ns(), self.upper._ns()
 
 
 @dataclass
@@ -595,7 +590,7 @@ def _remove_run(
             removed.cgroups += 1
     # The run's cgroup parent (`edgeloc/<run>`) is not recorded itself; remove the whole tree.
     removed.cgroups += len(cgroups.remove_all(state.run_id))
-    links.remove_run_folder(state.run_id)  # relay sockets and logs
+    links.remove_link_state(state.run_id)  # relay sockets and logs
     if not removed.problems:
         state.delete()
     return removed

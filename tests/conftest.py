@@ -10,8 +10,8 @@ from pathlib import Path
 
 import pytest
 
+from netem.netns import delete_netns, list_netns
 from testbed import state as st
-from testbed.net import delete_netns, list_netns
 from testbed.topology import _remove_run
 from tests.machine import busy_fraction, dirty_mb
 

@@ -18,11 +18,11 @@ import pytest
 from pyroute2.netlink.exceptions import NetlinkError
 from typer.testing import CliRunner
 
+from netem.netns import NETNS_DIR
 from testbed import cgroups, check, console
 from testbed.check import Check, CheckReport
 from testbed.cli import EXIT_HOST, app
 
-NETNS_DIR = Path("/var/run/netns")
 REQUIRED = {"root", "netns", "veth", "tun", "qdisc htb", "qdisc pfifo"}
 
 

@@ -16,8 +16,9 @@ from pathlib import Path
 
 import pytest
 
+from netem.netns import list_netns
 from testbed import state as st
-from testbed.net import Netns, list_netns
+from testbed.namespaces import Netns
 from tests.realrun import TESTBED, testbed_cli
 
 pytestmark = pytest.mark.root

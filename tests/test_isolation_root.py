@@ -16,9 +16,9 @@ import pytest
 from pyroute2 import IPRoute
 from pyroute2.netlink.exceptions import NetlinkError
 
+from netem.netns import list_netns
 from nodes.ros.env import domain_id_for
 from testbed import state as st
-from testbed.net import list_netns
 from testbed.topology import Net, build, example_scenario
 
 REPO = Path(__file__).resolve().parents[1]

@@ -142,7 +142,7 @@ def test_up_leaves_relays_running_and_down_stops_them(state_dir: Path, tmp_path:
     log_dirs = [Path(r._tmpdir) for r in control.relays.values() if r._tmpdir]
     pids = links.relay_pids(net.state.namespaces)
     assert len(pids) == 2 and all(d.is_dir() for d in log_dirs)
-    assert (state_dir / net.run_id / "links.json").is_file()
+    assert (state_dir / net.run_id / "link-backend.json").is_file()
     removed = teardown_run(net.run_id)
     assert removed.processes >= 2 and not removed.problems
     assert links.relay_pids(net.state.namespaces) == []

@@ -190,9 +190,9 @@ def test_ctrl_c_mid_run_still_writes_a_valid_run_mcap(
 def test_sigkill_of_the_orchestrator_then_clean_finalises_run_mcap(
     state_dir: Path, interfaces: None, tmp_path: Path
 ) -> None:
+    from netem.netns import list_netns
     from testbed import recording
     from testbed import state as st
-    from testbed.net import list_netns
 
     proc, _ = _start_run(tmp_path, duration_s=60)
     try:

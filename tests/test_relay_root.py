@@ -17,8 +17,8 @@ from collections.abc import Iterator
 
 import pytest
 
+from netem.netns import in_netns
 from netem.profile import LinkProfile
-from netem.tun import in_netns
 from netem.userspace import RelayError, UserspaceLink
 
 pytestmark = pytest.mark.root

@@ -65,8 +65,8 @@ def _temp_entries() -> set[str]:
 def test_run_starts_every_node_and_leaves_nothing(
     state_dir: Path, interfaces: None, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
+    from netem.netns import list_netns
     from testbed import cgroups
-    from testbed.net import list_netns
     from testbed.run import run_scenario
     from testbed.scenario.loader import load
 
@@ -264,8 +264,8 @@ def test_ctrl_c_mid_run_tears_everything_down(
     no namespace, relay, node process or state file left behind."""
     import json
 
+    from netem.netns import list_netns
     from testbed import state as st
-    from testbed.net import list_netns
 
     scenario = short_scenario(tmp_path, duration_s=60)
     runs = tmp_path / "runs"

@@ -19,8 +19,8 @@ from pathlib import Path
 import pytest
 import yaml
 
+from netem.netns import list_netns
 from testbed import state as st
-from testbed.net import list_netns
 from testbed.sweep import read_tree, shorten
 from tests.realrun import processes_mentioning, testbed_cli
 

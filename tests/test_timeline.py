@@ -259,3 +259,22 @@ def test_the_tc_path_and_the_replay_bin_a_mahimahi_trace_alike(
     event = TraceEvent(0.0, "av1-gnb1", "uplink", Path("t.mahi"), "mahimahi", loop=True)
     for (start, rate), end in zip(steps, [*(t for t, _ in steps[1:]), period], strict=True):
         assert _trace_rate(event, trace, (start + end) / 2) == pytest.approx(rate)
+
+
+def test_both_link_controllers_are_complete() -> None:
+    """Every LinkController method is implemented by both backends, so callers (the run's
+    counters and links.json, the relay watch) never probe with getattr."""
+    import inspect
+
+    from testbed.links import LinkController, TcController, UserspaceController
+
+    wanted = {
+        name
+        for name, _ in inspect.getmembers(LinkController, inspect.isfunction)
+        if not name.startswith("_")
+    }
+    assert {"watch", "counters", "realisation", "commands", "failure"} <= wanted
+    for impl in (TcController, UserspaceController):
+        missing = [n for n in wanted if getattr(impl, n) is getattr(LinkController, n, None)]
+        assert missing == [], (impl.__name__, missing)
+        assert isinstance(impl.counts, bool)

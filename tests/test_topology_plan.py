@@ -15,10 +15,10 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as hs
 
+from netem.netns import list_netns
 from testbed import state as st
 from testbed.addressing import CANDIDATE_POOLS, assign, choose_pool
 from testbed.errors import BadInput, HostError
-from testbed.net import list_netns
 from testbed.scenario.model import Cell, Topology, Vehicle
 from testbed.topology import Net, build, clean, example_scenario, plan, teardown_run
 

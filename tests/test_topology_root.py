@@ -22,10 +22,11 @@ import pytest
 from typer.testing import CliRunner
 
 from netem.errors import NetlinkError
+from netem.netns import delete_netns, list_netns
 from testbed import state as st
 from testbed.cli import app
 from testbed.errors import BadInput
-from testbed.net import Netns, VethEnds, delete_netns, list_netns
+from testbed.namespaces import Netns, VethEnds
 from testbed.topology import Link, Net, build, clean, example_scenario, teardown_run
 
 pytestmark = pytest.mark.root
@@ -252,7 +253,7 @@ def test_cgroups_recorded_by_a_run_are_removed(state_dir: Path) -> None:
 
 _CRASHER = """
 import subprocess, sys, time
-from testbed.net import VethEnds
+from testbed.namespaces import VethEnds
 from testbed.topology import build, example_scenario
 
 class SlowVeth(VethEnds):

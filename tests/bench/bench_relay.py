@@ -25,9 +25,9 @@ from typing import Any
 
 from pyroute2 import netns
 
+from netem.netns import in_netns
 from netem.profile import LinkProfile
 from netem.stages import jitter_sd
-from netem.tun import in_netns
 from netem.userspace import UserspaceLink
 from testbed.linktest import (
     CTX,

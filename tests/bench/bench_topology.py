@@ -21,7 +21,7 @@ import time
 
 from testbed import state as st
 from testbed.links import choose_backend
-from testbed.net import LinkEnds, VethEnds
+from testbed.namespaces import LinkEnds, VethEnds
 from testbed.topology import build, example_scenario
 
 SIZES = ((1, 1), (20, 4))

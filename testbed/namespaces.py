@@ -1,4 +1,4 @@
-"""Kernel mechanics of network namespaces: create, enter, talk netlink inside, delete.
+"""Network namespaces we create and talk netlink in, and the backends that make a link's ends.
 
 Everything here goes through pyroute2 sockets and libc calls (unshare, setns, mount), never
 through the `ip` program, and never forks: a thread steps into a namespace with setns(2), opens
@@ -11,35 +11,40 @@ Nouns:
 - `inside(path)`: a context manager that runs the calling thread inside a namespace.
 - `LinkEnds`: how a link's two interfaces come to exist (a backend); `VethEnds` is the kernel
   veth pair. A userspace TUN relay backend implements the same protocol.
+- `LinkToCreate` and `RunResources`: the little a backend needs of the topology's link and run
+  (declared here, as containerlab's links package declares its Node interface, so this module
+  never imports the topology that uses it).
+
+The kernel side of named namespaces (their folder, entering, lookup, removal) is
+`netem.netns`; this module adds creating them and talking netlink inside them.
 """
 
 from __future__ import annotations
 
 import contextlib
 import ctypes
-import errno
 import os
 import socket
 from collections.abc import Iterator
 from dataclasses import dataclass
-from pathlib import Path
-from typing import TYPE_CHECKING, Protocol
+from typing import Protocol
 
 from pyroute2 import IPRoute
 
 from netem.errors import NetlinkError
-from netem.tun import in_netns, setns
+from netem.netns import (
+    NETNS_DIR,
+    delete_netns,
+    in_netns,
+    netns_path,
+    setns,
+)
 from testbed.errors import HostError
 
-if TYPE_CHECKING:
-    from testbed.topology import Link, Net
-
-NETNS_DIR = Path("/run/netns")
 CLONE_NEWNET = 0x40000000
 _MS_REC = 0x4000
 _MS_BIND = 0x1000
 _MS_SHARED = 1 << 20
-_MNT_DETACH = 2
 
 _libc = ctypes.CDLL(None, use_errno=True)
 _netns_dir_ready = False
@@ -50,10 +55,6 @@ def _check(ret: int, what: str) -> None:
     if ret != 0:
         code = ctypes.get_errno()
         raise OSError(code, f"{what}: {os.strerror(code)}")
-
-
-def netns_path(name: str) -> Path:
-    return NETNS_DIR / name
 
 
 def require_root() -> None:
@@ -67,7 +68,7 @@ def inside(path: str | os.PathLike[str]) -> contextlib.AbstractContextManager[No
 
     Only this thread moves; other threads of the process stay where they are. Sockets opened
     inside stay bound to that namespace after we leave, which is how we talk to it cheaply.
-    (The one setns mechanism is `netem.tun.in_netns`; netem sits below testbed.)
+    (The one setns mechanism is `netem.netns.in_netns`; netem sits below testbed.)
     """
     return in_netns(os.fspath(path))
 
@@ -85,39 +86,6 @@ def _prepare_netns_dir() -> None:
         _check(_libc.mount(d, d, b"none", _MS_BIND | _MS_REC, None), "bind /run/netns")
         _check(_libc.mount(b"none", d, None, _MS_SHARED | _MS_REC, None), "share /run/netns")
     _netns_dir_ready = True
-
-
-def list_netns() -> list[str]:
-    """Names registered under /run/netns (what `ip netns list` shows)."""
-    try:
-        return sorted(os.listdir(NETNS_DIR))
-    except FileNotFoundError:
-        return []
-
-
-def netns_identity(name: str) -> tuple[int, int] | None:
-    """(st_dev, st_ino) of a registered namespace: equal to stat(/proc/PID/ns/net) of every
-    process inside it. None when it is not registered (or not a namespace mount)."""
-    try:
-        st = os.stat(netns_path(name))
-    except OSError:
-        return None
-    return (st.st_dev, st.st_ino)
-
-
-def delete_netns(name: str) -> bool:
-    """Unregister a namespace (detach the bind mount, remove the file). The kernel frees it
-    once nothing (process, socket, fd) refers to it. Returns False if it was not there."""
-    path = netns_path(name)
-    if not path.exists():
-        return False
-    # EINVAL: the file exists but is not mounted (a crash between create and mount).
-    if _libc.umount2(bytes(path), _MNT_DETACH) != 0 and ctypes.get_errno() != errno.EINVAL:
-        code = ctypes.get_errno()
-        raise OSError(code, f"umount {path}: {os.strerror(code)}")
-    with contextlib.suppress(FileNotFoundError):
-        path.unlink()
-    return True
 
 
 def open_ipr_inside(path: str | os.PathLike[str]) -> IPRoute:
@@ -227,6 +195,30 @@ class EndNames:
     upper_ifname: str
 
 
+class LinkToCreate(Protocol):
+    """What a `LinkEnds` backend needs of a link (the topology's `Link` is one)."""
+
+    @property
+    def name(self) -> str: ...
+
+    @property
+    def ends(self) -> EndNames: ...
+
+    def end_namespaces(self) -> tuple[Netns, Netns]:
+        """The lower and upper node's namespaces, built."""
+        ...
+
+
+class RunResources(Protocol):
+    """Where a backend records what it started, so `down` and `clean` find it (the topology's
+    `Net` is one)."""
+
+    @property
+    def run_id(self) -> str: ...
+
+    def record_pid(self, pid: int, what: str) -> None: ...
+
+
 class LinkEnds(Protocol):
     """A backend that makes a link's two interfaces exist (and only that).
 
@@ -242,7 +234,7 @@ class LinkEnds(Protocol):
         """The equivalent shell commands, for `--dry-run`."""
         ...
 
-    def create(self, link: Link, net: Net) -> None:
+    def create(self, link: LinkToCreate, net: RunResources) -> None:
         """Create both interfaces of `link` (named as in `link.ends`) inside its namespaces."""
         ...
 
@@ -267,9 +259,8 @@ class VethEnds:
             f"ip -n {ends.upper_netns} link set {ends.upper_ifname} gso_max_size {GSO_MAX_SIZE}",
         ]
 
-    def create(self, link: Link, net: Net) -> None:
-        lower, upper = link.lower.ns, link.upper.ns
-        assert lower is not None and upper is not None, "veth needs both namespaces built"
+    def create(self, link: LinkToCreate, net: RunResources) -> None:
+        lower, upper = link.end_namespaces()
         fd = os.open(upper.path, os.O_RDONLY)
         try:
             lower.ipr.link(
