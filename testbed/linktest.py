@@ -39,6 +39,7 @@ from typing import TYPE_CHECKING, Any, ClassVar
 
 from netem.netns import netns_path
 from netem.profile import LinkProfile
+from nodes.recording import linktable
 from testbed.connectivity import echo_rtts
 from testbed.errors import TestbedError
 from testbed.hostload import CpuLoad, CpuSample, cpu_load_between
@@ -315,57 +316,17 @@ class LinkTestReport:
         }
 
     def rows(self) -> list[list[str]]:
-        """One table row per link direction: figures, then each verdict."""
-        rows = []
-        for link in self.links:
-            for d in link.directions:
-                rtt = _fmt(link.rtt_median_ms, "{:.2f}") + "/" + _fmt(link.rtt_p99_ms, "{:.2f}")
-                checks = "; ".join(
-                    f"{v.what} {v.measured:.3g} vs {v.expected:.3g} ({v.tolerance})"
-                    f"{'' if v.ok else ' OUT'}"
-                    for v in d.verdicts
-                )
-                rows.append(
-                    [
-                        link.link,
-                        d.direction,
-                        rtt,
-                        _fmt(d.baseline_ms, "{:.3f}"),
-                        _fmt(d.owd_median_ms, "{:.3f}") + "/" + _fmt(d.owd_p99_ms, "{:.2f}"),
-                        _fmt(d.jitter_sd_ms, "{:.2f}"),
-                        _fmt(d.tcp_mbit, "{:.2f}"),
-                        _fmt(d.udp_mbit, "{:.2f}"),
-                        _fmt(d.loss_pct, "{:.2f}") + f" of {d.loss_packets}",
-                        "ok" if d.ok else "OUT",
-                        checks,
-                    ]
-                )
-        return rows
+        """One table row per link direction: figures, then each verdict (`linktable`, the
+        columns the report prints too)."""
+        return linktable.rows(self.to_dict())
 
-    HEADERS: ClassVar[list[str]] = [
-        "link",
-        "dir",
-        "rtt ms med/p99",
-        "base ms",
-        "owd ms med/p99",
-        "sd ms",
-        "tcp Mbit/s",
-        "udp Mbit/s",
-        "loss %",
-        "ok",
-        "checks",
-    ]
+    HEADERS: ClassVar[tuple[str, ...]] = linktable.HEADERS
 
     def text(self) -> str:
-        widths = [len(h) for h in self.HEADERS]
-        rows = self.rows()
-        for row in rows:
-            widths = [max(w, len(c)) for w, c in zip(widths, row, strict=True)]
-        lines = ["  ".join(h.ljust(w) for h, w in zip(self.HEADERS, widths, strict=True))]
-        lines += ["  ".join(c.ljust(w) for c, w in zip(row, widths, strict=True)) for row in rows]
+        lines = [linktable.text(self.to_dict())]
         if self.host_cpu is not None:
             lines.append(f"host during the test: {self.host_cpu.text()}")
-        return "\n".join(line.rstrip() for line in lines)
+        return "\n".join(lines)
 
     def warning(self) -> str:
         """The line `testbed run` prints when a link is out of tolerance: with the host's load,
@@ -381,10 +342,6 @@ def _cpu_sample() -> CpuSample | None:
         return CpuSample.read()
     except (OSError, ValueError):  # no /proc/stat (a container without procfs): no figure
         return None
-
-
-def _fmt(value: float | None, spec: str) -> str:
-    return "-" if value is None else spec.format(value)
 
 
 def _dir_dict(d: DirectionResult) -> dict[str, Any]:

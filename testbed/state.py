@@ -30,6 +30,8 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any, Literal
 
+from nodes.recording.jsonfile import write_json
+
 DEFAULT_STATE_DIR = Path("/run/edgeloc-testbed")
 STATE_DIR_ENV = "EDGELOC_STATE_DIR"
 RUN_ID_RE = re.compile(r"^[0-9a-f]{6}$")
@@ -128,11 +130,8 @@ class RunState:
     def save(self) -> None:
         """Atomic write: a reader (or a crash) sees the old file or the new one, never half.
         No fsync: the directory is on tmpfs (/run) and a SIGKILL does not lose page cache."""
-        directory = self.path.parent
-        directory.mkdir(parents=True, exist_ok=True)
-        tmp = directory / f".{self.run_id}.json.{os.getpid()}.tmp"
-        tmp.write_text(json.dumps(self.to_dict(), indent=1) + "\n")
-        os.replace(tmp, self.path)
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        write_json(self.path, self.to_dict())  # temp name `.<id>.json.<pid>.tmp`, as clean expects
 
     def delete(self) -> None:
         with contextlib.suppress(FileNotFoundError):

@@ -50,6 +50,7 @@ from pathlib import Path
 from typing import Any
 
 from nodes.recording import layout as names
+from nodes.recording.jsonfile import write_json
 from nodes.ros.common import READY, config_to_dict
 from nodes.ros.env import RosEnv, domain_id_for
 from testbed import cgroups
@@ -268,7 +269,7 @@ class Supervisor:
         Raises TestbedError (with the node's last log lines) if one dies or is not ready."""
         self.config_path.parent.mkdir(parents=True, exist_ok=True)
         config = config_to_dict(replay_config(self.net.scenario))
-        self.config_path.write_text(json.dumps(config, indent=2) + "\n")
+        write_json(self.config_path, config)
         (self.folder / "logs").mkdir(parents=True, exist_ok=True)
         self._budgets()
         self.nodes = self.plan()

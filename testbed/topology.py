@@ -47,8 +47,9 @@ from testbed.addressing import LinkAddresses, assign, choose_pool, host_networks
 from testbed.errors import BadInput, TestbedError
 from testbed.namespaces import EndNames, LinkEnds, Netns, VethEnds, require_root
 from testbed.scenario.model import Cell, Links, LinkSpec, Role, Scenario, Topology, Vehicle
+from testbed.scenario.schema_v1 import NODE_NAME_PATTERN
 
-NODE_NAME_RE = re.compile(r"^[a-z][a-z0-9]{0,9}$")
+NODE_NAME_RE = re.compile(NODE_NAME_PATTERN)  # the schema's: one pattern for names
 NETNS_PREFIX = "el-"
 RUN_NETNS_RE = re.compile(r"^el-([0-9a-f]{6})-")
 OWNER_TAG = "edgeloc-testbed state="  # lo's alias in each namespace: which state file owns it
@@ -330,7 +331,7 @@ def _check_names(scenario: Scenario) -> None:
     for name in names:
         if not NODE_NAME_RE.match(name):
             raise BadInput(
-                f"node name {name!r} must match ^[a-z][a-z0-9]{{0,9}}$ "
+                f"node name {name!r} must match {NODE_NAME_PATTERN} "
                 "(it becomes an interface and namespace name)"
             )
     dupes = sorted({n for n in names if names.count(n) > 1})

@@ -683,3 +683,20 @@ def test_evo_reads_the_trajectories(tmp_path: Path) -> None:
     est = file_interface.read_tum_trajectory_file(str(folder / "trajectories/av1/edgeloc.tum"))
     assert gt.num_poses == 10 and est.num_poses == 9
     assert est.positions_xyz[-1] == pytest.approx([9.0, 0.9, 0.0])
+
+
+def test_the_cli_and_the_report_print_one_link_test_table() -> None:
+    """`testbed link-test`'s text and the report's table come from one function of
+    linktest.json (`nodes.recording.linktable`): same columns, same cells."""
+    from nodes.recording import linktable
+    from testbed.linktest import DirectionResult, LinkResult, LinkTestReport, Verdict
+
+    d = DirectionResult("av1-gnb1", "uplink", "av1", "gnb1", {}, baseline_ms=0.0123)
+    d.owd_median_ms, d.owd_p99_ms, d.tcp_mbit, d.loss_pct, d.loss_packets = 5.1, 6.2, 9.5, 0.1, 10
+    d.verdicts = [Verdict("tcp Mbit/s", 9.5, 10.0, "5%", True)]
+    report = LinkTestReport("userspace", True, [LinkResult("av1-gnb1", 10.2, 11.0, [d])])
+    rows = linktable.rows(report.to_dict())
+    assert report.rows() == rows
+    assert rows[0][:4] == ["av1-gnb1", "uplink", "10.20/11.00", "0.012"]
+    assert report.text().splitlines()[0].split("  ")[0] == linktable.HEADERS[0]
+    assert all(cell in report.text() for cell in rows[0] if cell)
