@@ -12,7 +12,7 @@ import pytest
 
 from netem.netns import delete_netns, list_netns
 from testbed import state as st
-from testbed.topology import _remove_run
+from testbed.topology import remove_run
 from tests.machine import busy_fraction, dirty_mb
 
 
@@ -92,7 +92,7 @@ def state_dir(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Iterator[Path]
     yield d
     remember()
     for run in st.list_runs():
-        _remove_run(run)
+        remove_run(run)
     for name in list_netns():
         if any(name.startswith(f"el-{run_id}-") for run_id in seen):
             delete_netns(name)

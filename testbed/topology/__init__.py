@@ -1,0 +1,46 @@
+"""The emulated network of a run: one namespace per node, one link per vehicle–gNB and gNB–core
+pair, addresses, routes, forwarding — built, torn down, and cleaned up after crashes.
+
+Nouns (Mininet-like):
+- `Node`: a vehicle, gNB or core, living in its own namespace `el-<runid>-<name>`. It can open
+  sockets inside its namespace (`node.socket()`), step a thread into it (`node.entered()`),
+  start processes there (`node.popen(argv)`, via nsenter) and hands out its netlink socket
+  (`node.ipr`) to whoever configures it further (qdiscs, TUN devices).
+- `Link`: two nodes, a /30, and the two interfaces (each named after the peer node) that a
+  `LinkEnds` backend creates (`VethEnds` by default).
+- `Net`: the whole run: nodes, links, the pool, the state file. A context manager:
+  `with build(scenario, mode="run") as net: ...` tears everything down on exit, exceptions and
+  Ctrl-C included.
+- `build`, `teardown_run`, `clean`: what `testbed up`, `down` and `clean` call.
+
+Routing: a vehicle's default route goes via its gNB; a core routes the whole pool via its gNB;
+a gNB only has connected routes and is the only node with ip_forward=1. Cells do not route to
+each other (a vehicle reaches its own cell's core; vehicles of one cell reach each other).
+
+Modules: `names` (namespace names and owner tags), `model` (Node, Link, Net), `plan` (a
+scenario into nodes, links, addresses, routes; nothing built), `build` (the plan made real),
+`teardown` (down, and `clean` of what dead runs left).
+"""
+
+from testbed.topology.build import build
+from testbed.topology.model import Link, Net, Node, Route
+from testbed.topology.names import NETNS_PREFIX, OWNER_TAG, netns_name
+from testbed.topology.plan import example_scenario, plan
+from testbed.topology.teardown import Removed, clean, remove_run, teardown_run
+
+__all__ = [
+    "NETNS_PREFIX",
+    "OWNER_TAG",
+    "Link",
+    "Net",
+    "Node",
+    "Removed",
+    "Route",
+    "build",
+    "clean",
+    "example_scenario",
+    "netns_name",
+    "plan",
+    "remove_run",
+    "teardown_run",
+]

@@ -1,0 +1,107 @@
+"""Building a planned network for real: namespaces, link ends, addresses, routes, and the run's
+state file first, so a crash at any step leaves something `clean` can remove."""
+
+from __future__ import annotations
+
+import contextlib
+from ipaddress import IPv4Network
+
+from netem.netns import list_netns
+from nodes.ros.env import domain_id_for
+from testbed import links
+from testbed import state as st
+from testbed.addressing import choose_pool, host_networks
+from testbed.errors import BadInput
+from testbed.namespaces import LinkEnds, require_root
+from testbed.scenario.model import Scenario
+from testbed.topology.model import Net
+from testbed.topology.names import RUN_NETNS_RE, Echo
+from testbed.topology.plan import check_names, link_pairs, plan
+
+# ---- build ---------------------------------------------------------------------------------
+
+
+def _live_pools(runs: list[st.RunState]) -> dict[str, IPv4Network]:
+    return {r.run_id: IPv4Network(r.pool) for r in runs if r.pool and r.liveness() != "dead"}
+
+
+def _ids_in_use(runs: list[st.RunState]) -> set[str]:
+    ids = {r.run_id for r in runs}
+    for name in list_netns():
+        m = RUN_NETNS_RE.match(name)
+        if m:
+            ids.add(m.group(1))
+    return ids
+
+
+def build(
+    scenario: Scenario,
+    dry_run: bool = False,
+    echo: Echo | None = None,
+    run_id: str | None = None,
+    mode: st.Mode = "up",
+    backend: LinkEnds | None = None,
+) -> Net:
+    """Build the scenario's network and return it.
+
+    `mode="up"`: left running after this process exits (`testbed up`; the run becomes
+    'detached'); `mode="run"`: owned by this process (dead if it dies). `dry_run` creates and
+    records nothing and passes each equivalent `ip` and `tc` command (and relay command line)
+    to `echo`. If building fails or is interrupted, everything created so far is removed
+    before the error propagates.
+
+    Links: with `backend=None` the scenario's `links.backend` decides (`links.choose_backend`)
+    and every link's profiles are applied once the network is up (`net.control` then changes
+    them live). An explicit `backend` (plain `VethEnds` in topology tests and benchmarks)
+    builds those ends as they are, unshaped.
+    """
+    if run_id is not None and not st.RUN_ID_RE.match(run_id):
+        raise BadInput(f"run id {run_id!r} must be 6 lowercase hex characters")
+    if not dry_run:
+        require_root()
+    check_names(scenario)
+    choice: links.BackendChoice | None = None
+    if backend is None:
+        choice = links.choose_backend(scenario)
+        backend = links.ends_for(choice, mode, scenario)
+    n_links = len(link_pairs(scenario))
+    source = str(scenario.source) if scenario.source else None
+    with st.locked() if not dry_run else contextlib.nullcontext():
+        runs = st.list_runs()
+        in_use = _ids_in_use(runs)
+        if run_id is None:
+            # A ROS domain of its own too: runs are apart by namespaces already, but a stray
+            # process started with a run's environment must not meet another run's nodes.
+            run_id = st.fresh_run_id(in_use, key=domain_id_for)
+        elif run_id in in_use:
+            raise BadInput(f"run id {run_id} is already in use (testbed status lists runs)")
+        pool = choose_pool(
+            scenario.topology.address_pool, n_links, host_networks(), _live_pools(runs)
+        )
+        net = plan(scenario, run_id, pool, mode, backend, dry_run)
+        net.link_backend = choice
+        if dry_run:
+            lines = net.commands()
+            if choice is not None and choice.name == "tc":  # relays start with their profiles
+                net.control = links.controller_for(net)
+                net.control.apply()
+                lines += net.control.commands()
+            for line in lines:
+                if echo is not None:
+                    echo(line)
+            return net
+        # Write-ahead: every namespace is on file before the first one exists.
+        net.state = st.new_run(scenario.name, source, mode, run_id, str(pool))
+        net.state.record_namespaces([n.netns for n in net.nodes.values()])
+    try:
+        if choice is not None:
+            links.write_backend(run_id, choice)
+        net._realise()
+        if choice is not None:
+            net.control = links.controller_for(net)
+            net.control.apply()
+        net.state.set_phase("up")
+    except BaseException:
+        net.teardown()
+        raise
+    return net

@@ -1,0 +1,265 @@
+"""The parts of a run's network: `Route`, `Node` (a namespace), `Link` (two nodes and a /30), `Net`
+(the whole run, a context manager that tears itself down)."""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import socket
+import subprocess
+from collections.abc import Iterator, Sequence
+from dataclasses import dataclass, field
+from ipaddress import IPv4Address, IPv4Interface, IPv4Network
+from typing import Any, Literal
+
+from pyroute2 import IPRoute
+from pyroute2.netlink.exceptions import NetlinkError as PyNetlinkError
+
+from netem.errors import NetlinkError
+from netem.netns import netns_path
+from testbed import links
+from testbed import state as st
+from testbed.addressing import LinkAddresses
+from testbed.errors import TestbedError
+from testbed.namespaces import EndNames, LinkEnds, Netns
+from testbed.scenario.model import LinkSpec, Role, Scenario
+from testbed.topology.names import OWNER_TAG
+from testbed.topology.teardown import Removed, remove_run
+
+# ---- the parts of a network ----------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class Route:
+    """`dst` ('default' or a network) via `via` out of interface `dev`."""
+
+    dst: str
+    via: IPv4Address
+    dev: str
+
+
+@dataclass(eq=False)
+class Node:
+    """A vehicle, gNB or core: a namespace with interfaces (named after their peers)."""
+
+    name: str
+    role: Role
+    netns: str
+    net: Net = field(repr=False)
+    interfaces: dict[str, IPv4Interface] = field(default_factory=dict)
+    routes: list[Route] = field(default_factory=list)
+    forwarding: bool = False
+    ns: Netns | None = field(default=None, repr=False)  # None in a dry run or after teardown
+
+    def addresses(self) -> str:
+        """'gnb1 10.200.0.1/30' per interface, comma separated."""
+        return ", ".join(f"{ifname} {addr}" for ifname, addr in self.interfaces.items())
+
+    def address_towards(self, peer: str) -> IPv4Address:
+        """This node's address on the link to `peer` (its interface is named after `peer`)."""
+        return self.interfaces[peer].ip
+
+    @property
+    def ipr(self) -> IPRoute:
+        """The netlink socket inside this node's namespace (owned by the Net; don't close)."""
+        return self._ns().ipr
+
+    @contextlib.contextmanager
+    def entered(self) -> Iterator[None]:
+        """Run the calling thread inside this node's namespace for the block."""
+        with self._ns().entered():
+            yield
+
+    def socket(
+        self, family: int = socket.AF_INET, type: int = socket.SOCK_DGRAM, proto: int = 0
+    ) -> socket.socket:
+        """A socket inside this node's namespace (no process needed)."""
+        return self._ns().socket(family, type, proto)
+
+    def nsenter_argv(self, argv: Sequence[str]) -> list[str]:
+        """`argv` prefixed to run inside this node's namespace (nsenter setns()s, then execs)."""
+        return ["nsenter", f"--net={netns_path(self.netns)}", "--", *argv]
+
+    def popen(self, argv: Sequence[str], what: str = "", **kwargs: Any) -> subprocess.Popen[Any]:
+        """Start `argv` inside this namespace; the run's state records it, so `down`/`clean`
+        stop it even if this process dies."""
+        self._ns()
+        proc = subprocess.Popen(self.nsenter_argv(argv), **kwargs)
+        self.net.adopt(proc, what or f"{self.name}: {argv[0]}")
+        return proc
+
+    def read_sysctl(self, key: str) -> str:
+        return self._ns().read_sysctl(key)
+
+    def _ns(self) -> Netns:
+        if self.ns is None:
+            raise TestbedError(f"node {self.name} has no namespace (dry run or torn down)")
+        return self.ns
+
+
+@dataclass(eq=False)
+class Link:
+    """Two nodes joined by a /30; `lower` is the vehicle (air) or the gNB (backhaul)."""
+
+    name: str
+    kind: Literal["air", "backhaul"]
+    lower: Node
+    upper: Node
+    addresses: LinkAddresses
+    spec: LinkSpec | None = None  # the scenario's profiles for it, when the scenario has them
+
+    @property
+    def ends(self) -> EndNames:
+        return EndNames(
+            lower_netns=self.lower.netns,
+            lower_ifname=self.upper.name,
+            upper_netns=self.upper.netns,
+            upper_ifname=self.lower.name,
+        )
+
+    def end_namespaces(self) -> tuple[Netns, Netns]:
+        """The two nodes' namespaces (what a `LinkEnds` backend creates the interfaces in)."""
+        return self.lower._ns(), self.upper._ns()
+
+
+class Net:
+    """A run's network. Build it with `build`; use it as a context manager to tear it down."""
+
+    def __init__(
+        self,
+        scenario: Scenario,
+        run_id: str,
+        pool: IPv4Network,
+        mode: st.Mode,
+        backend: LinkEnds,
+        dry_run: bool,
+    ) -> None:
+        self.scenario = scenario
+        self.run_id = run_id
+        self.pool = pool
+        self.mode = mode
+        self.backend = backend
+        self.dry_run = dry_run
+        self.nodes: dict[str, Node] = {}
+        self.links: dict[str, Link] = {}
+        self.state: st.RunState | None = None
+        # What carries the links (`links.choose_backend`), and the controller of the live
+        # links; None when the caller chose plain ends itself (links not emulated).
+        self.link_backend: links.BackendChoice | None = None
+        self.control: links.LinkController | None = None
+        self._children: list[subprocess.Popen[Any]] = []
+        self._removed: Removed | None = None
+
+    def __getitem__(self, name: str) -> Node:
+        return self.nodes[name]
+
+    def __enter__(self) -> Net:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.teardown()
+
+    # ---- resources other modules add ---------------------------------------------------
+
+    def record_pid(self, pid: int, what: str = "") -> None:
+        """Record a process that belongs to this run (teardown/clean stop it)."""
+        if self.state is not None:
+            self.state.record_pid(st.ProcessRef.of(pid, what))
+
+    def adopt(self, proc: subprocess.Popen[Any], what: str = "") -> None:
+        """Record a child process; teardown also reaps it."""
+        self._children.append(proc)
+        self.record_pid(proc.pid, what)
+
+    def record_cgroup(self, path: str | os.PathLike[str]) -> None:
+        """Record a cgroup directory BEFORE creating it; teardown/clean remove it."""
+        if self.state is not None:
+            self.state.record_cgroup(str(path))
+
+    # ---- plan --------------------------------------------------------------------------
+
+    def commands(self) -> list[str]:
+        """The `ip` commands equivalent to what `build` does (what `--dry-run` prints)."""
+        cmds = [f"ip netns add {n.netns}" for n in self.nodes.values()]
+        cmds += [f"ip -n {n.netns} link set lo up" for n in self.nodes.values()]
+        for link in self.links.values():
+            cmds += self.backend.commands(link.ends)
+        for link in self.links.values():
+            for node, ifname in ((link.lower, link.upper.name), (link.upper, link.lower.name)):
+                cmds.append(f"ip -n {node.netns} addr add {node.interfaces[ifname]} dev {ifname}")
+                cmds.append(f"ip -n {node.netns} link set {ifname} up")
+        for node in self.nodes.values():
+            for r in node.routes:
+                cmds.append(f"ip -n {node.netns} route add {r.dst} via {r.via} dev {r.dev}")
+        for node in self.nodes.values():
+            if node.forwarding:
+                cmds.append(f"ip netns exec {node.netns} sysctl -w net.ipv4.ip_forward=1")
+        return cmds
+
+    # ---- realise -----------------------------------------------------------------------
+
+    def _realise(self) -> None:
+        tag = f"{OWNER_TAG}{self.state.path if self.state else '?'}"
+        step = ""
+        index: dict[tuple[str, str], int] = {}  # (node, ifname) -> ifindex, looked up once
+        try:
+            for node in self.nodes.values():
+                step = f"creating namespace {node.netns}"
+                node.ns = Netns.create(node.netns)
+                # lo up, and tagged with the owning state file so `clean` run against another
+                # state directory can tell this namespace is somebody's, not an orphan.
+                node.ns.ipr.link("set", index=1, state="up", ifalias=tag)
+            for link in self.links.values():
+                step = f"creating link {link.name} ({self.backend.name})"
+                self.backend.create(link, self)
+            for link in self.links.values():
+                for node, ifname in ((link.lower, link.upper.name), (link.upper, link.lower.name)):
+                    step = f"configuring {ifname} in {node.netns}"
+                    ns = node._ns()
+                    idx = index[node.name, ifname] = ns.ifindex(ifname)
+                    addr = node.interfaces[ifname]
+                    ns.ipr.addr(
+                        "add", index=idx, address=str(addr.ip), prefixlen=addr.network.prefixlen
+                    )
+                    ns.ipr.link("set", index=idx, state="up")
+            for node in self.nodes.values():
+                for r in node.routes:
+                    step = f"adding route {r.dst} via {r.via} in {node.netns}"
+                    dst = "0.0.0.0/0" if r.dst == "default" else r.dst
+                    node._ns().ipr.route(
+                        "add", dst=dst, gateway=str(r.via), oif=index[node.name, r.dev]
+                    )
+            for node in self.nodes.values():
+                if node.forwarding:
+                    step = f"enabling forwarding in {node.netns}"
+                    node._ns().write_sysctl("net.ipv4.ip_forward", "1")
+        except PyNetlinkError as err:
+            raise NetlinkError(f"{step}: the kernel said: {err.args[-1]}") from None
+        except OSError as err:
+            raise NetlinkError(f"{step}: {err.strerror or err}") from None
+
+    # ---- teardown ----------------------------------------------------------------------
+
+    def teardown(self) -> Removed:
+        """Remove everything this run created (idempotent)."""
+        if self._removed is not None:
+            return self._removed
+        if self.control is not None:
+            self.control.close()  # helper threads first; a run's own relays stop with it
+        if self.dry_run or self.state is None:
+            self._removed = Removed(self.run_id)
+            return self._removed
+        removed = remove_run(self.state, children=self._children, open_ns=self._open_ns())
+        for node in self.nodes.values():
+            node.ns = None
+        self._removed = removed
+        return removed
+
+    def backend_text(self) -> str:
+        """The link backend as run.json and `testbed up` name it."""
+        if self.link_backend is None:
+            return f"none (plain {self.backend.name}, links not emulated)"
+        return self.link_backend.describe()
+
+    def _open_ns(self) -> list[Netns]:
+        return [n.ns for n in self.nodes.values() if n.ns is not None]

@@ -1,0 +1,20 @@
+"""How a run's namespaces are named and tagged, so `clean` can tell ours from anyone else's."""
+
+from __future__ import annotations
+
+import re
+from collections.abc import Callable
+
+from testbed.scenario.schema_v1 import NODE_NAME_PATTERN
+
+NODE_NAME_RE = re.compile(NODE_NAME_PATTERN)  # the schema's: one pattern for names
+NETNS_PREFIX = "el-"
+RUN_NETNS_RE = re.compile(r"^el-([0-9a-f]{6})-")
+OWNER_TAG = "edgeloc-testbed state="  # lo's alias in each namespace: which state file owns it
+STOP_GRACE_S = 0.5  # SIGTERM, then SIGKILL after this long
+
+Echo = Callable[[str], None]
+
+
+def netns_name(run_id: str, node: str) -> str:
+    return f"{NETNS_PREFIX}{run_id}-{node}"
