@@ -20,8 +20,9 @@ from typer.testing import CliRunner
 
 from netem.netns import NETNS_DIR
 from testbed import cgroups, check, console
-from testbed.check import Check, CheckReport
+from testbed.check import Check, CheckReport, netem_probe, sandbox
 from testbed.cli import EXIT_HOST, app
+from testbed.errors import BadInput
 
 REQUIRED = {"root", "netns", "veth", "tun", "qdisc htb", "qdisc pfifo"}
 
@@ -186,14 +187,14 @@ def test_required_checks_and_verdict(report: CheckReport) -> None:
 def test_netem_available_agrees_and_is_cached(
     report: CheckReport, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    monkeypatch.setattr(check, "_netem", None)
+    monkeypatch.setattr(netem_probe, "_netem", None)
     assert check.netem_available() == report["qdisc netem"].ok
     assert check.netem_status()[1] == report["qdisc netem"].detail
 
     def no_second_probe(kind: str) -> tuple[bool, str]:
         raise AssertionError("netem was probed twice in one process")
 
-    monkeypatch.setattr(check, "probe_qdisc", no_second_probe)
+    monkeypatch.setattr(netem_probe, "probe_qdisc", no_second_probe)
     assert check.netem_available() == report["qdisc netem"].ok
 
 
@@ -251,7 +252,7 @@ def test_leftovers_of_a_killed_check_are_found_and_removed(ipns: IpNetns) -> Non
 
 def test_not_root_gives_reasons_and_exit_3(monkeypatch: pytest.MonkeyPatch) -> None:
     monkeypatch.setattr(os, "geteuid", lambda: 1000)
-    monkeypatch.setattr(check, "_effective_caps", lambda: 0)
+    monkeypatch.setattr(sandbox, "_effective_caps", lambda: 0)
     before = _elchk_namespaces()
     result = CliRunner().invoke(app, ["check", "--json"])
     assert result.exit_code == EXIT_HOST
@@ -303,25 +304,25 @@ def test_report_verdicts() -> None:
 
 def test_error_text_names_errno_and_missing_module() -> None:
     err = NetlinkError(2)
-    assert check._netlink_text(err) == "RTNETLINK answers: No such file or directory (ENOENT)"
-    assert check._qdisc_failure("netem", err).startswith(
+    assert sandbox._netlink_text(err) == "RTNETLINK answers: No such file or directory (ENOENT)"
+    assert sandbox._qdisc_failure("netem", err).startswith(
         "kernel has no sch_netem: RTNETLINK answers: No such file or directory (ENOENT)"
     )
     # A refusal that is not "missing" must not be blamed on the kernel lacking the module.
-    assert check._qdisc_failure("htb", NetlinkError(1)) == (
+    assert sandbox._qdisc_failure("htb", NetlinkError(1)) == (
         "RTNETLINK answers: Operation not permitted (EPERM)"
     )
 
 
 def test_own_explanations_survive_in_os_errors() -> None:
     err = FileNotFoundError(2, "no /dev/net/tun: modprobe tun, or mknod /dev/net/tun c 10 200")
-    assert check._missing_hint(err, "TUN support") == (
+    assert sandbox._missing_hint(err, "TUN support") == (
         "kernel has no TUN support: no /dev/net/tun: modprobe tun, or mknod /dev/net/tun c 10 200 "
         "(ENOENT)"
     )
-    assert check._os_text(PermissionError(13, os.strerror(13))) == "Permission denied (EACCES)"
+    assert sandbox._os_text(PermissionError(13, os.strerror(13))) == "Permission denied (EACCES)"
 
 
 def test_probe_qdisc_rejects_unknown_kind() -> None:
-    with pytest.raises(check.BadInput, match="unknown qdisc kind 'cake'"):
+    with pytest.raises(BadInput, match="unknown qdisc kind 'cake'"):
         check.probe_qdisc("cake")
