@@ -14,6 +14,11 @@ latency, ok / timed out / error) and one DetectorEvent per update of the KL chan
 (`/<vehicle>/detector`, `reset` true on the update that reset the learner).
 While no edge server has been discovered, no request is sent (counted as `no_server_s`): the
 fusion node goes on with VO alone, which is the paper's fault tolerance.
+
+`RequestLoop` (ROS-free) holds what the loop decides and counts: the learner and its change
+detector, the split of each request, the cost each request is charged, and the statistics the
+node writes at exit; `main` only wires the camera topic, the action client and the publishers
+to it.
 """
 
 from __future__ import annotations
@@ -32,6 +37,7 @@ from nodes.edgeloc.bandit import AdaptiveSplitLearner
 from nodes.edgeloc.codec import encode
 from nodes.edgeloc.detector import ChangeEvent, KLChangeDetector
 from nodes.edgeloc.model import SPLITS, split_index
+from nodes.edgeloc.settings import ReplayConfig
 from nodes.edgeloc.train import load_model
 from nodes.recording.layout import vehicle_topic
 from nodes.ros.common import (
@@ -143,13 +149,182 @@ def detector_msg(
     )
 
 
+def goal_msg(
+    vehicle: str, frame: int, split: str, t0: float, codec: str, act: Any, blob: bytes
+) -> Any:
+    """The SplitInference goal of one request: the head's output `act`, encoded as `blob`."""
+    from edgeloc_interfaces.action import SplitInference
+
+    goal = SplitInference.Goal(vehicle=vehicle, frame_id=frame, split_name=split)
+    goal.split_index = split_index(split)
+    goal.capture_stamp = to_stamp(t0)
+    goal.codec = codec
+    goal.shape = array.array("i", list(act.shape))
+    goal.dtype = str(act.dtype).removeprefix("torch.")
+    goal.payload = array.array("B", blob)
+    return goal
+
+
+def answer_msg(
+    vehicle: str, frame: int, t0: float, pose: tuple[float, float, float], t_answer: float
+) -> Any:
+    """The edge's pose for the frame captured at `t0`, for the fusion node (stamp = t0)."""
+    from edgeloc_interfaces.msg import PoseEstimate
+
+    return PoseEstimate(
+        stamp=to_stamp(t0),
+        vehicle=vehicle,
+        method="dnn",
+        x=float(pose[0]),
+        y=float(pose[1]),
+        yaw=math.atan2(math.sin(pose[2]), math.cos(pose[2])),
+        latency_s=t_answer - t0,
+        frame_id=frame,
+    )
+
+
+class RequestLoop:
+    """Thread 2's decisions and bookkeeping, without ROS: which split each request plays, what
+    it is charged, and the counters the node writes at exit (`stats`).
+
+    Per request: `choose` (before the head runs), `sent` (the goal goes out), then, once the
+    answer came or the timeout passed, `charge` and, unless the split is fixed, `learn`.
+    """
+
+    def __init__(
+        self,
+        cfg: ReplayConfig,
+        vehicle: str,
+        edge: str,
+        timeout_s: float,
+        compute_budget: dict[str, Any],
+    ) -> None:
+        self.cfg, self.timeout_s = cfg, timeout_s
+        self.fixed_split = cfg.learner.fixed_split
+        self.learner = cfg.learner.build(list(cfg.splits), cfg.seed)
+        self.head_s: dict[str, list[float]] = {k: [] for k in cfg.splits}
+        self.chosen: list[list[Any]] = []  # [wall time, split, cost charged]
+        self.lat: dict[str, list[float]] = {k: [] for k in cfg.splits}
+        self.played: Counter[str] = Counter()
+        self.streaks: dict[str, int] = {}  # per arm: updates in a row with KL above threshold
+        self.last_latency = math.nan  # the last answered request's cost, for SplitDecision
+        self.stats: dict[str, Any] = {
+            "node": "inference_request",
+            "vehicle": vehicle,
+            "edge": edge,
+            "requests": 0,
+            "answers": 0,
+            "lost": 0,
+            "payload_bytes": 0,
+            "no_server_s": 0.0,
+            "resets": [],
+            "detector_updates": 0,
+            "compute_budget": compute_budget,
+        }
+
+    @property
+    def fixed(self) -> bool:
+        """The scenario plays one split (a baseline): the learner is never charged."""
+        return self.fixed_split is not None
+
+    def no_server(self, waited_s: float) -> None:
+        self.stats["no_server_s"] += waited_s
+
+    def choose(self, start: float) -> str:
+        """The split of the request that starts at `start` (wall clock)."""
+        split = self.fixed_split if self.fixed_split is not None else self.learner.select()
+        self.chosen.append([round(start, 3), split, None])
+        return split
+
+    def sent(self, split: str, head_s: float, payload_bytes: int) -> None:
+        """The head ran for `head_s` and a goal of `payload_bytes` went to the edge."""
+        self.head_s[split].append(head_s)
+        self.stats["requests"] += 1
+        self.stats["payload_bytes"] += payload_bytes
+        self.played[split] += 1
+
+    def charge(self, split: str, start: float, answered: bool, t_answer: float) -> float:
+        """The cost of the request: its own end-to-end time when answered, else the timeout
+        (a lost request brings no pose), as `nodes.edgeloc.replay` charges it."""
+        if not answered:
+            self.stats["lost"] += 1
+            cost = self.timeout_s
+        else:
+            self.stats["answers"] += 1
+            cost = t_answer - start
+            self.last_latency = cost
+            self.lat[split].append(cost)
+        self.chosen[-1][2] = round(cost, 4)
+        return cost
+
+    def learn(self, split: str, cost: float, t_answer: float) -> ChangeEvent | None:
+        """Charge the learner; the change the detector confirmed (the learner was reset), if
+        any. `stats` counts the detector updates and keeps every reset."""
+        event = self.learner.update(split, cost)
+        if self.learner.detector is not None:
+            self.stats["detector_updates"] += 1
+        if event is not None:
+            self.stats["resets"].append({"t": t_answer, "arm": event.arm, "kl": event.kl})
+        return event
+
+    def summary(self, start_s: float, end_s: float, recorded: Any) -> dict[str, Any]:
+        """The node's statistics at exit."""
+        stats = self.stats
+        stats["start_s"] = start_s
+        stats["end_s"] = end_s
+        # Every decision [wall time, split, cost], so a reader can see which split each phase
+        # preferred.
+        stats["decisions"] = self.chosen
+        stats["head_s"] = {
+            k: {"n": len(v), "mean": float(np.mean(v)), "p50": float(np.median(v)), "max": max(v)}
+            for k, v in self.head_s.items()
+            if v
+        }
+        stats["split_plays"] = {k: self.played[k] for k in self.cfg.splits}
+        stats["mean_latency_s"] = {
+            k: (float(np.mean(v)) if v else None) for k, v in self.lat.items()
+        }
+        stats["splits_known"] = list(SPLITS)
+        stats["recorded"] = recorded
+        return stats
+
+
+def _ask(
+    client: Any, goal: Any, deadline: float, stop: Any, frame: int
+) -> tuple[tuple[float, float, float] | None, Any, float, str, bool]:
+    """Send `goal` and wait for its result until `deadline`: (pose or None, goal handle or
+    None, edge compute time, error text, whether the request timed out)."""
+    pose, handle = None, None
+    edge_s, error, timed_out = math.nan, "", False
+    sent = client.send_goal_async(goal)
+    if _wait(sent, deadline, stop):
+        handle = sent.result()
+        if handle is not None and handle.accepted:
+            res = handle.get_result_async()
+            if _wait(res, deadline, stop):
+                result = res.result().result
+                edge_s = result.edge_compute_s
+                if result.ok:
+                    p = result.pose.pose.pose
+                    yaw = 2.0 * math.atan2(p.orientation.z, p.orientation.w)
+                    pose = (p.position.x, p.position.y, yaw)
+                else:
+                    error = f"edge: {result.error}"
+                    emit("edge-error", frame=frame, error=result.error)
+            else:
+                timed_out, error = True, "no result within the request timeout"
+        else:
+            error = "goal rejected by the edge server"
+    else:
+        timed_out, error = True, "goal not acknowledged within the request timeout"
+    return pose, handle, edge_s, error, timed_out
+
+
 def main() -> int:
     args = NodeArgs.parse(prog="inference_request")
     cfg = args.config
-    lc = cfg.learner
     torch.set_num_threads(1)  # the head is small; one thread keeps the budget honest
     model = load_model(cfg.weights)
-    learner = lc.build(list(cfg.splits), cfg.seed)
     from edgeloc_interfaces.action import SplitInference
     from edgeloc_interfaces.msg import DetectorEvent, PoseEstimate
     from rclpy.action import ActionClient
@@ -159,23 +334,8 @@ def main() -> int:
     # The head (and its encoding) runs on its own thread, which joins the vehicle's compute
     # cgroup: the scenario's vehicle `cpu` throttles exactly the work a slow board would do.
     compute = ComputeThread(args.compute_cgroup, name="dnn-head")
-    head_s: dict[str, list[float]] = {k: [] for k in cfg.splits}
-    chosen: list[list[Any]] = []  # [wall time, split, cost charged]
-    lat: dict[str, list[float]] = {k: [] for k in cfg.splits}
-    played: Counter[str] = Counter()
-    stats: dict[str, Any] = {
-        "node": "inference_request",
-        "vehicle": args.vehicle,
-        "edge": args.edge,
-        "requests": 0,
-        "answers": 0,
-        "lost": 0,
-        "payload_bytes": 0,
-        "no_server_s": 0.0,
-        "resets": [],
-        "detector_updates": 0,
-        "compute_budget": compute.budget,
-    }
+    loop = RequestLoop(cfg, args.vehicle, args.edge, args.timeout_s, compute.budget)
+    learner = loop.learner
     with ros_node(f"{args.vehicle}_inference_request", record=args.record) as ros:
         node, stop = ros.node, ros.stop
 
@@ -191,15 +351,14 @@ def main() -> int:
         decisions = ros.publisher(SplitDecision, vehicle_topic(args.vehicle, "split_decision"), 50)
         detector = ros.publisher(DetectorEvent, vehicle_topic(args.vehicle, "detector"), 50)
         outcomes = ros.publisher(InferenceResult, vehicle_topic(args.vehicle, "inference"), 50)
-        streaks: dict[str, int] = {}  # per arm: updates in a row with KL above threshold
         client = ros.owns(ActionClient(node, SplitInference, action_name(args.edge)))
         emit(READY, node="inference_request", action=action_name(args.edge))
-        last_frame, last_latency = -1, math.nan
-        stats["start_s"] = time.time()
+        last_frame = -1
+        start_s = time.time()
         while not stop:
             if not client.server_is_ready():
                 stop.wait(0.1)
-                stats["no_server_s"] += 0.1
+                loop.no_server(0.1)
                 continue
             got = latest.newer_than(last_frame, timeout_s=0.2)
             if got is None:
@@ -207,12 +366,10 @@ def main() -> int:
             frame, t0, image = got
             last_frame = frame
             start = time.time()
-            fixed = lc.fixed_split is not None
-            split = lc.fixed_split if fixed else learner.select()
+            split = loop.choose(start)
             decisions.publish(
-                decision_msg(args.vehicle, learner, split, fixed, frame, last_latency)
+                decision_msg(args.vehicle, learner, split, loop.fixed, frame, loop.last_latency)
             )
-            chosen.append([round(start, 3), split, None])
 
             def head(split: str = split, image: np.ndarray = image) -> tuple[Any, bytes]:
                 with torch.no_grad():
@@ -220,41 +377,10 @@ def main() -> int:
                 return act, encode(act, cfg.codec)
 
             (act, blob), took = compute.run(head)
-            head_s[split].append(took)
-            goal = SplitInference.Goal(vehicle=args.vehicle, frame_id=frame, split_name=split)
-            goal.split_index = split_index(split)
-            goal.capture_stamp = to_stamp(t0)
-            goal.codec = cfg.codec
-            goal.shape = array.array("i", list(act.shape))
-            goal.dtype = str(act.dtype).removeprefix("torch.")
-            goal.payload = array.array("B", blob)
-            stats["requests"] += 1
-            stats["payload_bytes"] += len(blob)
-            played[split] += 1
+            goal = goal_msg(args.vehicle, frame, split, t0, cfg.codec, act, blob)
+            loop.sent(split, took, len(blob))
             deadline = time.monotonic() + args.timeout_s
-            pose, handle = None, None
-            edge_s, error, timed_out = math.nan, "", False
-            sent = client.send_goal_async(goal)
-            if _wait(sent, deadline, stop):
-                handle = sent.result()
-                if handle is not None and handle.accepted:
-                    res = handle.get_result_async()
-                    if _wait(res, deadline, stop):
-                        result = res.result().result
-                        edge_s = result.edge_compute_s
-                        if result.ok:
-                            p = result.pose.pose.pose
-                            yaw = 2.0 * math.atan2(p.orientation.z, p.orientation.w)
-                            pose = (p.position.x, p.position.y, yaw)
-                        else:
-                            error = f"edge: {result.error}"
-                            emit("edge-error", frame=frame, error=result.error)
-                    else:
-                        timed_out, error = True, "no result within the request timeout"
-                else:
-                    error = "goal rejected by the edge server"
-            else:
-                timed_out, error = True, "goal not acknowledged within the request timeout"
+            pose, handle, edge_s, error, timed_out = _ask(client, goal, deadline, stop, frame)
             t_answer = time.time()
 
             ok = pose is not None and not stop
@@ -278,55 +404,26 @@ def main() -> int:
             )
             if stop:
                 break
+            cost = loop.charge(split, start, pose is not None, t_answer)
             if pose is None:
-                stats["lost"] += 1
-                cost = args.timeout_s
                 if handle is not None and handle.accepted:
                     handle.cancel_goal_async()  # the edge may still hold it
             else:
-                stats["answers"] += 1
-                cost = t_answer - start
-                last_latency = cost
-                lat[split].append(cost)
-                answers.publish(
-                    PoseEstimate(
-                        stamp=to_stamp(t0),
-                        vehicle=args.vehicle,
-                        method="dnn",
-                        x=float(pose[0]),
-                        y=float(pose[1]),
-                        yaw=math.atan2(math.sin(pose[2]), math.cos(pose[2])),
-                        latency_s=t_answer - t0,
-                        frame_id=frame,
-                    )
-                )
-            chosen[-1][2] = round(cost, 4)
-            if fixed:
+                answers.publish(answer_msg(args.vehicle, frame, t0, pose, t_answer))
+            if loop.fixed:
                 continue
-            event = learner.update(split, cost)
+            event = loop.learn(split, cost, t_answer)
             if learner.detector is not None:
                 # One DetectorEvent per detector update (a few per second), resets flagged.
                 detector.publish(
-                    detector_msg(args.vehicle, learner.detector, split, event, streaks, t_answer)
+                    detector_msg(
+                        args.vehicle, learner.detector, split, event, loop.streaks, t_answer
+                    )
                 )
-                stats["detector_updates"] += 1
             if event is not None:
-                stats["resets"].append({"t": t_answer, "arm": event.arm, "kl": event.kl})
                 emit("reset", arm=event.arm, kl=event.kl)
     compute.close()
-    stats["end_s"] = time.time()
-    # Every decision [wall time, split, cost], so a reader can see which split each phase preferred.
-    stats["decisions"] = chosen
-    stats["head_s"] = {
-        k: {"n": len(v), "mean": float(np.mean(v)), "p50": float(np.median(v)), "max": max(v)}
-        for k, v in head_s.items()
-        if v
-    }
-    stats["split_plays"] = {k: played[k] for k in cfg.splits}
-    stats["mean_latency_s"] = {k: (float(np.mean(v)) if v else None) for k, v in lat.items()}
-    stats["splits_known"] = list(SPLITS)
-    stats["recorded"] = ros.recorded
-    write_stats(args.stats, stats)
+    write_stats(args.stats, loop.summary(start_s, time.time(), ros.recorded))
     return 0
 
 
