@@ -143,3 +143,26 @@ def test_no_module_imports_itself_back() -> None:
 def test_the_cycle_finder_finds_a_cycle() -> None:
     graph = {"a": {"b"}, "b": {"c"}, "c": {"a"}, "d": {"a"}}
     assert _cycles(graph) == [["a", "b", "c"]]
+
+
+def package_graph() -> dict[tuple[str, str], int]:
+    """(importing package, imported package) -> how many module-level imports cross that way,
+    packages as the layers name them (nodes.edgeloc, nodes.ros, nodes.recording, ...)."""
+
+    def package(module: str) -> str:
+        parts = module.split(".")
+        return ".".join(parts[:2]) if parts[0] == "nodes" and len(parts) > 1 else parts[0]
+
+    counts: dict[tuple[str, str], int] = {}
+    for module, imported in _module_graph().items():
+        for other in imported:
+            edge = (package(module), package(other))
+            if edge[0] != edge[1]:
+                counts[edge] = counts.get(edge, 0) + 1
+    return counts
+
+
+if __name__ == "__main__":  # python -m tests.test_layers: the import graph between packages
+    for (a, b), n in sorted(package_graph().items()):
+        print(f"{a} -> {b}: {n}")
+    print(f"module cycles: {_cycles(_module_graph()) or 'none'}")
