@@ -84,9 +84,11 @@ class LinkProfile:
 PROFILE_FIELDS: tuple[str, ...] = tuple(f.name for f in dataclasses.fields(LinkProfile))
 
 
-#: The smallest rate each backend can keep: HTB's is 8 bit/s; the relay's rate stage takes any
-#: rate >= 0 (0 stalls the direction).
-MIN_RATE_BPS = {"tc": 8.0, "userspace": 0.0}
+#: HTB's smallest useful rate: it cannot send at 0 bit/s, and a lower rate lets no packet through.
+HTB_MIN_RATE_BPS = 8.0
+#: The smallest rate each backend can keep: HTB's; the relay's rate stage takes any rate >= 0
+#: (0 stalls the direction).
+MIN_RATE_BPS = {"tc": HTB_MIN_RATE_BPS, "userspace": 0.0}
 
 
 def check_profile(profile: LinkProfile, backend: Literal["tc", "userspace"] = "userspace") -> None:

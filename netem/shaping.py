@@ -21,11 +21,9 @@ rather than drop packets; that is what Wondershaper on a real UE does too.
 from __future__ import annotations
 
 from netem.errors import ProfileError
+from netem.profile import HTB_MIN_RATE_BPS
 from netem.tc import IngressShaper, ShapedInterface
 from netem.tc_plan import UNLIMITED_BPS
-
-#: HTB's smallest useful rate: a cap below it would never let a packet through.
-MIN_CAP_BPS = 8.0
 
 
 def check_caps(uplink_bps: float | None, downlink_bps: float | None) -> None:
@@ -33,7 +31,7 @@ def check_caps(uplink_bps: float | None, downlink_bps: float | None) -> None:
     if uplink_bps is None and downlink_bps is None:
         raise ProfileError("shape needs an uplink rate, a downlink rate or both")
     for name, value in (("uplink", uplink_bps), ("downlink", downlink_bps)):
-        if value is not None and not value >= MIN_CAP_BPS:
+        if value is not None and not value >= HTB_MIN_RATE_BPS:
             raise ProfileError(
                 f"shape {name} = {value!r}: must be a rate of at least 8 bit/s, or null"
             )
@@ -101,7 +99,6 @@ def shape(
     A direction given as None keeps whatever cap it has. Returns the `tc`/`ip` command lines
     in a dry run (nothing is changed then), else an empty list.
     """
-    check_caps(uplink_bps, downlink_bps)
     with NodeShaper(node_ns, ifname, dry_run=dry_run) as shaper:
         shaper.shape(uplink_bps, downlink_bps)
         return shaper.commands

@@ -8,7 +8,6 @@ returns home (`netem.netns.in_netns`: setns moves only the calling thread).
 
 from __future__ import annotations
 
-import ctypes
 import errno
 import fcntl
 import ipaddress
@@ -27,8 +26,6 @@ IFF_NO_PI = 0x1000
 IFNAMSIZ = 16
 #: Largest IP packet a TUN device can carry (the MTU may be at most this).
 MAX_MTU = 65535
-
-_libc = ctypes.CDLL(None, use_errno=True)
 
 
 class TunError(NetemError, OSError):

@@ -35,7 +35,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Literal, Protocol
 
-from netem.profile import LinkProfile
+from netem.profile import HTB_MIN_RATE_BPS, LinkProfile
 from netem.shaping import NodeShaper, check_caps
 from netem.tc import TcLinkBackend, shaping_end
 from netem.tc_plan import needs_netem
@@ -115,8 +115,6 @@ DIRECTIONS: tuple[Direction, Direction] = ("uplink", "downlink")
 #: Bytes a link carries per IP packet beyond the packet itself: HTB on a veth counts the
 #: 14-byte Ethernet header, the relay counts IP packets as read from the TUN device.
 FRAME_OVERHEAD = {"tc": 14, "userspace": 0}
-#: HTB cannot send at 0 bit/s; a trace's zero-rate step becomes this.
-MIN_RATE_BPS = 8.0
 #: The netem fields a profile may change; `set` events naming any of them need netem on tc.
 NETEM_FIELDS = ("delay_s", "jitter_s", "loss", "gilbert_elliott")
 #: In a run's link-state folder (state dir, not the results folder): the backend, and each
@@ -455,7 +453,7 @@ class _Base:
         return self._caps[node]
 
     def shape(self, node: str, uplink_bps: float | None, downlink_bps: float | None) -> None:
-        check_caps(uplink_bps, downlink_bps)
+        check_caps(uplink_bps, downlink_bps)  # before any socket is opened for the node
         shaper = self._shaper(node)
         with self._lock:
             shaper.shape(uplink_bps, downlink_bps)
@@ -641,7 +639,8 @@ class TcController(_Base):
             for at_s, rate in _steps_forever(steps, loop):
                 if self._stop.wait(max(0.0, start + at_s - time.monotonic())):
                     return
-                self.set(link, direction, {"rate_bps": max(MIN_RATE_BPS, rate)})
+                # a window with no opportunity: HTB cannot send at 0 bit/s
+                self.set(link, direction, {"rate_bps": max(HTB_MIN_RATE_BPS, rate)})
 
         self._later(f"trace-{link}-{direction}", replay)
 

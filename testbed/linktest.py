@@ -35,7 +35,7 @@ import statistics
 import struct
 import time
 from dataclasses import asdict, dataclass, field
-from typing import TYPE_CHECKING, Any, ClassVar
+from typing import TYPE_CHECKING, Any
 
 from netem.netns import netns_path
 from netem.profile import LinkProfile
@@ -315,14 +315,8 @@ class LinkTestReport:
             ],
         }
 
-    def rows(self) -> list[list[str]]:
-        """One table row per link direction: figures, then each verdict (`linktable`, the
-        columns the report prints too)."""
-        return linktable.rows(self.to_dict())
-
-    HEADERS: ClassVar[tuple[str, ...]] = linktable.HEADERS
-
     def text(self) -> str:
+        """The table (`nodes.recording.linktable`, the columns the report prints too)."""
         lines = [linktable.text(self.to_dict())]
         if self.host_cpu is not None:
             lines.append(f"host during the test: {self.host_cpu.text()}")

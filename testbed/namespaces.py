@@ -33,6 +33,7 @@ from pyroute2 import IPRoute
 
 from netem.errors import NetlinkError
 from netem.netns import (
+    CLONE_NEWNET,
     NETNS_DIR,
     delete_netns,
     in_netns,
@@ -41,7 +42,6 @@ from netem.netns import (
 )
 from testbed.errors import HostError
 
-CLONE_NEWNET = 0x40000000
 _MS_REC = 0x4000
 _MS_BIND = 0x1000
 _MS_SHARED = 1 << 20

@@ -323,10 +323,6 @@ class ReplayRun:
     result: ReplayResult
     summary: dict[str, Any]
 
-    @property
-    def run_id(self) -> str:
-        return self.folder.name
-
 
 def replay_scenario(
     scenario: Scenario,

@@ -696,7 +696,6 @@ def test_the_cli_and_the_report_print_one_link_test_table() -> None:
     d.verdicts = [Verdict("tcp Mbit/s", 9.5, 10.0, "5%", True)]
     report = LinkTestReport("userspace", True, [LinkResult("av1-gnb1", 10.2, 11.0, [d])])
     rows = linktable.rows(report.to_dict())
-    assert report.rows() == rows
     assert rows[0][:4] == ["av1-gnb1", "uplink", "10.20/11.00", "0.012"]
     assert report.text().splitlines()[0].split("  ")[0] == linktable.HEADERS[0]
     assert all(cell in report.text() for cell in rows[0] if cell)

@@ -25,22 +25,20 @@ def strict_json(value: Any) -> Any:
     return value
 
 
-def json_default(value: object) -> object:
+def _json_default(value: object) -> object:
     """Anything json cannot encode (a Path, an address) as its text."""
     return str(value)
 
 
 def dumps(value: Any, indent: int | None = 2) -> str:
     """Strict JSON text of `value` (what `write_json` writes, without the newline)."""
-    return json.dumps(strict_json(value), indent=indent, default=json_default, allow_nan=False)
+    return json.dumps(strict_json(value), indent=indent, default=_json_default, allow_nan=False)
 
 
-def write_json(path: Path, data: object, mode: int | None = None) -> None:
-    """Write `data` to `path` as strict JSON, atomically; `mode` sets the file's permissions."""
+def write_json(path: Path, data: object) -> None:
+    """Write `data` to `path` as strict JSON, atomically."""
     path = Path(path)
     # Per process: two writers of one file (a node and `testbed clean`) never share a temp file.
     tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
     tmp.write_text(dumps(data) + "\n")
-    if mode is not None:
-        os.chmod(tmp, mode)
     tmp.replace(path)
