@@ -278,10 +278,19 @@ def replay(
     file: ScenarioFile,
     runs_dir: RunsDir = Path("runs"),
     json_out: JsonFlag = False,
+    compare: Annotated[
+        bool,
+        typer.Option(
+            "--compare/--no-compare",
+            help="Also replay EdgeLoc with every fixed split and the per-phase oracle "
+            "(K + 2 more replays).",
+        ),
+    ] = True,
 ) -> None:
     """Replay the scenario's EdgeLoc workload in one process (no network, faster than real
     time): VO, DNN, Kalman and EdgeLoc errors beside the paper's, the learner per bandwidth
-    phase; writes runs/<id>/summary.json and TUM trajectories.
+    phase, and EdgeLoc with every fixed split and the oracle on the same drive; writes
+    runs/<id>/summary.json and TUM trajectories.
 
     Example: testbed replay scenarios/default.yaml
     """
@@ -289,7 +298,7 @@ def replay(
     from testbed.scenario import load
 
     try:
-        done = replay_scenario(load(file), runs_dir)
+        done = replay_scenario(load(file), runs_dir, compare=compare)
     except KNOWN_ERRORS as err:
         raise _fail(err) from None
     if json_out:
@@ -298,6 +307,11 @@ def replay(
     con.table(REPLAY_HEADERS, replay_rows(done.summary))
     for line in replay_phase_lines(done.summary):
         con.plain(line)
+    splits = done.summary.get("splits")
+    if splits:
+        con.table(split_headers(splits), split_rows(splits))
+        for line in split_phase_lines(splits):
+            con.plain(line)
     resets = done.summary["learner"]["resets"]
     con.plain(f"detector resets: {len(resets)}; compute: {done.result.latency.compute.source}")
     con.plain(f"wrote {done.folder}/ (summary.json, *.tum) in {done.result.wall_s:.1f} s")
@@ -334,6 +348,43 @@ def replay_phase_lines(summary: dict[str, Any]) -> list[str]:
             f"chose {ph['chosen']}, best in hindsight {ph['best_in_hindsight']} "
             f"({100 * ph['share_best']:.0f}% of {ph['plays']} plays, "
             f"{100 * ph['share_best_last_third']:.0f}% in the last third; " + converged
+        )
+    return lines
+
+
+def split_headers(splits: dict[str, Any]) -> list[str]:
+    phases = [f"{p['start_s']:g}-{p['end_s']:g} s err m / ms" for p in splits["phases"]]
+    return ["EdgeLoc with", "total m", *phases]
+
+
+def split_rows(splits: dict[str, Any]) -> list[list[str]]:
+    """Per policy (learned, each fixed split, oracle): total error and, per phase, mean error
+    and mean request latency."""
+    rows = []
+    for r in splits["rows"]:
+        cells = []
+        for f in r["phases"]:
+            lat = f["mean_latency_s"]
+            cells.append(
+                f"{f['mean_error_m']:.2f} / " + ("-" if lat is None else f"{lat * 1e3:.0f}")
+            )
+        rows.append([r["policy"], f"{r['total_m']:.1f}", *cells])
+    return rows
+
+
+def split_phase_lines(splits: dict[str, Any]) -> list[str]:
+    """Per phase, the fastest and the most accurate split; then where they disagree."""
+    lines = [
+        f"phase {p['start_s']:g}-{p['end_s']:g} s: fastest {p['latency_best']}, most accurate "
+        f"{p['error_best']}"
+        + ("" if p["monotone"] in (True, None) else "; error not monotone in latency")
+        for p in splits["phases"]
+    ]
+    beats = splits["learned_beats_fixed"]
+    if beats is not None:
+        lines.append(
+            f"learned {'beats' if beats else 'does not beat'} every fixed split "
+            f"(best fixed: {splits['best_fixed']}; latencies: {splits['latency_source']})"
         )
     return lines
 

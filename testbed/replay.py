@@ -33,6 +33,8 @@ from typing import Any
 
 from netem.profile import LinkProfile
 from netem.traces import Trace, load_trace
+from nodes.edgeloc.compare import compare_splits
+from nodes.edgeloc.dataset import open_dataset
 from nodes.edgeloc.gate import GateSettings
 from nodes.edgeloc.latency import (
     ComputeProfile,
@@ -42,12 +44,14 @@ from nodes.edgeloc.latency import (
     PathState,
 )
 from nodes.edgeloc.replay import (
+    InferenceCache,
     KalmanSettings,
     LearnerSettings,
     ReplayConfig,
     ReplayResult,
     run_replay,
 )
+from nodes.edgeloc.train import load_model
 from nodes.recording import layout as names
 from nodes.recording.jsonfile import write_json
 from testbed.errors import BadInput
@@ -106,6 +110,7 @@ def replay_config(scenario: Scenario, gate: GateSettings | None = DEFAULT_GATE) 
         ),
         k_s=w.fusion.k_s,
         dt0_s=w.fusion.dt0_s,
+        robust_c=w.fusion.robust_c,
         kalman=KalmanSettings(w.kalman.q_pos, w.kalman.q_yaw, w.kalman.r_pos, w.kalman.r_yaw),
         gate=gate,
         phases=tuple(times),
@@ -329,18 +334,37 @@ def replay_scenario(
     runs_dir: Path,
     compute: ComputeProfile | None = None,
     gate: GateSettings | None = DEFAULT_GATE,
+    compare: bool = True,
 ) -> ReplayRun:
     """Replay and write runs/<id>/ (summary.json, TUM trajectories, scenario.yaml).
+
+    With `compare`, summary.json's `splits` holds EdgeLoc with every fixed split and the
+    oracle on the same drive (`nodes.edgeloc.compare`; K + 2 more replays).
     Raises BadInput for a dataset or weights the scenario names that cannot be used."""
     config = replay_config(scenario, gate=gate)
     model = latency_model(scenario, compute)
     try:
-        result = run_replay(config, model)
+        dataset = open_dataset(
+            config.dataset,
+            seed=config.seed,
+            rate_hz=config.rate_hz,
+            duration_s=config.duration_s,
+            corruption=config.corruption,
+        )
+        net = load_model(config.weights)
+        cache = InferenceCache(net, dataset, config.codec)
+        result = run_replay(config, model, dataset, net, cache)
+        splits = None
+        if compare:
+            learned = result if config.learner.fixed_split is None else None
+            splits = compare_splits(config, model, dataset, net, cache, learned).to_dict()
     except ValueError as err:  # a bad dataset folder, weights that do not fit
         raise BadInput(f"{scenario.name}: {err}") from None
     folder = Path(runs_dir) / secrets.token_hex(3)
     summary = result.write(folder)
     summary["run_id"] = folder.name
+    if splits is not None:
+        summary["splits"] = splits
     write_json(folder / names.SUMMARY_FILE, summary)
     if scenario.source is not None and Path(scenario.source).is_file():
         shutil.copyfile(scenario.source, folder / names.SCENARIO_FILE)

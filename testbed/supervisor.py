@@ -49,9 +49,10 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from nodes.edgeloc.settings import config_to_dict
 from nodes.recording import layout as names
 from nodes.recording.jsonfile import write_json
-from nodes.ros.common import READY, config_to_dict
+from nodes.ros.common import READY
 from nodes.ros.env import RosEnv, domain_id_for
 from testbed import cgroups
 from testbed.cgroups import CpuBudget

@@ -16,7 +16,8 @@ from nodes.edgeloc.dataset import open_dataset
 from nodes.edgeloc.gate import GateSettings
 from nodes.edgeloc.metrics import position_errors
 from nodes.edgeloc.replay import ReplayConfig
-from nodes.ros.common import ComputeThread, NodeArgs, config_from_dict, config_to_dict
+from nodes.edgeloc.settings import config_from_dict, config_to_dict
+from nodes.ros.common import ComputeThread, NodeArgs
 from nodes.ros.fusion_node import Scoreboard, VehicleEstimators
 from nodes.ros.link_events import LineFollower
 from testbed.replay import replay_config
@@ -105,7 +106,10 @@ def test_no_answers_leave_every_estimator_on_vo() -> None:
 
 
 def test_gate_rejects_a_far_answer_for_both_dnn_estimators() -> None:
-    est = VehicleEstimators(ReplayConfig(gate=GateSettings(radius_m=10.0)))
+    # The paper's steep weight: one accepted answer moves the fused pose onto it, so the gate
+    # counts exactly one recovery's worth of rejections.
+    cfg = ReplayConfig(k_s=20.0, dt0_s=0.25, robust_c=None, gate=GateSettings(radius_m=10.0))
+    est = VehicleEstimators(cfg)
     poses, gt = _drive(est, answers_every=2, latency_s=0.05, offset=500.0)
     assert est.gated["edgeloc"] > 0 and est.gated["kalman"] > 0
     # The gate held the fused pose on the road until the consistent 500 m story had been told

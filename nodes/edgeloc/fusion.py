@@ -6,6 +6,15 @@ calls `on_dnn` when a DNN answer L_alpha(t0) for a frame captured at t0 arrives 
 answer is moved to the time of the latest VO frame with the VO motion since t0 (time-zone
 revision) and blended into L_r with the weight u = 1 − Λ(t_now − t0).
 
+BEYOND THE PAPER (optional, `robust_c`): an uncertainty term from the answers themselves. The
+paper's u depends on the latency only, so an answer that lands 8 m away from where the fused
+pose and its VO say the car is pulls as hard as one that agrees with them. With `robust_c = c`
+the weight is multiplied by the Cauchy weight 1 / (1 + (r / (c·s))²) of the answer's innovation
+r (its distance from L_r, after revision), where s is the median innovation of the last
+`ROBUST_HISTORY` answers: an answer as far off as the recent typical one keeps ~1/(1 + 1/c²)
+of its weight, one ten times as far keeps ~c²/100. It reads nothing the vehicle does not have.
+`robust_c = None` is the paper's bare form.
+
 Every pose is an SE(2) numpy array [x, y, yaw] (see `geometry`). All times are seconds on the
 vehicle's clock.
 """
@@ -114,6 +123,28 @@ def _check_times(t0: float, t_now: float) -> tuple[float, float]:
     return t0, t_now
 
 
+ROBUST_HISTORY = 50  # answers whose median innovation is the robust scale s
+ROBUST_MIN = 5  # answers before s is trusted (until then each answer is its own scale)
+
+
+class InnovationScale:
+    """The median innovation of the last `history` answers: the robust scale s of `robust_c`."""
+
+    def __init__(self, history: int = ROBUST_HISTORY, minimum: int = ROBUST_MIN) -> None:
+        self.history, self.minimum = history, minimum
+        self._seen: list[float] = []
+
+    def weight(self, innovation: float, c: float) -> float:
+        """Cauchy weight of `innovation` against the scale before it; then remember it."""
+        seen = self._seen
+        s = float(np.median(seen)) if len(seen) >= self.minimum else innovation
+        seen.append(innovation)
+        del seen[: -self.history]
+        if s <= 1e-9:
+            return 1.0
+        return 1.0 / (1.0 + (innovation / (c * s)) ** 2)
+
+
 class EdgeLocFuser:
     """Holds the fused pose L_r; VO frames dead-reckon it, DNN answers pull it back (§4.2).
 
@@ -121,17 +152,27 @@ class EdgeLocFuser:
     taken as the world frame). A DNN answer is dropped (None) when no VO pose is known at its
     capture time t0 (before the first VO frame or older than `history_s`). Both entry points
     take a lock: the ROS node calls them from its real-time and its inference threads.
+    `robust_c` (beyond the paper, see the module doc) scales u by the answer's Cauchy weight.
     """
 
     def __init__(
-        self, k_s: float, dt0_s: float, history_s: float = 10.0, initial: Pose | None = None
+        self,
+        k_s: float,
+        dt0_s: float,
+        history_s: float = 10.0,
+        initial: Pose | None = None,
+        robust_c: float | None = None,
     ) -> None:
         if not (math.isfinite(k_s) and k_s > 0):
             raise ValueError(f"fusion k_s must be a positive number (1/s), got {k_s!r}")
         if not math.isfinite(dt0_s):
             raise ValueError(f"fusion dt0 must be a finite number of seconds, got {dt0_s!r}")
+        if robust_c is not None and not (math.isfinite(robust_c) and robust_c > 0):
+            raise ValueError(f"fusion robust c must be a positive number, got {robust_c!r}")
         self.k_s = float(k_s)
         self.dt0_s = float(dt0_s)
+        self.robust_c = None if robust_c is None else float(robust_c)
+        self._scale = InnovationScale()
         self._vo = VoHistory(history_s)
         self._pose: Pose | None = None if initial is None else as_pose(initial, "initial pose")
         self._lock = threading.Lock()
@@ -167,6 +208,9 @@ class EdgeLocFuser:
                 return None
             revised = time_zone_revision(l_alpha_t0, l_beta_t0, latest[1])
             u = latency_weight(t_now - t0, self.k_s, self.dt0_s)
+            if self.robust_c is not None:
+                r = float(np.hypot(*(revised[:2] - self._pose[:2])))
+                u *= self._scale.weight(r, self.robust_c)
             # L_r = u·L_alpha' + (1 − u)·L_r, yaw on the circle.
             self._pose = geometry.interpolate(self._pose, revised, u)
             self.last_update = FusionUpdate(revised, u, t_now - t0, self._pose.copy())

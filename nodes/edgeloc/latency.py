@@ -536,3 +536,93 @@ class LatencyModel:
             + down_state.delay_s
             + ex.overhead_s
         )
+
+
+@dataclass(frozen=True)
+class MeasuredRequest:
+    """One request of a real run: when it started (run seconds), its split, how long it took
+    from its start to the answer (or to giving up) and whether it was lost."""
+
+    t_s: float
+    split: str
+    latency_s: float
+    lost: bool
+
+
+class MeasuredLatency(LatencyModel):
+    """Request timings drawn from a real run's measured requests, per phase and split.
+
+    A request at `sent_s` of split k takes the latency of a request drawn at random from the
+    real run's requests of split k in the same phase (the spans between `phase_starts`), or,
+    when that phase has fewer than `MIN_SAMPLES` of them, from all the run's requests of k. The
+    replay then asks "what would EdgeLoc with split k have done under the network this run
+    measured" on the same drive. A split the run never played cannot be timed (`knows`).
+    """
+
+    MIN_SAMPLES = 2
+
+    def __init__(
+        self,
+        requests: Sequence[MeasuredRequest],
+        phase_starts: Sequence[float],
+        timeout_s: float = 1.0,
+        reply_payload: int = 38,
+    ) -> None:
+        starts = sorted({0.0, *(float(t) for t in phase_starts)})
+        zero = ComputeProfile(splits=(), head_core_s=(), tail_core_s=(), source="measured")
+        flat = PathSchedule.constant(PathState())
+        super().__init__(
+            zero,
+            flat,
+            flat,
+            timeout_s=timeout_s,
+            reply_payload=reply_payload,
+            notes=[
+                "latencies drawn from the run's measured requests, per phase and split "
+                f"(fewer than {self.MIN_SAMPLES} in a phase: the split's whole-run requests)"
+            ],
+        )
+        self.phase_starts = tuple(starts)
+        self._phase: dict[tuple[int, str], list[tuple[float, bool]]] = {}
+        self._all: dict[str, list[tuple[float, bool]]] = {}
+        for r in requests:
+            draw = (min(float(r.latency_s), timeout_s) if not r.lost else timeout_s, r.lost)
+            self._phase.setdefault((self.phase_of(r.t_s), r.split), []).append(draw)
+            self._all.setdefault(r.split, []).append(draw)
+
+    def phase_of(self, t: float) -> int:
+        return max(bisect.bisect_right(self.phase_starts, t) - 1, 0)
+
+    def knows(self, split: str) -> bool:
+        return bool(self._all.get(split))
+
+    def _pool(self, split: str, t: float) -> list[tuple[float, bool]]:
+        pool = self._phase.get((self.phase_of(t), split), [])
+        if len(pool) >= self.MIN_SAMPLES:
+            return pool
+        pool = self._all.get(split, [])
+        if not pool:
+            raise ValueError(f"split {split!r} was never measured in this run")
+        return pool
+
+    def timing(
+        self, split: str, sent_s: float, payload: int, rng: np.random.Generator
+    ) -> RequestTiming:
+        pool = self._pool(split, sent_s)
+        latency, lost = pool[int(rng.integers(len(pool)))]
+        return RequestTiming(
+            split=split,
+            sent_s=sent_s,
+            head_s=0.0,
+            uplink_s=latency,
+            tail_s=0.0,
+            downlink_s=0.0,
+            request_bytes=wire_bytes(payload + REQUEST_HEADER),
+            reply_bytes=wire_bytes(self.reply_payload + REQUEST_HEADER),
+            lost=lost,
+            latency_s=latency,
+        )
+
+    def expected_s(self, split: str, t: float, payload: int) -> float:
+        ok = [lat for lat, lost in self._pool(split, t) if not lost] if self.knows(split) else []
+        return float(np.mean(ok)) if ok else math.inf

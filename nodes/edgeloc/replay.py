@@ -409,8 +409,10 @@ class Replay:
         dataset: Dataset,
         model: LocNet,
         cache: InferenceCache | None = None,
+        schedule: Sequence[tuple[float, str]] | None = None,
     ) -> None:
         self.cfg, self.latency, self.ds = config, latency, dataset
+        self.schedule = _check_schedule(schedule, config.splits)
         self.infer = cache or InferenceCache(model, dataset, config.codec)
         self.learner = config.learner.build(list(config.splits), config.seed)
         self.rng = np.random.default_rng([config.seed, 4242])
@@ -420,7 +422,7 @@ class Replay:
         steps = np.hypot(*np.diff(self.vo[:, :2], axis=0).T)
         self.odometer = np.concatenate([[0.0], np.cumsum(steps)])
         kc = config.kalman
-        self.fuser = EdgeLocFuser(config.k_s, config.dt0_s)
+        self.fuser = EdgeLocFuser(config.k_s, config.dt0_s, robust_c=config.robust_c)
         self.kalman = KalmanBaseline(kc.q_pos, kc.q_yaw, kc.r_pos, kc.r_yaw)
         self.hold = DnnHold()
         self.vo_hist = VoHistory()
@@ -445,8 +447,7 @@ class Replay:
 
     def _send(self, frame: int, start: float) -> tuple[Play, np.ndarray | None]:
         self._last_sent = frame
-        fixed = self.cfg.learner.fixed_split
-        split = fixed if fixed is not None else self.learner.select()
+        split = self._split_at(start)
         ans = self.infer.answer(frame, split)
         timing: RequestTiming = self.latency.timing(split, start, ans.payload, self.rng)
         t0 = float(self.t[frame])
@@ -473,6 +474,19 @@ class Replay:
             gated_kalman=False,
         )
         return play, None if timing.lost else ans.pose
+
+    def _split_at(self, start: float) -> str:
+        """The schedule's split at `start`, else the fixed split, else the learner's choice."""
+        if self.schedule:
+            j = bisect.bisect_right([t for t, _ in self.schedule], start) - 1
+            return self.schedule[max(j, 0)][1]
+        fixed = self.cfg.learner.fixed_split
+        return fixed if fixed is not None else self.learner.select()
+
+    @property
+    def learning(self) -> bool:
+        """Whether the learner picks the splits (no fixed split, no schedule)."""
+        return self.cfg.learner.fixed_split is None and not self.schedule
 
     def _admit(
         self, name: str, pose_t0: np.ndarray, t0: float, estimate: np.ndarray | None
@@ -504,7 +518,7 @@ class Replay:
                 self.kalman.on_dnn(pose, play.t0_s, t_now)
             else:
                 gated_k = True
-        if self.cfg.learner.fixed_split is None:
+        if self.learning:
             event = self.learner.update(play.split, play.cost)
             if event is not None:
                 self.resets.append(
@@ -550,16 +564,31 @@ class Replay:
         return out
 
 
+def _check_schedule(
+    schedule: Sequence[tuple[float, str]] | None, splits: Sequence[str]
+) -> tuple[tuple[float, str], ...]:
+    if not schedule:
+        return ()
+    out = tuple(sorted((float(t), str(k)) for t, k in schedule))
+    unknown = sorted({k for _, k in out} - set(splits))
+    if unknown:
+        raise ValueError(f"split schedule names {', '.join(unknown)}, not one of the arms")
+    return out
+
+
 def run_replay(
     config: ReplayConfig,
     latency: LatencyModel,
     dataset: Dataset | None = None,
     model: LocNet | None = None,
     cache: InferenceCache | None = None,
+    schedule: Sequence[tuple[float, str]] | None = None,
 ) -> ReplayResult:
     """Replay `config` under `latency`; the dataset and model default to the config's.
 
-    `cache` (built on the same dataset, model and codec) lets sweeps share DNN outputs."""
+    `cache` (built on the same dataset, model and codec) lets sweeps share DNN outputs.
+    `schedule` ((start_s, split), ...) plays a split chosen in advance from each start on
+    (the oracle's per-phase choice) instead of the learner or the fixed split."""
     start = time.perf_counter()
     if dataset is None:
         dataset = open_dataset(
@@ -575,7 +604,7 @@ def run_replay(
         model = load_model(config.weights)
     if cache is not None and (cache.dataset is not dataset or cache.codec != config.codec):
         raise ValueError("the inference cache was built for another dataset or codec")
-    replay = Replay(config, latency, dataset, model, cache)
+    replay = Replay(config, latency, dataset, model, cache, schedule)
     # One frame at a time through a small network: torch's intra-op threads only add
     # synchronisation, and on a shared machine they make every convolution wait for a core
     # (measured: 25 ms per conv call under load instead of ~0.05 ms).

@@ -8,8 +8,8 @@ two nodes that run the DNN (inference request, edge inference) should pay for im
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
-from typing import Literal
+from dataclasses import asdict, dataclass, field, fields
+from typing import Any, Literal
 
 from nodes.edgeloc.bandit import AdaptiveSplitLearner
 from nodes.edgeloc.gate import GateSettings
@@ -93,8 +93,11 @@ class ReplayConfig:
     weights: str | None = None
     splits: tuple[str, ...] = SPLITS
     learner: LearnerSettings = field(default_factory=LearnerSettings)
-    k_s: float = 20.0
-    dt0_s: float = 0.25
+    # The fusion's defaults are the scenario schema's (`testbed.scenario.model.Fusion`): the
+    # values the default scenario's tuning found, see there.
+    k_s: float = 2.0
+    dt0_s: float = -1.4
+    robust_c: float | None = 2.0  # beyond the paper; None: the paper's bare u (see fusion)
     kalman: KalmanSettings = field(default_factory=KalmanSettings)
     gate: GateSettings | None = field(default_factory=GateSettings)
     phases: tuple[float, ...] = (0.0,)
@@ -111,3 +114,27 @@ class ReplayConfig:
             raise ValueError(f"fixed split {fixed!r} is not one of {', '.join(self.splits)}")
         if not (self.duration_s > 0 and self.rate_hz > 0):
             raise ValueError("duration_s and rate_hz must be > 0")
+
+
+def config_to_dict(config: ReplayConfig) -> dict[str, Any]:
+    """A ReplayConfig as plain JSON values (the nodes' settings file, the recording's copy)."""
+    data = asdict(config)
+    data["splits"] = list(config.splits)
+    data["phases"] = list(config.phases)
+    return data
+
+
+def config_from_dict(data: dict[str, Any]) -> ReplayConfig:
+    """The inverse of `config_to_dict`; unknown keys are an error (a stale file)."""
+    known = {f.name for f in fields(ReplayConfig)}
+    unknown = sorted(set(data) - known)
+    if unknown:
+        raise ValueError(f"unknown settings in node config: {', '.join(unknown)}")
+    d = dict(data)
+    d["splits"] = tuple(d.get("splits", ReplayConfig().splits))
+    d["phases"] = tuple(d.get("phases", (0.0,)))
+    d["learner"] = LearnerSettings(**d.get("learner", {}))
+    d["kalman"] = KalmanSettings(**d.get("kalman", {}))
+    gate = d.get("gate")
+    d["gate"] = None if gate is None else GateSettings(**gate)
+    return ReplayConfig(**d)

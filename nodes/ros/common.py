@@ -24,12 +24,11 @@ import threading
 import time
 from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
-from dataclasses import dataclass, fields
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, TypeVar
 
-from nodes.edgeloc.gate import GateSettings
-from nodes.edgeloc.settings import KalmanSettings, LearnerSettings, ReplayConfig
+from nodes.edgeloc.settings import ReplayConfig, config_from_dict
 from nodes.recording.jsonfile import write_json
 
 #: Extra seconds of dataset beyond the scenario's duration: nodes start before the timeline.
@@ -40,32 +39,6 @@ READY = "ready"
 RECORDING_FAILED = 3
 
 T = TypeVar("T")
-
-
-def config_to_dict(config: ReplayConfig) -> dict[str, Any]:
-    """A ReplayConfig as plain JSON values (what the supervisor writes for the nodes)."""
-    from dataclasses import asdict
-
-    data = asdict(config)
-    data["splits"] = list(config.splits)
-    data["phases"] = list(config.phases)
-    return data
-
-
-def config_from_dict(data: dict[str, Any]) -> ReplayConfig:
-    """The inverse of `config_to_dict`; unknown keys are an error (a stale file)."""
-    known = {f.name for f in fields(ReplayConfig)}
-    unknown = sorted(set(data) - known)
-    if unknown:
-        raise ValueError(f"unknown settings in node config: {', '.join(unknown)}")
-    d = dict(data)
-    d["splits"] = tuple(d.get("splits", ReplayConfig().splits))
-    d["phases"] = tuple(d.get("phases", (0.0,)))
-    d["learner"] = LearnerSettings(**d.get("learner", {}))
-    d["kalman"] = KalmanSettings(**d.get("kalman", {}))
-    gate = d.get("gate")
-    d["gate"] = None if gate is None else GateSettings(**gate)
-    return ReplayConfig(**d)
 
 
 @dataclass(frozen=True)

@@ -46,7 +46,7 @@ class VehicleEstimators:
 
     def __init__(self, cfg: ReplayConfig) -> None:
         kc = cfg.kalman
-        self.fuser = EdgeLocFuser(cfg.k_s, cfg.dt0_s)
+        self.fuser = EdgeLocFuser(cfg.k_s, cfg.dt0_s, robust_c=cfg.robust_c)
         self.kalman = KalmanBaseline(kc.q_pos, kc.q_yaw, kc.r_pos, kc.r_yaw)
         self.hold = DnnHold()
         self.vo_hist = VoHistory()

@@ -343,6 +343,14 @@ FUSION = Obj(
             " 1/2 even for an instant answer).",
             attr="dt0_s",
         ),
+        Field(
+            "robust",
+            Nullable(Float(0.0, lo_open=True, noun="a multiple of the median innovation")),
+            "BEYOND THE PAPER: scale each answer's weight by 1 / (1 + (r / (c s))^2), r its"
+            " distance from the fused pose, s the median of the last 50; null: the paper's"
+            " latency-only weight.",
+            attr="robust_c",
+        ),
     ],
     model=model.Fusion,
 )

@@ -1,0 +1,230 @@
+"""Learned against fixed: EdgeLoc with every split point, and the oracle, on the same drive.
+
+The paper's claim is that the split with the lowest latency also gives the lowest error, so a
+learner that minimises latency and adapts to the network beats every fixed choice. This module
+checks it on one drive: it replays EdgeLoc once per fixed split (same dataset, same DNN, same
+network: the scenario's latency model, or a real run's measured latencies through
+`latency.MeasuredLatency`), finds per bandwidth phase the split with the lowest mean request
+latency and the one with the lowest mean position error, and replays the oracle that plays the
+error-best split of each phase (best in hindsight: it reads ground truth, no vehicle could).
+When the configured fusion is not the paper's bare form (`robust_c`), the learned run is also
+replayed with the bare form, so both are reported.
+
+`SplitComparison.to_dict()` is the `splits` block of a summary.json (keys on `to_dict`).
+"""
+
+from __future__ import annotations
+
+import itertools
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass, replace
+
+import numpy as np
+
+from nodes.edgeloc.dataset import Dataset
+from nodes.edgeloc.latency import LatencyModel, MeasuredLatency
+from nodes.edgeloc.metrics import position_errors
+from nodes.edgeloc.model import LocNet
+from nodes.edgeloc.replay import InferenceCache, ReplayResult, run_replay
+from nodes.edgeloc.settings import ReplayConfig
+
+
+@dataclass(frozen=True)
+class PhaseFigures:
+    """One policy in one phase: mean position error over its frames, mean request latency
+    (start to answer, a lost request counts its timeout), mean Δt of its answers, answers."""
+
+    mean_error_m: float
+    mean_latency_s: float | None
+    mean_delta_s: float | None
+    answers: int
+
+
+@dataclass(frozen=True)
+class PolicyRow:
+    """One way of choosing splits (`learned`, `fixed:<split>`, `oracle`, `learned, paper
+    fusion`) and what EdgeLoc achieved with it: total error and per-phase figures."""
+
+    policy: str
+    total_m: float
+    phases: tuple[PhaseFigures, ...]
+
+
+def phase_bounds(config: ReplayConfig, duration_s: float) -> list[tuple[float, float]]:
+    cuts = sorted({0.0, *[t for t in config.phases if 0 < t < duration_s]})
+    return list(itertools.pairwise([*cuts, duration_s]))
+
+
+def policy_row(
+    policy: str, result: ReplayResult, bounds: Sequence[tuple[float, float]]
+) -> PolicyRow:
+    err = position_errors(result.poses["edgeloc"], result.gt)
+    t = result.timestamps
+    figures = []
+    for a, b in bounds:
+        sel = (t >= a) & (t < b)
+        plays = [p for p in result.plays if a <= p.sent_s < b]
+        ok = [p for p in plays if not p.lost]
+        figures.append(
+            PhaseFigures(
+                mean_error_m=float(err[sel].mean()) if sel.any() else math.nan,
+                mean_latency_s=float(np.mean([p.latency_s for p in plays])) if plays else None,
+                mean_delta_s=float(np.mean([p.delta_s for p in ok])) if ok else None,
+                answers=len(ok),
+            )
+        )
+    return PolicyRow(policy, float(err.sum()), tuple(figures))
+
+
+@dataclass(frozen=True)
+class SplitComparison:
+    """Every policy's row, and per phase the latency-best, error-best and oracle split."""
+
+    bounds: tuple[tuple[float, float], ...]
+    learned: PolicyRow | None
+    fixed: dict[str, PolicyRow]
+    oracle: PolicyRow | None
+    paper_fusion: PolicyRow | None
+    latency_source: str  # "model" or "measured"
+    skipped: dict[str, str]  # split -> why it has no row
+
+    def latency_best(self, j: int) -> str | None:
+        lat = {k: r.phases[j].mean_latency_s for k, r in self.fixed.items()}
+        known = {k: v for k, v in lat.items() if v is not None}
+        return min(known, key=known.__getitem__) if known else None
+
+    def error_best(self, j: int) -> str | None:
+        err = {k: r.phases[j].mean_error_m for k, r in self.fixed.items()}
+        known = {k: v for k, v in err.items() if math.isfinite(v)}
+        return min(known, key=known.__getitem__) if known else None
+
+    def monotone(self, j: int) -> bool | None:
+        """Whether ordering the fixed splits by latency in phase j orders them by error too
+        (strictly); None with fewer than two splits."""
+        rows = [r.phases[j] for r in self.fixed.values() if r.phases[j].mean_latency_s is not None]
+        if len(rows) < 2:
+            return None
+        rows.sort(key=lambda f: f.mean_latency_s)  # type: ignore[arg-type, return-value]
+        return all(a.mean_error_m < b.mean_error_m for a, b in itertools.pairwise(rows))
+
+    @property
+    def best_fixed(self) -> str | None:
+        return min(self.fixed, key=lambda k: self.fixed[k].total_m) if self.fixed else None
+
+    @property
+    def learned_beats_fixed(self) -> bool | None:
+        best = self.best_fixed
+        if self.learned is None or best is None:
+            return None
+        return self.learned.total_m < self.fixed[best].total_m
+
+    def disagreements(self) -> list[str]:
+        """Plain sentences for the report where latency and error disagree."""
+        out = []
+        for j, (a, b) in enumerate(self.bounds):
+            lb, eb = self.latency_best(j), self.error_best(j)
+            if lb and eb and lb != eb:
+                out.append(f"{a:g}-{b:g} s: the fastest split is {lb}, the most accurate is {eb}")
+            elif self.monotone(j) is False:
+                out.append(f"{a:g}-{b:g} s: error does not fall with latency across the splits")
+        if self.learned_beats_fixed is False:
+            best = self.best_fixed
+            out.append(
+                f"the learned run ({self.learned.total_m:.1f} m) loses to fixed {best} "  # type: ignore[union-attr]
+                f"({self.fixed[best].total_m:.1f} m)"  # type: ignore[index]
+            )
+        return out
+
+    def to_dict(self) -> dict[str, object]:
+        """`latency_source`; `rows`: [{policy, total_m, phases: [{mean_error_m,
+        mean_latency_s, mean_delta_s, answers}]}] (learned, fixed:<split>..., oracle, and the
+        paper-fusion replay when there is one); `phases`: [{start_s, end_s, latency_best,
+        error_best, agree, monotone}]; `oracle_splits`; `best_fixed`; `learned_beats_fixed`;
+        `disagreements` (sentences); `skipped` (split: why)."""
+        rows = [self.learned, *self.fixed.values(), self.oracle, self.paper_fusion]
+        return {
+            "latency_source": self.latency_source,
+            "rows": [
+                {
+                    "policy": r.policy,
+                    "total_m": r.total_m,
+                    "phases": [
+                        {
+                            "mean_error_m": f.mean_error_m,
+                            "mean_latency_s": f.mean_latency_s,
+                            "mean_delta_s": f.mean_delta_s,
+                            "answers": f.answers,
+                        }
+                        for f in r.phases
+                    ],
+                }
+                for r in rows
+                if r is not None
+            ],
+            "phases": [
+                {
+                    "start_s": a,
+                    "end_s": b,
+                    "latency_best": self.latency_best(j),
+                    "error_best": self.error_best(j),
+                    "agree": self.latency_best(j) == self.error_best(j),
+                    "monotone": self.monotone(j),
+                }
+                for j, (a, b) in enumerate(self.bounds)
+            ],
+            "oracle_splits": [self.error_best(j) for j in range(len(self.bounds))],
+            "best_fixed": self.best_fixed,
+            "learned_beats_fixed": self.learned_beats_fixed,
+            "disagreements": self.disagreements(),
+            "skipped": self.skipped,
+        }
+
+
+def compare_splits(
+    config: ReplayConfig,
+    latency: LatencyModel,
+    dataset: Dataset,
+    model: LocNet,
+    cache: InferenceCache | None = None,
+    learned: ReplayResult | None = None,
+) -> SplitComparison:
+    """Replay every fixed split and the oracle beside `learned` (replayed here when None)."""
+    cache = cache or InferenceCache(model, dataset, config.codec)
+    free = replace(config, learner=replace(config.learner, fixed_split=None))
+    if learned is None:
+        learned = run_replay(free, latency, dataset, model, cache)
+    bounds = phase_bounds(config, learned.duration_s)
+    measured = isinstance(latency, MeasuredLatency)
+    fixed: dict[str, PolicyRow] = {}
+    skipped: dict[str, str] = {}
+    for k in config.splits:
+        if measured and not latency.knows(k):  # type: ignore[attr-defined]
+            skipped[k] = "never played in this run, so its latency was not measured"
+            continue
+        cfg = replace(config, learner=replace(config.learner, fixed_split=k))
+        fixed[k] = policy_row(f"fixed:{k}", run_replay(cfg, latency, dataset, model, cache), bounds)
+    comparison = SplitComparison(
+        bounds=tuple(bounds),
+        learned=policy_row("learned", learned, bounds),
+        fixed=fixed,
+        oracle=None,
+        paper_fusion=None,
+        latency_source="measured" if measured else "model",
+        skipped=skipped,
+    )
+    oracle = None
+    schedule = [(a, comparison.error_best(j)) for j, (a, _) in enumerate(bounds)]
+    if fixed and all(k is not None for _, k in schedule):
+        res = run_replay(free, latency, dataset, model, cache, schedule=schedule)  # type: ignore[arg-type]
+        oracle = policy_row("oracle", res, bounds)
+    paper = None
+    if config.robust_c is not None:
+        bare = replace(free, robust_c=None)
+        paper = policy_row(
+            "learned, paper fusion", run_replay(bare, latency, dataset, model, cache), bounds
+        )
+    return replace(comparison, oracle=oracle, paper_fusion=paper)
+
+
+__all__ = ["PhaseFigures", "PolicyRow", "SplitComparison", "compare_splits", "policy_row"]
