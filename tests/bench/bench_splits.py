@@ -1,0 +1,321 @@
+"""Benchmark of issue #14's goals: learned against every fixed split, and the paper's reductions.
+
+Replays scenarios/default.yaml for several drive seeds (default 1, 2, 3, 4 and 7; one dataset,
+DNN pass and inference cache per seed, shared by every policy and both fusions) and prints,
+per fusion setting, as plain tables:
+
+1. EdgeLoc's total position error per seed for the learned run, each fixed split, the oracle
+   (the error-best split of each phase, chosen in hindsight) and, when the fusion is not the
+   paper's bare form, the learned run with the bare form (robust_c None, same k_s/Δt0): all
+   from `nodes.edgeloc.compare.compare_splits`; with the ratios learned / best fixed split and
+   oracle / learned;
+2. per seed and bandwidth phase: each fixed split's mean request latency and mean EdgeLoc
+   error, the latency-best and error-best split, and whether error is monotone in latency
+   across the fixed splits (the paper's premise: the fastest split is the most accurate);
+3. per seed: the four totals of the learned run (VO, DNN, Kalman, EdgeLoc) and EdgeLoc's three
+   reductions beside the paper's 67.75 / 29.62 / 30.26 % (`metrics.paper_comparison`);
+4. the goals: monotone phases a/b, learned < every fixed split on n of the seeds, reductions
+   >= the paper's on all three on n of the seeds, each PASS or MISS.
+
+The fusion settings: `scenario` is the scenario's (k_s 2/s, Δt0 -1.4 s, robust_c 2: the
+"after"); `paper` is the paper's bare fusion at the schema's old defaults (k_s 20/s, Δt0
+0.25 s, robust_c None: the "before"). `--fusion both` (the default) prints both, before first.
+A benchmark reports: a missed goal is printed as MISS and the script still exits 0.
+
+The compute profile is the reference committed with the weights, so the figures are the same
+on every machine. ~11 replays per seed with both fusions, ~5 s each.
+Usage: python tests/bench/bench_splits.py [--seeds 1,2,3,4,7] [--fusion both|scenario|paper]
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass, replace
+from pathlib import Path
+
+if __package__ in (None, ""):  # run as a script: make the repo importable
+    sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
+
+import torch
+
+from nodes.edgeloc.compare import SplitComparison, compare_splits
+from nodes.edgeloc.dataset import open_dataset
+from nodes.edgeloc.latency import LatencyModel
+from nodes.edgeloc.metrics import (
+    PAPER_REDUCTIONS_PCT,
+    PAPER_TOTALS,
+    PaperComparison,
+    position_errors,
+)
+from nodes.edgeloc.metrics import paper_comparison as paper_figures
+from nodes.edgeloc.replay import InferenceCache, run_replay
+from nodes.edgeloc.settings import ReplayConfig
+from nodes.edgeloc.train import load_model
+from testbed.replay import compute_profile, latency_model, replay_config
+from testbed.scenario import load
+
+ROOT = Path(__file__).resolve().parents[2]
+SEEDS = (1, 2, 3, 4, 7)
+#: The paper's bare fusion at the scenario schema's old defaults: the "before".
+PAPER_FUSION = {"k_s": 20.0, "dt0_s": 0.25, "robust_c": None}
+METHODS = ("vo", "dnn", "kalman", "edgeloc")
+
+
+@dataclass(frozen=True)
+class SeedResult:
+    """One seed under one fusion: the split comparison and the learned run's paper figures."""
+
+    seed: int
+    comparison: SplitComparison
+    paper: PaperComparison
+
+
+def fusion_config(config: ReplayConfig, fusion: str) -> ReplayConfig:
+    if fusion == "paper":
+        return replace(config, **PAPER_FUSION)  # type: ignore[arg-type]
+    return config
+
+
+def fusion_label(config: ReplayConfig) -> str:
+    robust = "None (paper's bare u)" if config.robust_c is None else f"{config.robust_c:g}"
+    return f"k_s {config.k_s:g}/s, dt0 {config.dt0_s:g} s, robust_c {robust}"
+
+
+def table(headers: Sequence[str], rows: Sequence[Sequence[object]], indent: str = "  ") -> str:
+    """Plain aligned text: text columns left-aligned, numbers right-aligned."""
+    cells = [[str(h) for h in headers]] + [[str(c) for c in r] for r in rows]
+    widths = [max(len(r[i]) for r in cells) for i in range(len(headers))]
+    numeric = [
+        all(_is_number(r[i]) for r in cells[1:] if r[i] not in ("-", ""))
+        for i in range(len(headers))
+    ]
+    numeric[0] = False  # the key column (seed, goal) reads best left-aligned
+    out = []
+    for n, r in enumerate(cells):
+        parts = [
+            c.rjust(w) if num and n else c.ljust(w)
+            for c, w, num in zip(r, widths, numeric, strict=True)
+        ]
+        out.append(indent + "  ".join(parts).rstrip())
+        if n == 0:
+            out.append(indent + "  ".join("-" * w for w in widths))
+    return "\n".join(out)
+
+
+def _is_number(text: str) -> bool:
+    try:
+        float(text.rstrip("%x"))
+    except ValueError:
+        return False
+    return True
+
+
+def _f(value: float | None, fmt: str = ".0f") -> str:
+    return "-" if value is None else format(value, fmt)
+
+
+def run_seed(
+    config: ReplayConfig,
+    latency: LatencyModel,
+    model: object,
+    seed: int,
+    fusions: Sequence[str],
+) -> dict[str, SeedResult]:
+    """Every fusion's comparison on one seed's drive (one dataset and cache for all)."""
+    cfg = replace(config, seed=seed)
+    ds = open_dataset(
+        cfg.dataset,
+        seed=seed,
+        rate_hz=cfg.rate_hz,
+        duration_s=cfg.duration_s,
+        corruption=cfg.corruption,
+    )
+    cache = InferenceCache(model, ds, cfg.codec)  # type: ignore[arg-type]
+    out = {}
+    for fusion in fusions:
+        fcfg = fusion_config(cfg, fusion)
+        free = replace(fcfg, learner=replace(fcfg.learner, fixed_split=None))
+        learned = run_replay(free, latency, ds, model, cache)  # type: ignore[arg-type]
+        comp = compare_splits(fcfg, latency, ds, model, cache, learned=learned)  # type: ignore[arg-type]
+        totals = {m: float(position_errors(learned.poses[m], learned.gt).sum()) for m in METHODS}
+        out[fusion] = SeedResult(seed, comp, paper_figures(totals))
+    return out
+
+
+def totals_table(results: Sequence[SeedResult]) -> str:
+    first = results[0].comparison
+    splits = list(first.fixed)
+    bare = first.paper_fusion is not None
+    headers = ["seed", "learned", *[f"fixed:{k}" for k in splits], "oracle"]
+    headers += ["learned, paper fusion"] if bare else []
+    headers += ["best fixed", "learned/best", "oracle/learned"]
+    headers += ["paper fusion/learned"] if bare else []
+    rows = []
+    for r in results:
+        c = r.comparison
+        learned = c.learned.total_m  # type: ignore[union-attr]
+        best = c.best_fixed
+        oracle = None if c.oracle is None else c.oracle.total_m
+        row: list[object] = [r.seed, _f(learned), *[_f(c.fixed[k].total_m) for k in splits]]
+        row.append(_f(oracle))
+        if bare:
+            row.append(_f(c.paper_fusion.total_m if c.paper_fusion else None))
+        row.append(best or "-")
+        row.append(_f(learned / c.fixed[best].total_m, ".3f") + "x" if best else "-")
+        row.append(_f(None if oracle is None else oracle / learned, ".3f") + "x")
+        if bare:
+            pf = c.paper_fusion
+            row.append(_f(None if pf is None else pf.total_m / learned, ".3f") + "x")
+        rows.append(row)
+    return table(headers, rows)
+
+
+def phase_table(results: Sequence[SeedResult], latency: LatencyModel) -> str:
+    splits = list(results[0].comparison.fixed)
+    headers = ["seed", "phase s", "uplink Mbit/s"]
+    headers += [f"{k} ms" for k in splits] + [f"{k} m" for k in splits]
+    headers += ["latency-best", "error-best", "agree", "monotone"]
+    rows = []
+    for r in results:
+        c = r.comparison
+        for j, (a, b) in enumerate(c.bounds):
+            lat = [c.fixed[k].phases[j].mean_latency_s for k in splits]
+            err = [c.fixed[k].phases[j].mean_error_m for k in splits]
+            lb, eb, mono = c.latency_best(j), c.error_best(j), c.monotone(j)
+            rows.append(
+                [
+                    r.seed,
+                    f"{a:g}-{b:g}",
+                    f"{latency.uplink.at(a).rate_bps / 1e6:g}",
+                    *[_f(None if v is None else 1e3 * v, ".1f") for v in lat],
+                    *[_f(v, ".2f") for v in err],
+                    lb or "-",
+                    eb or "-",
+                    "yes" if lb == eb else "no",
+                    "-" if mono is None else ("yes" if mono else "no"),
+                ]
+            )
+    return table(headers, rows)
+
+
+def paper_table(results: Sequence[SeedResult]) -> str:
+    headers = ["seed", "VO", "DNN", "Kalman", "EdgeLoc", "vs VO", "vs DNN", "vs Kalman", ">= paper"]
+    rows: list[list[object]] = [
+        [
+            "paper",
+            *[f"{PAPER_TOTALS[m]:.0f}" for m in METHODS],
+            *[f"{PAPER_REDUCTIONS_PCT[v]:.2f}%" for v in ("vo", "dnn", "kalman")],
+            "",
+        ]
+    ]
+    for r in results:
+        t = {x.method: x.ours for x in r.paper.totals}
+        red = {x.versus: x.ours_pct for x in r.paper.reductions}
+        rows.append(
+            [
+                r.seed,
+                *[_f(t[m]) for m in METHODS],
+                *[_f(red[v], ".2f") + "%" for v in ("vo", "dnn", "kalman")],
+                "yes" if reductions_reach_paper(r.paper) else "no",
+            ]
+        )
+    return table(headers, rows)
+
+
+def reductions_reach_paper(paper: PaperComparison) -> bool:
+    return all(x.ours_pct is not None and x.ours_pct >= x.paper_pct for x in paper.reductions)
+
+
+def goals(results: Sequence[SeedResult]) -> list[tuple[str, str, bool]]:
+    """(figure, fraction, met) for issue #14's three bars."""
+    mono = [
+        r.comparison.monotone(j)
+        for r in results
+        for j in range(len(r.comparison.bounds))
+        if r.comparison.monotone(j) is not None
+    ]
+    beats = sum(bool(r.comparison.learned_beats_fixed) for r in results)
+    reach = sum(reductions_reach_paper(r.paper) for r in results)
+    n = len(results)
+    return [
+        (f"monotone phases {sum(mono)}/{len(mono)}", f"{sum(mono)}/{len(mono)}",
+         sum(mono) == len(mono)),
+        (f"learned < every fixed split: {beats}/{n} seeds", f"{beats}/{n}", beats == n),
+        (f"reductions >= paper on all three: {reach}/{n} seeds", f"{reach}/{n}", reach == n),
+    ]  # fmt: skip
+
+
+def report(
+    title: str, config: ReplayConfig, results: Sequence[SeedResult], lm: LatencyModel
+) -> None:
+    print(f"\n## {title}: {fusion_label(config)}")
+    print("\n1. EdgeLoc total position error (m) per policy")
+    print(totals_table(results))
+    print("\n2. per phase: fixed splits' mean request latency and mean EdgeLoc error")
+    print(phase_table(results, lm))
+    print("\n3. the learned run's totals (m) and EdgeLoc's reductions beside the paper's")
+    print(paper_table(results))
+    print("\n4. goals (issue #14)")
+    rows = [[figure, "PASS" if met else "MISS"] for figure, _, met in goals(results)]
+    print(table(["goal", "verdict"], rows))
+
+
+def main() -> int:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--seeds", default=",".join(map(str, SEEDS)), help="comma-separated seeds")
+    p.add_argument(
+        "--fusion",
+        choices=("both", "scenario", "paper"),
+        default="both",
+        help="scenario: the scenario's fusion (after); paper: the paper's bare fusion at the "
+        "old defaults k_s 20/s, dt0 0.25 s (before); both (default): before, then after",
+    )
+    a = p.parse_args()
+    try:
+        seeds = [int(s) for s in a.seeds.split(",")]
+    except ValueError:
+        p.error(f"--seeds must be comma-separated integers, got {a.seeds!r}")
+    fusions = ("paper", "scenario") if a.fusion == "both" else (a.fusion,)
+    torch.set_num_threads(1)
+    sc = load(ROOT / "scenarios" / "default.yaml")
+    compute = compute_profile(sc.workload.codec, None)
+    lm = latency_model(sc, compute)
+    config = replay_config(sc)
+    model = load_model()
+    print(
+        f"{sc.name}: {sc.duration_s:g} s at {config.rate_hz:g} Hz, splits "
+        f"{', '.join(config.splits)}, phases at {', '.join(f'{t:g}' for t in config.phases)} s, "
+        f"seeds {', '.join(map(str, seeds))}; compute: {compute.source}"
+    )
+    by_fusion: dict[str, list[SeedResult]] = {f: [] for f in fusions}
+    t0 = time.perf_counter()
+    for seed in seeds:
+        t = time.perf_counter()
+        for fusion, res in run_seed(config, lm, model, seed, fusions).items():
+            by_fusion[fusion].append(res)
+        print(f"  seed {seed}: replayed in {time.perf_counter() - t:.1f} s", flush=True)
+    titles = {
+        "paper": "before: the paper's bare fusion",
+        "scenario": "after: the scenario's fusion",
+    }
+    for fusion in fusions:
+        report(titles[fusion], fusion_config(config, fusion), by_fusion[fusion], lm)
+    if len(fusions) == 2:
+        print("\n## before -> after (the goals' figures)")
+        before, after = (goals(by_fusion[f]) for f in fusions)
+        names = ("monotone phases", "learned < every fixed split (seeds)",
+                 "reductions >= paper on all three (seeds)")  # fmt: skip
+        rows = [
+            [name, b[1], "PASS" if b[2] else "MISS", x[1], "PASS" if x[2] else "MISS"]
+            for name, b, x in zip(names, before, after, strict=True)
+        ]
+        print(table(["goal", "before", "verdict", "after", "verdict"], rows))
+    print(f"\nreplays took {time.perf_counter() - t0:.1f} s")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
