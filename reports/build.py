@@ -310,6 +310,87 @@ def _learner(data: RunData, s: dict[str, Any], plots: dict[str, Plot | None]) ->
     return sec
 
 
+def _splits(s: dict[str, Any], plots: dict[str, Plot | None]) -> Section:
+    sec = Section("Split points: learned, fixed, oracle")
+    sp = s.get("splits") or {}
+    if "skipped" in sp and "rows" not in sp:
+        return sec.add(Para(f"Not computed: {sp['skipped']}.", "note"))
+    sec.add(
+        Para(
+            "EdgeLoc replayed on this run's drive (the dataset regenerated from the attached "
+            "nodes' settings, the same DNN) with the learned split choice, with every split "
+            "the run measured held fixed, and with the oracle. Every replayed request takes "
+            f"the latency of one of {sp['vehicle']}'s {sp['requests']} measured requests of "
+            "the same split in the same phase. The fixed-split and oracle rows are replays with "
+            "the run's measured latencies, not runs of their own; the oracle plays the most "
+            "accurate split of each phase, which it knows by reading ground truth (no vehicle "
+            "could). Cells: mean position error m / mean request latency ms."
+        )
+    )
+    phases = sp["phases"]
+    heads = ["policy", "total m"] + [f"{p['start_s']:g}-{p['end_s']:g} s" for p in phases]
+    rows = []
+    for r in sp["rows"]:
+        cells = [
+            f"{_f(f['mean_error_m'], '{:.2f}')} / {_ms(f['mean_latency_s'])}" for f in r["phases"]
+        ]
+        rows.append([r["policy"], _f(r["total_m"], "{:.1f}"), *cells])
+    sec.add(Table(heads, rows, caption=f"replays under {sp['vehicle']}'s measured latencies"))
+    real = sp.get("real_learned_total_m")
+    learned = next((r for r in sp["rows"] if r["policy"] == "learned"), None)
+    sec.add(
+        Para(
+            f"The real run's learned EdgeLoc ({sp['vehicle']}, as recorded): total "
+            f"{_f(real, '{:.1f}')} m"
+            + (f"; its replay above: {learned['total_m']:.1f} m." if learned else ".")
+        )
+    )
+    for p in phases:
+        if p["latency_best"] is None or p["error_best"] is None:
+            verdict = "no split was timed in this phase"
+        else:
+            verdict = "the same split" if p["agree"] else "they DISAGREE"
+        sec.add(
+            Para(
+                f"Phase {p['start_s']:g}-{p['end_s']:g} s: fastest {_f(p['latency_best'])}, "
+                f"most accurate {_f(p['error_best'])} ({verdict})."
+            )
+        )
+    for line in sp["disagreements"]:  # latency-best against error-best, learned against fixed
+        sec.add(Para(f"Against the paper's claim: {line}.", "warning"))
+    fixed = [r for r in sp["rows"] if r["policy"].startswith("fixed:")]
+    if len(fixed) < 2:
+        sec.add(
+            Para(
+                "The run measured fewer than two splits, so latency and error cannot be "
+                "compared across splits."
+            )
+        )
+    elif not sp["disagreements"]:
+        sec.add(
+            Para(
+                "In every phase the fastest split is also the most accurate, and error rises "
+                "with latency across the splits, as the paper claims."
+            )
+        )
+    if sp.get("learned_beats_fixed"):  # when it does not, a disagreement above says so
+        sec.add(Para(f"The learned replay beats every fixed split (best: {sp['best_fixed']})."))
+    for k, why in sp.get("skipped", {}).items():
+        sec.add(Para(f"No row for {k}: {why}.", "note"))
+    if sp.get("skipped"):
+        sec.add(
+            Para(
+                "The learned and oracle replays chose among the measured splits only: "
+                + ", ".join(sp.get("replayed_splits", []))
+                + ".",
+                "note",
+            )
+        )
+    if plots.get("split_error_latency"):
+        sec.add(Image(plots["split_error_latency"]))  # type: ignore[arg-type]
+    return sec
+
+
 def _latency(s: dict[str, Any], plots: dict[str, Plot | None]) -> Section:
     sec = Section("Latency per split")
     lat = s["latency"]
@@ -607,7 +688,8 @@ def document(
     if s["partial"]:
         title += " (partial)"
     sections = [_overview(data, s), _failures(s), _accuracy(s, plots), _paper(s)]
-    sections += [_trajectories(data, plots, tum), _learner(data, s, plots), _latency(s, plots)]
+    sections += [_trajectories(data, plots, tum), _learner(data, s, plots), _splits(s, plots)]
+    sections += [_latency(s, plots)]
     sections += [_acc_lat(s, plots), _realtime(s, plots), _gaps(s), _links(s, plots)]
     sections += [_nodes(s), _recording(data, s)]
     return Document(title, s["headline"], [x for x in sections if x is not None])
@@ -635,9 +717,13 @@ def write_trajectories(data: RunData, folder: Path) -> list[Path]:
 
 
 def build_report(
-    run_folder: Path | str, formats: Iterable[str] = FORMATS, plots: bool = True
+    run_folder: Path | str,
+    formats: Iterable[str] = FORMATS,
+    plots: bool = True,
+    splits: bool = True,
 ) -> Report:
-    """Read `run_folder`/run.mcap and write the report files into `run_folder`.
+    """Read `run_folder`/run.mcap and write the report files into `run_folder`. `splits=False`
+    leaves out the replays of the split comparison (`reports.splits`).
 
     Raises ReportInputError when there is no readable MCAP; anything else the recording
     lacks shows in the report as not recorded."""
@@ -657,7 +743,7 @@ def build_report(
     if unknown:
         raise ReportInputError(f"unknown report format(s) {sorted(unknown)}; use {list(FORMATS)}")
     data = read_run(folder / RUN_MCAP)
-    s = summarize(data)
+    s = summarize(data, splits=splits)
     errs = method_errors(data)
     files: list[Path] = []
     tum = write_trajectories(data, folder)

@@ -442,6 +442,83 @@ def realtime(data: RunData, summary: dict[str, Any], out: Path) -> Plot | None:
     )
 
 
+#: Phase colours of the split figure (matplotlib's tab10 order, learned/oracle markers black-edged).
+PHASE_COLORS = ("#1f77b4", "#ff7f0e", "#2ca02c", "#d62728", "#9467bd", "#8c564b", "#e377c2")
+#: Markers of the non-fixed policies in the split figure; fixed splits are circles.
+POLICY_MARKERS = {"learned": "*", "oracle": "D", "learned, paper fusion": "P"}
+
+
+def split_error_latency(summary: dict[str, Any], out: Path) -> Plot | None:
+    """Mean position error against mean request latency, per policy and phase, from the
+    summary's `splits` block (the replays of `reports.splits`)."""
+    sp = summary.get("splits") or {}
+    rows, phases = sp.get("rows") or [], sp.get("phases") or []
+    points = [
+        (j, r["policy"], f["mean_latency_s"] * 1e3, f["mean_error_m"])
+        for r in rows
+        for j, f in enumerate(r["phases"])
+        if f.get("mean_latency_s") is not None and f.get("mean_error_m") is not None
+    ]
+    if not points:
+        return None
+    fig = Figure(figsize=(9, 5.5))
+    ax = fig.add_subplot(1, 1, 1)
+    for j, ph in enumerate(phases):
+        c = PHASE_COLORS[j % len(PHASE_COLORS)]
+        mine = [p for p in points if p[0] == j]
+        fixed = sorted((p for p in mine if p[1].startswith("fixed:")), key=lambda p: p[2])
+        ax.plot(  # the fixed splits of a phase, joined in latency order
+            [p[2] for p in fixed],
+            [p[3] for p in fixed],
+            color=c,
+            lw=0.8,
+            alpha=0.5,
+            marker="o",
+            ms=6,
+            label=f"phase {ph['start_s']:g}-{ph['end_s']:g} s",
+        )
+        for _, policy, x, y in fixed:
+            ax.annotate(
+                policy.removeprefix("fixed:"),
+                (x, y),
+                xytext=(4, 3),
+                textcoords="offset points",
+                fontsize=7,
+                color=c,
+            )
+        for _, policy, x, y in mine:
+            if policy in POLICY_MARKERS:
+                ax.scatter(
+                    [x],
+                    [y],
+                    marker=POLICY_MARKERS[policy],
+                    s=120 if policy == "learned" else 60,
+                    color=c,
+                    edgecolors="black",
+                    linewidths=0.8,
+                    zorder=3,
+                )
+    # One legend entry per marker shape (the colour is the phase's).
+    for policy, marker in POLICY_MARKERS.items():
+        if any(p[1] == policy for p in points):
+            ax.scatter([], [], marker=marker, color="white", edgecolors="black", label=policy)
+    ax.set_xlabel("mean request latency (ms)")
+    ax.set_ylabel("mean EdgeLoc position error (m)")
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=8)
+    ax.set_title("Error against latency per split and phase")
+    return Plot(
+        _save(fig, out, "split_error_latency.png"),
+        "Error against latency per split and phase",
+        "EdgeLoc replayed on the run's drive under the run's measured latencies: one circle "
+        "per fixed split and phase (labelled with the split; colours are phases), the learned "
+        "replay as a star, the oracle (plays the most accurate split of each phase, reads "
+        "ground truth) as a diamond, the learned replay with the paper's bare fusion (when the "
+        "run's fusion is not) as a plus. The paper's claim: the fastest split is the most "
+        "accurate, so each phase's circles rise from left to right.",
+    )
+
+
 def draw_all(
     data: RunData, errs: dict[str, dict[str, FrameErrors]], summary: dict[str, Any], out: Path
 ) -> dict[str, Plot | None]:
@@ -454,6 +531,7 @@ def draw_all(
         "accuracy_vs_latency": accuracy_vs_latency(errs.get("edgeloc"), out),
         "link_rates": link_rates(data, out),
         "realtime": realtime(data, summary, out),
+        "split_error_latency": split_error_latency(summary, out),
     }
     for v in list(data.vehicles)[:MAX_VEHICLE_FIGURES]:
         vd = data.vehicles[v]

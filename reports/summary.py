@@ -49,6 +49,11 @@ report can be compared with the run's own. Keys of summary.json (`version` 1):
   timeline (the recorder's `edgeloc.timeline`: events, applied, failed, lateness),
   linktest (the link self-test table, attachment linktest.json, or null),
   linktest_ran (the recorder's "true"/"false", null if not said)};
+- `splits`: EdgeLoc with the learned split choice, every fixed split and the per-phase oracle,
+  replayed on the run's drive under the run's own measured request latencies
+  (`reports.splits`: the keys of `nodes.edgeloc.compare.SplitComparison.to_dict` plus
+  vehicle, requests, replayed_splits, real_learned_total_m), or {skipped: why} when it cannot
+  be (no nodes/config.json attachment, no torch or weights, a recorded dataset, no requests);
 - `nodes`: the recorder's `edgeloc.nodes` metadata as recorded; `failures`: [{process,
   exit_code, namespace, last_log_lines}] for processes that exited non-zero or carry log
   lines of a failure;
@@ -77,6 +82,7 @@ from nodes.edgeloc.metrics import (
     position_errors,
 )
 from reports.mcapread import PoseTrack, RunData, VehicleData
+from reports.splits import split_comparison
 
 SUMMARY_VERSION = 1
 #: A DNN-answer gap is reported when longer than this, or 10x the median answer interval.
@@ -629,8 +635,9 @@ VEHICLE_TOPICS_REQUIRED = ("gt", "pose", "dnn_answer", "split_decision", "detect
 # ---- the whole summary ------------------------------------------------------------------------
 
 
-def summarize(data: RunData) -> dict[str, Any]:
-    """The summary.json dict of a run (keys in the module docstring)."""
+def summarize(data: RunData, splits: bool = True) -> dict[str, Any]:
+    """The summary.json dict of a run (keys in the module docstring). `splits=False` leaves
+    out the split comparison (its replays take seconds to a minute)."""
     errs = method_errors(data)
     methods = {m: _method_block(list(errs.get(m, {}).values())) for m in all_methods(data)}
     per_vehicle = {
@@ -644,6 +651,11 @@ def summarize(data: RunData) -> dict[str, Any]:
     }
     comparison = paper_comparison(totals).to_dict()
     run_id = data.run.get("run_id")
+    split_block: dict[str, Any] = {"skipped": "not computed (the report was built without it)"}
+    if splits:
+        edgeloc = {v: pv["methods"].get("edgeloc") for v, pv in per_vehicle.items()}
+        real = {v: (b["position_m"] or {}).get("total") for v, b in edgeloc.items() if b}
+        split_block = split_comparison(data, real)
     return clean_json(
         {
             "version": SUMMARY_VERSION,
@@ -671,6 +683,7 @@ def summarize(data: RunData) -> dict[str, Any]:
             "realtime": realtime_summary(data),
             "dnn_gaps": dnn_gaps(data),
             "links": links_summary(data),
+            "splits": split_block,
             "nodes": data.nodes,
             "failures": failures(data),
             "not_recorded": not_recorded(data),

@@ -190,7 +190,7 @@ class Supervisor:
         self.nodes: list[NodeProcess] = []
         self.budgets: dict[str, Budget] = {}
         self.stopping = False
-        self.config_path = self.folder / "nodes" / "config.json"
+        self.config_path = self.folder / names.NODE_CONFIG_FILE
 
     # ---- plan --------------------------------------------------------------------------
 

@@ -367,6 +367,7 @@ def _fake_run(store: Any, folder: Path) -> None:
     (folder / "links.json").write_text(json.dumps({"backend": "userspace", "links": {}}))
     (folder / "nodes").mkdir()
     (folder / "nodes" / "av1.sensor.json").write_text('{"frames": 5, "lateness": NaN}')
+    (folder / layout.NODE_CONFIG_FILE).write_text(json.dumps({"seed": 7}))
     (folder / "logs").mkdir()
     (folder / "logs" / "av1.sensor.log").write_text("\n".join(f"line {i}" for i in range(30)))
     (folder / "logs" / "gnb1.link_events.log").write_text("ok\n")
@@ -419,6 +420,7 @@ def test_finalise_writes_run_metadata_and_attachments_and_removes_parts(
             "events.jsonl",
             "linktest.json",
             "links.json",
+            "nodes/config.json",
             "traces/uplink.csv",
         }
         decoded = [m.frame_id for _, _, _, m in reader.iter_decoded_messages()]

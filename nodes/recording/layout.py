@@ -21,10 +21,14 @@ LINKTEST_FILE = "linktest.json"
 LINKS_CONFIG_FILE = "links.json"
 #: One JSON line per timeline event as the player applied it.
 EVENTS_FILE = "events.jsonl"
+#: The nodes' settings (`nodes.edgeloc.settings.config_to_dict` of the run's ReplayConfig):
+#: the report replays the drive with them (fixed splits and the oracle beside the learner).
+NODE_CONFIG_FILE = "nodes/config.json"
 #: The report's machine-readable figures.
 SUMMARY_FILE = "summary.json"
-#: Files of the run folder attached to run.mcap, when the run wrote them.
-ATTACHED_FILES = (SCENARIO_FILE, LINKTEST_FILE, LINKS_CONFIG_FILE, EVENTS_FILE)
+#: Files of the run folder attached to run.mcap, when the run wrote them (a name with a
+#: folder is attached under that same relative name).
+ATTACHED_FILES = (SCENARIO_FILE, LINKTEST_FILE, LINKS_CONFIG_FILE, EVENTS_FILE, NODE_CONFIG_FILE)
 
 LINK_EVENTS_TOPIC = "/links/events"
 LINK_COUNTERS_TOPIC = "/links/counters"
