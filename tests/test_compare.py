@@ -148,3 +148,14 @@ def test_replay_plays_a_split_schedule_and_refuses_an_unknown_split() -> None:
     assert res.resets == []  # the learner is not taught when a schedule plays
     with pytest.raises(ValueError, match="conv9"):
         run_replay(cfg, lm, schedule=[(0.0, "conv9")])
+
+
+def test_measured_comparison_leaves_out_a_split_the_run_never_played() -> None:
+    scenario = load(SCENARIOS / "smoke.yaml")
+    cfg = replace(replay_config(scenario), duration_s=6.0, splits=("image", "conv3", "vehicle"))
+    reqs = [MeasuredRequest(0.1 * k, "image" if k % 2 else "conv3", 0.08, False) for k in range(60)]
+    lm = MeasuredLatency(reqs, phase_starts=[0.0], timeout_s=1.0)
+    ds = open_dataset(cfg.dataset, seed=cfg.seed, rate_hz=cfg.rate_hz, duration_s=cfg.duration_s)
+    c = compare_splits(cfg, lm, ds, load_model(cfg.weights))
+    assert sorted(c.fixed) == ["conv3", "image"] and "vehicle" in c.skipped
+    assert c.latency_source == "measured" and c.learned is not None

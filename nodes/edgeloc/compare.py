@@ -191,17 +191,30 @@ def compare_splits(
 ) -> SplitComparison:
     """Replay every fixed split and the oracle beside `learned` (replayed here when None)."""
     cache = cache or InferenceCache(model, dataset, config.codec)
+    measured = isinstance(latency, MeasuredLatency)
+    skipped: dict[str, str] = {}
+    if measured:  # a split the run never played has no latency: no policy may pick it
+        for k in config.splits:
+            if not latency.knows(k):  # type: ignore[attr-defined]
+                skipped[k] = "never played in this run, so its latency was not measured"
+        known = tuple(k for k in config.splits if k not in skipped)
+        if not known:
+            raise ValueError("no split of this run was measured")
+        fixed_split = config.learner.fixed_split
+        config = replace(
+            config,
+            splits=known,
+            learner=replace(
+                config.learner, fixed_split=fixed_split if fixed_split in known else None
+            ),
+        )
+        learned = None  # the run's own learner chose among all arms: replay it among these
     free = replace(config, learner=replace(config.learner, fixed_split=None))
     if learned is None:
         learned = run_replay(free, latency, dataset, model, cache)
     bounds = phase_bounds(config, learned.duration_s)
-    measured = isinstance(latency, MeasuredLatency)
     fixed: dict[str, PolicyRow] = {}
-    skipped: dict[str, str] = {}
     for k in config.splits:
-        if measured and not latency.knows(k):  # type: ignore[attr-defined]
-            skipped[k] = "never played in this run, so its latency was not measured"
-            continue
         cfg = replace(config, learner=replace(config.learner, fixed_split=k))
         fixed[k] = policy_row(f"fixed:{k}", run_replay(cfg, latency, dataset, model, cache), bounds)
     comparison = SplitComparison(
