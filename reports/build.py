@@ -720,10 +720,11 @@ def build_report(
     run_folder: Path | str,
     formats: Iterable[str] = FORMATS,
     plots: bool = True,
-    splits: bool = True,
+    splits: bool | str = True,
 ) -> Report:
     """Read `run_folder`/run.mcap and write the report files into `run_folder`. `splits=False`
-    leaves out the replays of the split comparison (`reports.splits`).
+    (or a string: the reason the report gives) leaves out the replays of the split
+    comparison (`reports.splits`).
 
     Raises ReportInputError when there is no readable MCAP; anything else the recording
     lacks shows in the report as not recorded."""
@@ -772,7 +773,10 @@ __all__ = ["FORMATS", "Report", "ReportInputError", "build_report"]
 
 
 def report_after_run(
-    run_folder: Path, formats: Iterable[str] = FORMATS, plots: bool = True
+    run_folder: Path,
+    formats: Iterable[str] = FORMATS,
+    plots: bool = True,
+    splits: bool | str = True,
 ) -> tuple[Report | None, str | None]:
     """The report at the end of a run (`testbed run`, each real variant of `testbed sweep`):
     `(report, None)`, or `(None, why not)` when the run recorded nothing or the report cannot
@@ -781,7 +785,7 @@ def report_after_run(
     if not (folder / RUN_MCAP).is_file():
         return None, f"{folder} has no {RUN_MCAP} (record.enabled off, or nothing recorded)"
     try:
-        return build_report(folder, formats=formats, plots=plots), None
+        return build_report(folder, formats=formats, plots=plots, splits=splits), None
     except ReportInputError as err:
         return None, str(err)
     except Exception as err:  # a report bug must not hide the run's result

@@ -635,7 +635,7 @@ VEHICLE_TOPICS_REQUIRED = ("gt", "pose", "dnn_answer", "split_decision", "detect
 # ---- the whole summary ------------------------------------------------------------------------
 
 
-def summarize(data: RunData, splits: bool = True) -> dict[str, Any]:
+def summarize(data: RunData, splits: bool | str = True) -> dict[str, Any]:
     """The summary.json dict of a run (keys in the module docstring). `splits=False` leaves
     out the split comparison (its replays take seconds to a minute)."""
     errs = method_errors(data)
@@ -651,8 +651,9 @@ def summarize(data: RunData, splits: bool = True) -> dict[str, Any]:
     }
     comparison = paper_comparison(totals).to_dict()
     run_id = data.run.get("run_id")
-    split_block: dict[str, Any] = {"skipped": "not computed (the report was built without it)"}
-    if splits:
+    why = splits if isinstance(splits, str) else "not computed (the report was built without it)"
+    split_block: dict[str, Any] = {"skipped": why}
+    if splits is True:
         edgeloc = {v: pv["methods"].get("edgeloc") for v, pv in per_vehicle.items()}
         real = {v: (b["position_m"] or {}).get("total") for v, b in edgeloc.items() if b}
         split_block = split_comparison(data, real)

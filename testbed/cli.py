@@ -188,7 +188,15 @@ def run(
     except (*KNOWN_ERRORS, KeyboardInterrupt) as err:
         folder = getattr(err, "run_folder", None)
         if folder is not None and scenario.report.enabled:
-            _report_after_run(Path(folder), scenario.report.formats, scenario.report.plots)
+            # After Ctrl-C the user wants out: no K + 2 replays (`testbed report` adds them).
+            skip = (
+                f"the run was interrupted; `testbed report {folder}` computes it"
+                if isinstance(err, KeyboardInterrupt)
+                else True
+            )
+            _report_after_run(
+                Path(folder), scenario.report.formats, scenario.report.plots, splits=skip
+            )
         if isinstance(err, KeyboardInterrupt):
             raise
         raise _fail(err) from None
@@ -209,12 +217,14 @@ def run(
         raise typer.Exit(EXIT_FAILED)
 
 
-def _report_after_run(folder: Path, formats: tuple[str, ...], plots: bool) -> None:
+def _report_after_run(
+    folder: Path, formats: tuple[str, ...], plots: bool, splits: bool | str = True
+) -> None:
     """Build a run's report from its run.mcap and print the headline and the report's path.
     A report that cannot be built is a warning: the run's own outcome decides the exit code."""
     from reports.build import report_after_run
 
-    built, why_not = report_after_run(folder, formats, plots)
+    built, why_not = report_after_run(folder, formats, plots, splits)
     if built is None:
         con.warn(f"no report: {why_not}")
         return
@@ -234,6 +244,14 @@ def report(
         str, typer.Option("--formats", help="Comma-separated: html, md, json.")
     ] = "html,md,json",
     no_plots: Annotated[bool, typer.Option("--no-plots", help="Skip the figures.")] = False,
+    compare: Annotated[
+        bool,
+        typer.Option(
+            "--compare/--no-compare",
+            help="Replay EdgeLoc with every measured split held fixed and the per-phase oracle "
+            "under the run's measured latencies (K + 2 replays, torch).",
+        ),
+    ] = True,
 ) -> None:
     """Build a run's report from its run.mcap alone: report.html (self-contained, figures
     embedded), report.md, summary.json, plots/*.png and trajectories/<vehicle>/*.tum (TUM, for
@@ -264,7 +282,7 @@ def report(
         con.error(f"{run_folder}: no such run folder")
         raise typer.Exit(EXIT_BAD_INPUT)
     try:
-        built = build_report(folder, formats=wanted, plots=not no_plots)
+        built = build_report(folder, formats=wanted, plots=not no_plots, splits=compare)
     except KNOWN_ERRORS as err:
         raise _fail(err) from None
     for line in built.summary["recording"]["problems"]:

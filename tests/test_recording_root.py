@@ -139,7 +139,7 @@ def test_run_mcap_decodes_fully_and_counts_match_the_nodes(
     assert nodes["av1.fusion"]["stats"]["published"] == fusion["published"]
     assert meta["edgeloc.timeline"]["applied"] == "2"
     assert meta["edgeloc.linktest"] == {"ran": "false"}
-    assert attachments == {"scenario.yaml", "links.json", "events.jsonl"}
+    assert attachments == {"scenario.yaml", "links.json", "events.jsonl", "nodes/config.json"}
     links = json.loads((folder / "links.json").read_text())
     assert set(links["links"]) == set(links["final_profiles"]) == {"av1-gnb1", "gnb1-core1"}
     assert links["links"]["av1-gnb1"]["profiles"]["uplink"]["rate_bps"] == 50e6
@@ -184,6 +184,9 @@ def test_ctrl_c_mid_run_still_writes_a_valid_run_mcap(
     meta, attachments = mcap_extras(folder / "run.mcap")
     assert meta["edgeloc.run"]["status"] == "interrupted"
     assert {"scenario.yaml", "links.json", "events.jsonl"} <= attachments
+    # the report after Ctrl-C leaves out the split replays, and says how to get them
+    skipped = json.loads((folder / "summary.json").read_text())["splits"]["skipped"]
+    assert "interrupted" in skipped and "testbed report" in skipped, skipped
     assert st.list_runs() == [] and processes_mentioning(str(folder)) == []
 
 
