@@ -24,22 +24,14 @@ from __future__ import annotations
 import json
 import math
 from collections.abc import Mapping
-from dataclasses import replace
 from typing import Any
 
-import numpy as np
-
-from nodes.edgeloc.metrics import position_errors
 from nodes.edgeloc.settings import ReplayConfig, config_from_dict
 from nodes.recording.layout import NODE_CONFIG_FILE
 from reports.mcapread import Inference, RunData, VehicleData
 
-#: The request timeout a real run's inference node gives up after (its `--timeout`: the
-#: default of `nodes.ros.common` and what the supervisor passes); a lost request costs it.
-REQUEST_TIMEOUT_S = 1.0
 #: The error text of the request in flight when the node was stopped: not a lost request.
 STOPPED_ERROR = "node stopped"
-NEVER_PLAYED = "never played in this run, so its latency was not measured"
 
 
 def run_config(data: RunData) -> ReplayConfig | str:
@@ -53,8 +45,9 @@ def run_config(data: RunData) -> ReplayConfig | str:
         return f"the attached {NODE_CONFIG_FILE} is not a nodes' settings file ({err})"
 
 
-def measured_requests(vd: VehicleData, t0: float) -> list[Any]:
-    """The vehicle's requests as `MeasuredRequest`s, run times from `t0`.
+def measured_requests(vd: VehicleData, t0: float, timeout_s: float) -> list[Any]:
+    """The vehicle's requests as `MeasuredRequest`s, run times from `t0`; a lost request
+    whose start is unknown took `timeout_s` (the run's request timeout).
 
     A request's own latency is its answer (the InferenceResult's stamp) minus its start (the
     SplitDecision of the same frame, published as the request starts), as the learner is
@@ -77,7 +70,7 @@ def measured_requests(vd: VehicleData, t0: float) -> list[Any]:
             own = i.latency_s
             start = i.t - own
         elif lost:
-            own = REQUEST_TIMEOUT_S
+            own = timeout_s
             start = i.t - own
         else:
             continue  # answered, but neither its start nor its latency is known
@@ -89,25 +82,13 @@ def _stopped(i: Inference) -> bool:
     return not i.ok and not i.timed_out and i.error.startswith(STOPPED_ERROR)
 
 
-def edgeloc_total_m(vd: VehicleData) -> float | None:
-    """EdgeLoc's total position error of the vehicle against ground truth on the same frame
-    ids (as `reports.summary` computes it)."""
-    gt, est = vd.gt, vd.tracks.get("edgeloc")
-    if gt is None or est is None or not len(gt) or not len(est):
-        return None
-    _, gi, ei = np.intersect1d(gt.frame, est.frame, return_indices=True)
-    e, g = est.pose[ei], gt.pose[gi]
-    finite = np.isfinite(e).all(axis=1) & np.isfinite(g).all(axis=1)
-    return float(position_errors(e[finite], g[finite]).sum()) if finite.any() else None
-
-
 def split_comparison(
     data: RunData, real_totals: Mapping[str, float | None] | None = None
 ) -> dict[str, Any]:
     """The learned run, every fixed split the run measured and the oracle, replayed on the
     run's drive under its measured latencies (module doc); `{"skipped": why}` when it cannot
-    be done. `real_totals`: per vehicle, the recorded EdgeLoc total, when the caller has it
-    (`reports.summary`'s per-vehicle figure; else it is computed here)."""
+    be done. `real_totals`: per vehicle, the recorded EdgeLoc total (`reports.summary`'s
+    per-vehicle figure), reported beside the replays."""
     config = run_config(data)
     if isinstance(config, str):
         return {"skipped": config}
@@ -119,22 +100,14 @@ def split_comparison(
     vd = next((v for v in data.vehicles.values() if v.inference), None)
     if vd is None:
         return {"skipped": "no inference request was recorded (/<vehicle>/inference)"}
-    requests = measured_requests(vd, data.t0)
-    known = [k for k in config.splits if any(r.split == k for r in requests)]
-    if not known:
+    requests = measured_requests(vd, data.t0, config.request_timeout_s)
+    played = {r.split for r in requests}
+    if not played & set(config.splits):
         return {"skipped": f"{vd.name}'s requests played none of the configured splits"}
-    # The replayed learner can only choose among splits the run timed: the others have no
-    # latency to draw (they are listed as skipped).
-    fixed = config.learner.fixed_split
-    replayed = replace(
-        config,
-        splits=tuple(known),
-        learner=replace(config.learner, fixed_split=fixed if fixed in known else None),
-    )
     try:
         from nodes.edgeloc.compare import compare_splits
-        from nodes.edgeloc.dataset import open_dataset
         from nodes.edgeloc.latency import MeasuredLatency
+        from nodes.edgeloc.replay import config_dataset
         from nodes.edgeloc.train import load_model
     except ImportError as err:
         return {"skipped": f"the replay needs torch, which does not import here ({err})"}
@@ -143,32 +116,18 @@ def split_comparison(
     except OSError as err:  # WeightsMissing: absent, truncated or foreign weights
         return {"skipped": f"the DNN weights do not load ({err})"}
     try:
-        dataset = open_dataset(
-            config.dataset,
-            seed=config.seed,
-            rate_hz=config.rate_hz,
-            duration_s=config.duration_s,
-            corruption=config.corruption,
-        )
-        measured = MeasuredLatency(requests, config.phases, timeout_s=REQUEST_TIMEOUT_S)
-        comparison = compare_splits(replayed, measured, dataset, model)
+        measured = MeasuredLatency(requests, config.phases, timeout_s=config.request_timeout_s)
+        # compare_splits leaves out (as skipped) the splits the run never timed
+        comparison = compare_splits(config, measured, config_dataset(config), model)
     except (ValueError, OSError) as err:
         return {"skipped": f"the replay of the run's drive failed ({err})"}
-    out = comparison.to_dict()
-    skipped = {k: NEVER_PLAYED for k in config.splits if k not in known}
-    skipped.update(out["skipped"])  # type: ignore[arg-type]
-    if real_totals is not None and vd.name in real_totals:
-        real_total_m = real_totals[vd.name]
-    else:
-        real_total_m = edgeloc_total_m(vd)
     return {
-        **out,
-        "skipped": skipped,
+        **comparison.to_dict(),
         "vehicle": vd.name,
         "requests": len(requests),
-        "replayed_splits": known,
-        "real_learned_total_m": real_total_m,
+        "replayed_splits": list(comparison.fixed),
+        "real_learned_total_m": (real_totals or {}).get(vd.name),
     }
 
 
-__all__ = ["edgeloc_total_m", "measured_requests", "run_config", "split_comparison"]
+__all__ = ["measured_requests", "run_config", "split_comparison"]

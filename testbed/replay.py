@@ -34,7 +34,6 @@ from typing import Any
 from netem.profile import LinkProfile
 from netem.traces import Trace, load_trace
 from nodes.edgeloc.compare import compare_splits
-from nodes.edgeloc.dataset import open_dataset
 from nodes.edgeloc.gate import GateSettings
 from nodes.edgeloc.latency import (
     ComputeProfile,
@@ -49,6 +48,7 @@ from nodes.edgeloc.replay import (
     LearnerSettings,
     ReplayConfig,
     ReplayResult,
+    config_dataset,
     run_replay,
 )
 from nodes.edgeloc.train import load_model
@@ -344,13 +344,7 @@ def replay_scenario(
     config = replay_config(scenario, gate=gate)
     model = latency_model(scenario, compute)
     try:
-        dataset = open_dataset(
-            config.dataset,
-            seed=config.seed,
-            rate_hz=config.rate_hz,
-            duration_s=config.duration_s,
-            corruption=config.corruption,
-        )
+        dataset = config_dataset(config)
         net = load_model(config.weights)
         cache = InferenceCache(net, dataset, config.codec)
         result = run_replay(config, model, dataset, net, cache)

@@ -66,8 +66,6 @@ Progress = Callable[[str], None]
 MIN_PROCESS_CORES = 1.0
 #: How long every node may take to import, start and say it is ready.
 READY_TIMEOUT_S = 90.0
-#: Request timeout of the inference node (the replay's `LatencyModel.timeout_s`).
-REQUEST_TIMEOUT_S = 1.0
 #: How long a stopped node may take to write its stats and exit before it is killed.
 STOP_GRACE_S = 10.0
 #: Log lines quoted when a node dies.
@@ -191,6 +189,7 @@ class Supervisor:
         self.budgets: dict[str, Budget] = {}
         self.stopping = False
         self.config_path = self.folder / names.NODE_CONFIG_FILE
+        self.config = replay_config(net.scenario)
 
     # ---- plan --------------------------------------------------------------------------
 
@@ -198,7 +197,8 @@ class Supervisor:
         """The node processes of this run, in start order (servers first)."""
         topo = self.net.scenario.topology
         logs, stats = self.folder / "logs", self.folder / "nodes"
-        base = ["--config", str(self.config_path), "--timeout", str(REQUEST_TIMEOUT_S)]
+        timeout = str(self.config.request_timeout_s)
+        base = ["--config", str(self.config_path), "--timeout", timeout]
         record = self.net.scenario.record
         out: list[NodeProcess] = []
 
@@ -269,8 +269,7 @@ class Supervisor:
         """Start every node and wait until all are ready; then apply the CPU budgets.
         Raises TestbedError (with the node's last log lines) if one dies or is not ready."""
         self.config_path.parent.mkdir(parents=True, exist_ok=True)
-        config = config_to_dict(replay_config(self.net.scenario))
-        write_json(self.config_path, config)
+        write_json(self.config_path, config_to_dict(self.config))
         (self.folder / "logs").mkdir(parents=True, exist_ok=True)
         self._budgets()
         self.nodes = self.plan()

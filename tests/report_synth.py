@@ -92,6 +92,67 @@ class SynthRun:
             },
         )
 
+    def decision(
+        self, t: float, frame: int, split: str, arms: list[str], plays: int, rule: str = "ucb"
+    ) -> None:
+        """av1's SplitDecision for a request that starts at `t` (no UCB statistics)."""
+        n = len(arms)
+        self.add(
+            t,
+            "/av1/split_decision",
+            "SplitDecision",
+            {
+                "stamp": stamp(t),
+                "vehicle": "av1",
+                "frame_id": frame,
+                "chosen": split,
+                "chosen_index": arms.index(split),
+                "rule": rule,
+                "arm_names": arms,
+                "arm_n": [0] * n,
+                "arm_mean": [math.nan] * n,
+                "arm_var": [math.nan] * n,
+                "arm_index": [-math.inf] * n,
+                "last_latency_s": math.nan,
+                "plays": plays,
+                "plays_total": plays,
+            },
+        )
+
+    def inference(
+        self,
+        t: float,
+        frame: int,
+        split: str,
+        arms: list[str],
+        latency: float,
+        ok: bool,
+        timed_out: bool,
+        error: str = "",
+        payload: int = 1000,
+        head_s: float = 0.001,
+    ) -> None:
+        """av1's InferenceResult, stamped (and logged) at `t`."""
+        self.add(
+            t,
+            "/av1/inference",
+            "InferenceResult",
+            {
+                "stamp": stamp(t),
+                "vehicle": "av1",
+                "frame_id": frame,
+                "split": split,
+                "split_index": arms.index(split),
+                "payload_bytes": payload,
+                "head_s": head_s,
+                "edge_compute_s": 0.001 if ok else math.nan,
+                "latency_s": latency,
+                "ok": ok,
+                "timed_out": timed_out,
+                "error": error,
+            },
+        )
+
     def write(self, path: Path, chunk_size: int = 1024 * 1024, finish: bool = True) -> Path:
         """Write the file; `finish=False` leaves it as a killed recorder would (no footer)."""
         f = open(path, "wb")  # noqa: SIM115 - left unfinished on purpose when finish=False

@@ -17,10 +17,9 @@ import pytest
 
 from nodes.edgeloc import geometry
 from nodes.edgeloc.compare import SplitComparison, compare_splits
-from nodes.edgeloc.dataset import open_dataset
 from nodes.edgeloc.fusion import EdgeLocFuser, latency_weight
 from nodes.edgeloc.latency import MeasuredLatency, MeasuredRequest
-from nodes.edgeloc.replay import InferenceCache, run_replay
+from nodes.edgeloc.replay import InferenceCache, Replay, config_dataset, run_replay
 from nodes.edgeloc.train import load_model
 from testbed.replay import latency_model, replay_config
 from testbed.scenario import load
@@ -32,7 +31,7 @@ SCENARIOS = Path(__file__).resolve().parents[1] / "scenarios"
 def default_comparison() -> SplitComparison:
     scenario = load(SCENARIOS / "default.yaml")
     cfg = replay_config(scenario)
-    ds = open_dataset(cfg.dataset, seed=cfg.seed, rate_hz=cfg.rate_hz, duration_s=cfg.duration_s)
+    ds = config_dataset(cfg)
     model = load_model(cfg.weights)
     return compare_splits(
         cfg, latency_model(scenario), ds, model, InferenceCache(model, ds, cfg.codec)
@@ -142,10 +141,13 @@ def test_replay_plays_a_split_schedule_and_refuses_an_unknown_split() -> None:
     scenario = load(SCENARIOS / "smoke.yaml")
     cfg = replace(replay_config(scenario), duration_s=6.0, splits=("image", "conv3", "vehicle"))
     lm = latency_model(scenario)
-    res = run_replay(cfg, lm, schedule=[(0.0, "vehicle"), (3.0, "image")])
-    assert {p.split for p in res.plays if p.sent_s < 3.0} == {"vehicle"}
-    assert {p.split for p in res.plays if p.sent_s >= 3.0} == {"image"}
-    assert res.resets == []  # the learner is not taught when a schedule plays
+    schedule = [(0.0, "vehicle"), (3.0, "image")]
+    replay = Replay(cfg, lm, config_dataset(cfg), load_model(cfg.weights), schedule=schedule)
+    replay.run()
+    assert {p.split for p in replay.plays if p.sent_s < 3.0} == {"vehicle"}
+    assert {p.split for p in replay.plays if p.sent_s >= 3.0} == {"image"}
+    # the learner is not taught when a schedule plays
+    assert replay.learning is False and replay.learner.bandit.total_plays == 0
     with pytest.raises(ValueError, match="conv9"):
         run_replay(cfg, lm, schedule=[(0.0, "conv9")])
 
@@ -155,7 +157,7 @@ def test_measured_comparison_leaves_out_a_split_the_run_never_played() -> None:
     cfg = replace(replay_config(scenario), duration_s=6.0, splits=("image", "conv3", "vehicle"))
     reqs = [MeasuredRequest(0.1 * k, "image" if k % 2 else "conv3", 0.08, False) for k in range(60)]
     lm = MeasuredLatency(reqs, phase_starts=[0.0], timeout_s=1.0)
-    ds = open_dataset(cfg.dataset, seed=cfg.seed, rate_hz=cfg.rate_hz, duration_s=cfg.duration_s)
+    ds = config_dataset(cfg)
     c = compare_splits(cfg, lm, ds, load_model(cfg.weights))
     assert sorted(c.fixed) == ["conv3", "image"] and "vehicle" in c.skipped
     assert c.latency_source == "measured" and c.learned is not None

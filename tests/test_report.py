@@ -96,46 +96,9 @@ def small_run(status: str = "ok") -> SynthRun:
     ]
     for k, (split, lat, ok, timed_out, size) in enumerate(reqs):
         t = T0 + 0.2 * k
-        s.add(
-            t,
-            "/av1/split_decision",
-            "SplitDecision",
-            {
-                "stamp": stamp(t),
-                "vehicle": "av1",
-                "frame_id": 2 * k,
-                "chosen": split,
-                "chosen_index": arms.index(split),
-                "rule": "explore" if k < 2 else "ucb",
-                "arm_names": arms,
-                "arm_n": [0, 0, 0],
-                "arm_mean": [math.nan] * 3,
-                "arm_var": [math.nan] * 3,
-                "arm_index": [-math.inf] * 3,
-                "last_latency_s": math.nan,
-                "plays": k,
-                "plays_total": k,
-            },
-        )
-        s.add(
-            t + 0.1,
-            "/av1/inference",
-            "InferenceResult",
-            {
-                "stamp": stamp(t + 0.1),
-                "vehicle": "av1",
-                "frame_id": 2 * k,
-                "split": split,
-                "split_index": arms.index(split),
-                "payload_bytes": size,
-                "head_s": 0.002,
-                "edge_compute_s": 0.001 if ok else math.nan,
-                "latency_s": lat,
-                "ok": ok,
-                "timed_out": timed_out,
-                "error": "" if ok else "timeout after 0.5 s",
-            },
-        )
+        s.decision(t, 2 * k, split, arms, k, rule="explore" if k < 2 else "ucb")
+        error = "" if ok else "timeout after 0.5 s"
+        s.inference(t + 0.1, 2 * k, split, arms, lat, ok, timed_out, error, size, head_s=0.002)
     for k, reset in ((1, False), (2, True)):
         t = T0 + 0.25 * k
         s.add(

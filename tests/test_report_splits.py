@@ -10,7 +10,7 @@ import math
 from pathlib import Path
 
 import pytest
-from report_synth import SynthRun, stamp
+from report_synth import SynthRun
 
 from nodes.edgeloc.dataset import open_dataset
 from nodes.edgeloc.settings import LearnerSettings, ReplayConfig, config_to_dict
@@ -56,54 +56,18 @@ def run_with_splits(config: ReplayConfig | None = CONFIG, edgeloc_offset: float 
         stopped = k == requests - 1
         own = 1.0 if lost else LATENCY[(split, phase)]
         frame = round((start - T0) * cfg.rate_hz)
-        s.add(
-            start,
-            "/av1/split_decision",
-            "SplitDecision",
-            {
-                "stamp": stamp(start),
-                "vehicle": "av1",
-                "frame_id": frame,
-                "chosen": split,
-                "chosen_index": ARMS.index(split),
-                "rule": "ucb",
-                "arm_names": ARMS,
-                "arm_n": [0, 0, 0],
-                "arm_mean": [math.nan] * 3,
-                "arm_var": [math.nan] * 3,
-                "arm_index": [-math.inf] * 3,
-                "last_latency_s": math.nan,
-                "plays": k,
-                "plays_total": k,
-            },
-        )
+        s.decision(start, frame, split, ARMS, k)
         ok = not (lost or stopped)
-        s.add(
-            start + own,
-            "/av1/inference",
-            "InferenceResult",
-            {
-                "stamp": stamp(start + own),
-                "vehicle": "av1",
-                "frame_id": frame,
-                "split": split,
-                "split_index": ARMS.index(split),
-                "payload_bytes": 1000,
-                "head_s": 0.001,
-                "edge_compute_s": 0.001 if ok else math.nan,
-                # answer - capture: the frame is up to one period older than the request
-                "latency_s": own + 0.02 if ok else math.nan,
-                "ok": ok,
-                "timed_out": lost,
-                "error": (
-                    "no result within the request timeout"
-                    if lost
-                    else "node stopped before the answer was used"
-                    if stopped
-                    else ""
-                ),
-            },
+        error = (
+            "no result within the request timeout"
+            if lost
+            else "node stopped before the answer was used"
+            if stopped
+            else ""
         )
+        # latency: answer - capture; the frame is up to one period older than the request
+        capture_to_answer = own + 0.02 if ok else math.nan
+        s.inference(start + own, frame, split, ARMS, capture_to_answer, ok, lost, error)
     s.metadata["edgeloc.run"] = {"run_id": "sp1", "scenario": "splits-test", "status": "ok"}
     if config is not None:
         s.attachments[NODE_CONFIG_FILE] = json.dumps(config_to_dict(config)).encode()
@@ -133,7 +97,7 @@ def test_requests_are_timed_from_their_own_start() -> None:
         inf(102.0, 11, "conv3", 0.07, True),  # no decision recorded: the answer age stands in
         inf(103.0, 13, "image", math.nan, False, "node stopped before the answer was used"),
     ]
-    reqs = measured_requests(vd, t0=99.0)
+    reqs = measured_requests(vd, t0=99.0, timeout_s=1.0)
     assert [(r.split, r.lost) for r in reqs] == [
         ("image", False),
         ("conv3", True),

@@ -64,6 +64,8 @@ from typing import Literal
 
 import numpy as np
 
+from nodes.edgeloc.settings import REQUEST_TIMEOUT_S
+
 PACKET_PAYLOAD = 1400  # bytes of message per packet (below a 1500-byte MTU)
 PACKET_OVERHEAD = 70  # IPv4 20 + UDP 8 + RTPS header and DATA submessage ~42
 REQUEST_HEADER = 16  # split id and capture stamp t0 travel with every request and reply
@@ -421,7 +423,7 @@ class LatencyModel:
     downlink: PathSchedule
     loss_policy: LossPolicy = "retransmit"
     rto_s: float = 0.2
-    timeout_s: float = 1.0
+    timeout_s: float = REQUEST_TIMEOUT_S
     reply_payload: int = 38  # the pose as the `vehicle` split encodes it
     notes: list[str] = field(default_factory=list)
     # The request/reply protocol (see `Exchange`); the default is one plain round trip.
@@ -565,7 +567,7 @@ class MeasuredLatency(LatencyModel):
         self,
         requests: Sequence[MeasuredRequest],
         phase_starts: Sequence[float],
-        timeout_s: float = 1.0,
+        timeout_s: float = REQUEST_TIMEOUT_S,
         reply_payload: int = 38,
     ) -> None:
         starts = sorted({0.0, *(float(t) for t in phase_starts)})

@@ -576,6 +576,18 @@ def _check_schedule(
     return out
 
 
+def config_dataset(config: ReplayConfig) -> Dataset:
+    """The drive `config` replays (the synthetic one regenerated from its seed, rate, duration
+    and corruption, or the recorded folder it names)."""
+    return open_dataset(
+        config.dataset,
+        seed=config.seed,
+        rate_hz=config.rate_hz,
+        duration_s=config.duration_s,
+        corruption=config.corruption,
+    )
+
+
 def run_replay(
     config: ReplayConfig,
     latency: LatencyModel,
@@ -591,13 +603,7 @@ def run_replay(
     (the oracle's per-phase choice) instead of the learner or the fixed split."""
     start = time.perf_counter()
     if dataset is None:
-        dataset = open_dataset(
-            config.dataset,
-            seed=config.seed,
-            rate_hz=config.rate_hz,
-            duration_s=config.duration_s,
-            corruption=config.corruption,
-        )
+        dataset = config_dataset(config)
     if model is None:
         from nodes.edgeloc.train import load_model
 
@@ -678,6 +684,7 @@ __all__ = [
     "Replay",
     "ReplayConfig",
     "ReplayResult",
+    "config_dataset",
     "convergence",
     "headline",
     "run_replay",

@@ -17,6 +17,9 @@ from nodes.edgeloc.gate import GateSettings
 #: The split points of the localization DNN, in order (`model.LocNet` implements them):
 #: "image" sends the camera frame, "vehicle" runs the whole network on the vehicle.
 SPLITS: tuple[str, ...] = ("image", "conv1", "conv2", "conv3", "conv4", "fc", "vehicle")
+#: How long thread 2 waits for an answer before it gives up on a request (a lost request is
+#: charged this): the inference node's `--timeout`, the replay's `LatencyModel.timeout_s`.
+REQUEST_TIMEOUT_S = 1.0
 
 
 @dataclass(frozen=True)
@@ -101,6 +104,8 @@ class ReplayConfig:
     kalman: KalmanSettings = field(default_factory=KalmanSettings)
     gate: GateSettings | None = field(default_factory=GateSettings)
     phases: tuple[float, ...] = (0.0,)
+    # In the nodes' settings file, so a real run's report knows what a lost request cost.
+    request_timeout_s: float = REQUEST_TIMEOUT_S
 
     def __post_init__(self) -> None:
         unknown = [s for s in self.splits if s not in SPLITS]

@@ -28,7 +28,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, TypeVar
 
-from nodes.edgeloc.settings import ReplayConfig, config_from_dict
+from nodes.edgeloc.settings import REQUEST_TIMEOUT_S, ReplayConfig, config_from_dict
 from nodes.recording.jsonfile import write_json
 
 #: Extra seconds of dataset beyond the scenario's duration: nodes start before the timeline.
@@ -65,7 +65,9 @@ class NodeArgs:
         p.add_argument("--edge", default="", help="the core/edge node serving the vehicle")
         p.add_argument("--stats", default=None, help="write a stats JSON here at exit")
         p.add_argument("--events", default=None, help="timeline events.jsonl to follow")
-        p.add_argument("--timeout", type=float, default=1.0, help="request timeout, seconds")
+        p.add_argument(
+            "--timeout", type=float, default=REQUEST_TIMEOUT_S, help="request timeout, seconds"
+        )
         p.add_argument(
             "--compute-cgroup",
             default=None,

@@ -42,7 +42,6 @@ if __package__ in (None, ""):  # run as a script: make the repo importable
 import torch
 
 from nodes.edgeloc.compare import SplitComparison, compare_splits
-from nodes.edgeloc.dataset import open_dataset
 from nodes.edgeloc.latency import LatencyModel
 from nodes.edgeloc.metrics import (
     PAPER_REDUCTIONS_PCT,
@@ -51,7 +50,7 @@ from nodes.edgeloc.metrics import (
     position_errors,
 )
 from nodes.edgeloc.metrics import paper_comparison as paper_figures
-from nodes.edgeloc.replay import InferenceCache, run_replay
+from nodes.edgeloc.replay import InferenceCache, config_dataset, run_replay
 from nodes.edgeloc.settings import ReplayConfig
 from nodes.edgeloc.train import load_model
 from testbed.replay import compute_profile, latency_model, replay_config
@@ -126,13 +125,7 @@ def run_seed(
 ) -> dict[str, SeedResult]:
     """Every fusion's comparison on one seed's drive (one dataset and cache for all)."""
     cfg = replace(config, seed=seed)
-    ds = open_dataset(
-        cfg.dataset,
-        seed=seed,
-        rate_hz=cfg.rate_hz,
-        duration_s=cfg.duration_s,
-        corruption=cfg.corruption,
-    )
+    ds = config_dataset(cfg)
     cache = InferenceCache(model, ds, cfg.codec)  # type: ignore[arg-type]
     out = {}
     for fusion in fusions:
