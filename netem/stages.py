@@ -14,10 +14,15 @@ passes `now`, which makes them exact and testable with a fake clock.
 A packet moves from one stage to the next at the instant it left (its due time), not when the
 relay happened to wake up, so timer lateness is paid once, at the link's exit, never per stage.
 
-Stages built for a `LinkProfile` (in this order): `Outage` gate, `RandomLoss`,
-`GilbertElliottLoss`, `Rate` (serialisation + drop-tail queue), `TraceLink` (delivery
-opportunities from a bandwidth trace; idle unless a trace plays) and `Delay` (+ jitter).
-`Pipeline.apply(profile)` reconfigures the same stages in place, so queued packets stay queued.
+A packet is anything whose `len()` is its size on the wire in bytes: `bytes`, or a
+`netem.gso.Frame`, the super-packet of an offloading TUN, which also says how many wire packets
+it stands for (`segments`); counters and queue limits count wire packets.
+
+Stages built for a `LinkProfile` (in this order): `Outage` gate, `Segment` (splits
+super-packets where a later stage acts per wire packet), `RandomLoss`, `GilbertElliottLoss`,
+`Rate` (serialisation + drop-tail queue), `TraceLink` (delivery opportunities from a bandwidth
+trace; idle unless a trace plays) and `Delay` (+ jitter). `Pipeline.apply(profile)`
+reconfigures the same stages in place, so queued packets stay queued.
 """
 
 from __future__ import annotations
@@ -30,14 +35,25 @@ from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
+from netem.gso import Frame, split
 from netem.profile import LinkProfile, check_profile
 from netem.traces import OPPORTUNITY_BYTES, Trace
+
+#: A super-packet is split before a link on which it would be on the wire longer than this:
+#: its first segment would otherwise wait for its last. TCP sizes its bursts to ~1 ms of its
+#: pacing rate (tcp_tso_autosize), so above ~10 Mbit/s most stay whole.
+SPLIT_ABOVE_S = 0.001
 
 # Pareto jitter: shape 3 has a finite variance; samples are shifted and scaled to mean 0 and
 # standard deviation 1, so `jitter_s` is the standard deviation for pareto as for normal.
 _PARETO_SHAPE = 3.0
 _PARETO_MEAN = _PARETO_SHAPE / (_PARETO_SHAPE - 1.0)
 _PARETO_SD = math.sqrt(_PARETO_SHAPE / ((_PARETO_SHAPE - 1.0) ** 2 * (_PARETO_SHAPE - 2.0)))
+
+
+def wire_packets(packet: Any) -> int:
+    """How many packets `packet` is on the wire (a super-packet is several)."""
+    return packet.segments if type(packet) is Frame else 1
 
 
 def jitter_sd(profile: LinkProfile) -> float:
@@ -62,8 +78,8 @@ class StageCounters:
     dropped_packets: dict[str, int] = field(default_factory=dict)
     dropped_bytes: dict[str, int] = field(default_factory=dict)
 
-    def drop(self, reason: str, size: int) -> None:
-        self.dropped_packets[reason] = self.dropped_packets.get(reason, 0) + 1
+    def drop(self, reason: str, size: int, packets: int = 1) -> None:
+        self.dropped_packets[reason] = self.dropped_packets.get(reason, 0) + packets
         self.dropped_bytes[reason] = self.dropped_bytes.get(reason, 0) + size
 
     @property
@@ -106,6 +122,10 @@ class Stage:
         """Packets inside the stage now."""
         raise NotImplementedError
 
+    def min_hold_s(self) -> float:
+        """The least time any packet spends in this stage (a lower bound; default 0)."""
+        return 0.0
+
     def configure(self, profile: LinkProfile) -> None:
         """Take the settings of `profile` that concern this stage (default: none)."""
 
@@ -123,13 +143,13 @@ class Gate(Stage):
 
     def push(self, packet: bytes, now: float) -> None:
         c = self.counters
-        c.packets_in += 1
+        c.packets_in += wire_packets(packet)
         c.bytes_in += len(packet)
         reason = self.verdict(packet, now)
         if reason is None:
             self._passed.append((now, packet))
         else:
-            c.drop(reason, len(packet))
+            c.drop(reason, len(packet), wire_packets(packet))
 
     def pop_ready(self, now: float) -> list[bytes]:
         return _pop_timed(self._passed, now, self.counters)
@@ -148,7 +168,7 @@ def _pop_timed(queue: deque[tuple[float, bytes]], now: float, c: StageCounters) 
         packet = queue.popleft()[1]
         out.append(packet)
         c.bytes_out += len(packet)
-    c.packets_out += len(out)
+        c.packets_out += wire_packets(packet)
     return out
 
 
@@ -170,6 +190,57 @@ class Outage(Gate):
 
     def verdict(self, packet: bytes, now: float) -> str | None:
         return "outage" if self.since <= now < self.until else None
+
+
+class Segment(Stage):
+    """Splits super-packets (`netem.gso.Frame`) into wire packets where that matters.
+
+    A later stage acts per wire packet when the profile loses packets (each is lost on its
+    own), when a trace plays (each waits for its own delivery opportunity) and when the rate
+    would keep a super-packet on the wire longer than `SPLIT_ABOVE_S`. Elsewhere a
+    super-packet moves whole, which is what makes offloads pay. Zero time; drops nothing.
+    """
+
+    name = "segment"
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.per_packet = False
+        self.tracing = False
+        self.split_above_bytes = math.inf
+        self._passed: deque[tuple[float, bytes]] = deque()
+
+    def configure(self, profile: LinkProfile) -> None:
+        self.per_packet = profile.loss > 0.0 or profile.gilbert_elliott is not None
+        rate = profile.rate_bps
+        self.split_above_bytes = math.inf if rate is None else rate * SPLIT_ABOVE_S / 8.0
+
+    def splits(self, packet: Any) -> bool:
+        """Whether `packet` leaves this stage as its wire packets."""
+        return (
+            type(packet) is Frame
+            and packet.segments > 1
+            and (self.per_packet or self.tracing or packet.wire_len > self.split_above_bytes)
+        )
+
+    def push(self, packet: bytes, now: float) -> None:
+        c = self.counters
+        c.packets_in += wire_packets(packet)
+        c.bytes_in += len(packet)
+        if self.splits(packet):
+            for part in split(packet):  # type: ignore[arg-type]
+                self._passed.append((now, part))  # type: ignore[arg-type]
+        else:
+            self._passed.append((now, packet))
+
+    def pop_ready(self, now: float) -> list[bytes]:
+        return _pop_timed(self._passed, now, self.counters)
+
+    def next_due(self) -> float | None:
+        return self._passed[0][0] if self._passed else None
+
+    def queued(self) -> int:
+        return len(self._passed)
 
 
 class RandomLoss(Gate):
@@ -248,6 +319,7 @@ class Rate(Stage):
         self.queue_time_s = queue_time_s
         self._queue: deque[bytes] = deque()  # waiting + the head on the wire
         self._queued_bytes = 0
+        self._queued_packets = 0  # wire packets: a super-packet counts for its segments
         self._head_start = 0.0
         self._head_finish = math.inf
         self._last_finish = -math.inf  # when the previous packet left the wire
@@ -291,6 +363,7 @@ class Rate(Stage):
         while q and self._head_finish <= now:
             packet = q.popleft()
             self._queued_bytes -= len(packet)
+            self._queued_packets -= wire_packets(packet)
             finish = self._head_finish
             self._left.append((finish, packet))
             self._last_finish = finish
@@ -302,19 +375,28 @@ class Rate(Stage):
 
     def push(self, packet: bytes, now: float) -> None:
         c = self.counters
-        size = len(packet)
-        c.packets_in += 1
+        size, n = len(packet), wire_packets(packet)
+        c.packets_in += n
         c.bytes_in += size
         self._advance(now)
         if self.rate_bps is not None:
-            if self.queue_packets is not None and len(self._queue) >= self.queue_packets:
-                c.drop("queue_full", size)
+            if self.queue_packets is not None and self._queued_packets + n > self.queue_packets:
+                if n > 1:
+                    # A super-packet at the queue's edge: as many of its segments get in as
+                    # there is room for, as on a wire.
+                    c.packets_in -= n
+                    c.bytes_in -= size
+                    for part in split(packet):  # type: ignore[arg-type]
+                        self.push(part, now)
+                    return
+                c.drop("queue_full", size, n)
                 return
             if self.queue_time_s is not None and self.backlog_s(now) > self.queue_time_s:
-                c.drop("queue_time", size)
+                c.drop("queue_time", size, n)
                 return
         self._queue.append(packet)
         self._queued_bytes += size
+        self._queued_packets += n
         if len(self._queue) == 1:
             # The wire is free from `now`, or from when the last packet left if a caller ran
             # the stage a little ahead of time.
@@ -410,8 +492,8 @@ class TraceLink(Stage):
 
     def push(self, packet: bytes, now: float) -> None:
         c = self.counters
-        size = len(packet)
-        c.packets_in += 1
+        size, n = len(packet), wire_packets(packet)
+        c.packets_in += n
         c.bytes_in += size
         self._advance(now)
         if self.trace is None:
@@ -419,10 +501,10 @@ class TraceLink(Stage):
             return
         q = self._queue
         if self.queue_packets is not None and len(q) >= self.queue_packets:
-            c.drop("queue_full", size)
+            c.drop("queue_full", size, n)
             return
         if self.queue_time_s is not None and q and now - q[0][0] > self.queue_time_s:
-            c.drop("queue_time", size)
+            c.drop("queue_time", size, n)
             return
         q.append((now, packet))
         if len(q) == 1:
@@ -492,6 +574,13 @@ class Delay(Stage):
             self._heap.clear()
         self.reorder = reorder
 
+    def min_hold_s(self) -> float:
+        if self.jitter_s <= 0.0:
+            return self.delay_s
+        if self.distribution == "uniform":
+            return max(0.0, self.delay_s - self.jitter_s)
+        return 0.0  # normal and pareto jitter are unbounded below (clamped at 0)
+
     def sample(self) -> float:
         """One packet's delay in seconds (delay + jitter, never negative)."""
         if self.jitter_s <= 0.0:
@@ -507,7 +596,7 @@ class Delay(Stage):
 
     def push(self, packet: bytes, now: float) -> None:
         c = self.counters
-        c.packets_in += 1
+        c.packets_in += wire_packets(packet)
         c.bytes_in += len(packet)
         due = now + self.sample()
         if self.reorder:
@@ -528,7 +617,7 @@ class Delay(Stage):
             packet = heapq.heappop(heap)[2]
             out.append(packet)
             self.counters.bytes_out += len(packet)
-        self.counters.packets_out += len(out)
+            self.counters.packets_out += wire_packets(packet)
         # Packets still in the FIFO from before a switch to `reorder` leave too.
         return out + _pop_timed(self._fifo, now, self.counters) if self._fifo else out
 
@@ -563,9 +652,11 @@ class Pipeline(Stage):
         check_profile(profile)
         rate = Rate()
         trace = TraceLink()
+        segment = Segment()
         pipeline = cls(
             [
                 Outage(),
+                segment,
                 RandomLoss(seed=seed),
                 GilbertElliottLoss(seed=seed),
                 rate,
@@ -576,8 +667,13 @@ class Pipeline(Stage):
         )
         for stage in pipeline.stages:
             stage.configure(profile)
+
         # When a trace ends on its own, the profile's rate applies again.
-        trace.on_end = lambda: rate.set_rate(rate.profile_rate_bps, suspended=False)
+        def trace_ended() -> None:
+            rate.set_rate(rate.profile_rate_bps, suspended=False)
+            segment.tracing = False
+
+        trace.on_end = trace_ended
         return pipeline
 
     def stage(self, name: str) -> Stage:
@@ -601,8 +697,10 @@ class Pipeline(Stage):
 
     def play_trace(self, trace: Trace | None, now: float, loop: bool = False) -> None:
         """Let `trace` set the rate from `now` (None: stop it; the profile's rate returns)."""
-        rate, link = self.stage("rate"), self.stage("trace")
+        rate, link, segment = self.stage("rate"), self.stage("trace"), self.stage("segment")
         assert isinstance(rate, Rate) and isinstance(link, TraceLink)
+        assert isinstance(segment, Segment)
+        segment.tracing = trace is not None
         # Packets already in the rate queue keep their place: with the rate suspended they move
         # on to the trace queue at once.
         if trace is None:
@@ -613,7 +711,7 @@ class Pipeline(Stage):
             link.play(trace, now, loop)
 
     def push(self, packet: bytes, now: float) -> None:
-        self.counters.packets_in += 1
+        self.counters.packets_in += wire_packets(packet)
         self.counters.bytes_in += len(packet)
         self.stages[0].push(packet, now)
 
@@ -628,8 +726,8 @@ class Pipeline(Stage):
                 due = stage.next_due()
         out = stages[-1].pop_ready(now)
         c = self.counters
-        c.packets_out += len(out)
         for packet in out:
+            c.packets_out += wire_packets(packet)
             c.bytes_out += len(packet)
         return out
 
@@ -639,6 +737,26 @@ class Pipeline(Stage):
             due = s.next_due()
             if due is not None and (best is None or due < best):
                 best = due
+        return best
+
+    def next_handoff(self) -> float | None:
+        """The latest time `pop_ready` may run without making any packet leave late.
+
+        A hand-off between stages is exact whenever it is handled (the packet enters the next
+        stage at its due time), so it may wait as long as the stages after it hold every
+        packet anyway: on a link with a 5 ms delay a rate stage's hand-offs can be batched
+        over 5 ms instead of waking the relay once per packet.
+        """
+        best: float | None = None
+        hold = 0.0
+        stages = self.stages
+        for i in range(len(stages) - 1, -1, -1):
+            stage = stages[i]
+            if i < len(stages) - 1:
+                due = stage.next_due()
+                if due is not None and (best is None or due + hold < best):
+                    best = due + hold
+            hold += stage.min_hold_s()
         return best
 
     def next_exit(self) -> float | None:

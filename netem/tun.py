@@ -4,6 +4,10 @@ A TUN device belongs to the namespace its creator was in when it called TUNSETIF
 descriptor keeps working from any namespace afterwards. So the relay enters namespace A, opens
 and configures end A (MTU, address, up, through pyroute2), enters namespace B for end B, and
 returns home (`netem.netns.in_netns`: setns moves only the calling thread).
+
+With `offload` (the default) the device is opened with `IFF_VNET_HDR` and announces checksum,
+TSO and USO offloads, like a virtio NIC: each read and write carries a virtio-net header, and
+TCP hands the relay super-packets of up to 64 kB instead of MTU-sized packets (`netem.gso`).
 """
 
 from __future__ import annotations
@@ -18,11 +22,22 @@ from dataclasses import dataclass
 from pyroute2 import IPRoute
 
 from netem.errors import NetemError
+from netem.gso import VNET_LEN
 from netem.netns import in_netns
 
 TUNSETIFF = 0x400454CA
 IFF_TUN = 0x0001
 IFF_NO_PI = 0x1000
+IFF_VNET_HDR = 0x4000
+TUNSETOFFLOAD = 0x400454D0
+TUNSETVNETHDRSZ = 0x400454D8
+TUN_F_CSUM, TUN_F_TSO4, TUN_F_TSO6, TUN_F_TSO_ECN = 0x01, 0x02, 0x04, 0x08
+TUN_F_USO4, TUN_F_USO6 = 0x20, 0x40
+#: Offload sets to try, best first: USO needs Linux 6.2; TSO alone is older than git.
+OFFLOADS = (
+    TUN_F_CSUM | TUN_F_TSO4 | TUN_F_TSO6 | TUN_F_TSO_ECN | TUN_F_USO4 | TUN_F_USO6,
+    TUN_F_CSUM | TUN_F_TSO4 | TUN_F_TSO6 | TUN_F_TSO_ECN,
+)
 IFNAMSIZ = 16
 #: Largest IP packet a TUN device can carry (the MTU may be at most this).
 MAX_MTU = 65535
@@ -43,6 +58,8 @@ class TunConfig:
     # No IPv6 on the link unless asked: its autoconfiguration chatter (router solicitations,
     # MLD reports) would cross the emulated link and show up in its counters.
     ipv6: bool = False
+    #: Read and write super-packets behind a virtio-net header (see the module docstring).
+    offload: bool = True
 
     def __post_init__(self) -> None:
         if not self.name or len(self.name.encode()) >= IFNAMSIZ or "/" in self.name:
@@ -66,8 +83,11 @@ def open_tun(config: TunConfig) -> int:
     """
     fd = os.open("/dev/net/tun", os.O_RDWR | os.O_NONBLOCK | os.O_CLOEXEC)
     try:
-        ifr = struct.pack("16sH22x", config.name.encode(), IFF_TUN | IFF_NO_PI)
+        flags = IFF_TUN | IFF_NO_PI | (IFF_VNET_HDR if config.offload else 0)
+        ifr = struct.pack("16sH22x", config.name.encode(), flags)
         fcntl.ioctl(fd, TUNSETIFF, ifr)
+        if config.offload:
+            _set_offloads(fd, config.name)
     except OSError as exc:
         os.close(fd)
         hint = " (a device of that name exists already)" if exc.errno == errno.EBUSY else ""
@@ -80,6 +100,18 @@ def open_tun(config: TunConfig) -> int:
         os.close(fd)
         raise
     return fd
+
+
+def _set_offloads(fd: int, name: str) -> None:
+    fcntl.ioctl(fd, TUNSETVNETHDRSZ, struct.pack("i", VNET_LEN))
+    for offloads in OFFLOADS:
+        try:
+            fcntl.ioctl(fd, TUNSETOFFLOAD, offloads)
+            return
+        except OSError as exc:
+            if exc.errno != errno.EINVAL:
+                raise
+    raise TunError(errno.EINVAL, f"TUN {name}: this kernel refuses TSO offloads")
 
 
 def configure_link(config: TunConfig) -> None:

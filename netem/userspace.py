@@ -57,6 +57,8 @@ class UserspaceLink:
     `uplink` shapes A->B, `downlink` B->A. `seed` makes loss and jitter reproducible.
     `die_with_parent` ends the relay if this process dies (leave it False for links that must
     outlive the process that made them, e.g. `testbed up`; then `pid` is what to stop).
+    `offload` lets TCP hand the relay 64 kB super-packets (`netem.gso`); False moves one
+    MTU-sized packet at a time, the data plane before offloads.
     `nice` raises the relay's priority (-10 by default: on a 2-core host busy with the
     workload, a relay that waits for a CPU adds milliseconds of delay the profile never asked
     for; it takes no more CPU for it). Use 0 when not running as root.
@@ -80,6 +82,7 @@ class UserspaceLink:
         die_with_parent: bool = True,
         nice: int = -10,
         python: str = sys.executable,
+        offload: bool = True,
     ) -> None:
         self.a = RelayEnd(netns_a, dev_a, addr_a)
         self.b = RelayEnd(netns_b, dev_b, addr_b)
@@ -94,6 +97,7 @@ class UserspaceLink:
         self.die_with_parent = die_with_parent
         self.nice = nice
         self.python = python
+        self.offload = offload
         # Without a log_dir the relay's log (and control socket) go to a temp folder of ours,
         # removed on close; with one, the caller owns the folder and its lifetime.
         self._log_dir = None if log_dir is None else str(log_dir)
@@ -148,6 +152,8 @@ class UserspaceLink:
             cmd += ["--nice", str(self.nice)]
         if self.die_with_parent:
             cmd.append("--die-with-parent")
+        if not self.offload:
+            cmd.append("--no-offload")
         return cmd
 
     def start(self, timeout_s: float = 10.0) -> UserspaceLink:

@@ -1,0 +1,231 @@
+"""Super-packets and software GSO (`netem.gso`), checked with scapy as the independent parser.
+
+Each test builds the kind of frame an offloading TUN hands the relay (a virtio-net header in
+front of a TCP or UDP super-packet), splits it, and lets scapy recompute every IP, TCP and UDP
+checksum and read every header field of the segments. The stage tests check that a pipeline
+splits super-packets exactly where an effect is per wire packet, and counts wire packets.
+"""
+
+from __future__ import annotations
+
+import pytest
+from hypothesis import given
+from hypothesis import strategies as st
+
+scapy_all = pytest.importorskip("scapy.all", reason="scapy (in .[test]) parses the segments")
+IP, IPv6, TCP, UDP, Raw = (
+    scapy_all.IP,
+    scapy_all.IPv6,
+    scapy_all.TCP,
+    scapy_all.UDP,
+    scapy_all.Raw,
+)
+
+from netem.gso import (  # noqa: E402
+    GSO_ECN,
+    GSO_NONE,
+    GSO_TCPV4,
+    GSO_TCPV6,
+    GSO_UDP_L4,
+    VNET,
+    VNET_F_NEEDS_CSUM,
+    VNET_LEN,
+    Frame,
+    checksum,
+    split,
+)
+from netem.profile import GilbertElliott, LinkProfile  # noqa: E402
+from netem.stages import Pipeline, Rate, Segment, wire_packets  # noqa: E402
+
+PAYLOAD = bytes(range(256)) * 20 + b"tail"  # 5124 bytes: 3 full segments of 1448 and a rest
+
+
+def super_packet(layer3, gso_type: int, gso_size: int = 1448, payload: bytes = PAYLOAD) -> Frame:
+    """A frame as the kernel gives it: header fields of one packet, the whole payload behind.
+
+    The checksum field carries only the pseudo-header sum (NEEDS_CSUM), as under TSO; the
+    segments must come out with full checksums regardless.
+    """
+    packet = bytes(layer3 / Raw(payload))
+    l4 = packet.index(payload) - (20 if TCP in layer3 else 8)
+    header = VNET.pack(VNET_F_NEEDS_CSUM, gso_type, 0, gso_size, l4, 16 if TCP in layer3 else 6)
+    return Frame(header + packet)
+
+
+def tcp4(flags: str = "PA") -> Frame:
+    return super_packet(
+        IP(src="10.9.0.1", dst="10.9.0.2", id=1000, flags="DF")
+        / TCP(sport=40000, dport=5201, seq=4_294_967_000, ack=7, flags=flags, window=512),
+        GSO_TCPV4,
+    )
+
+
+def parse(frame: Frame):
+    assert frame.data[:VNET_LEN] == VNET.pack(0, GSO_NONE, 0, 0, 0, 0)
+    return (IPv6 if frame.data[VNET_LEN] >> 4 == 6 else IP)(frame.data[VNET_LEN:])
+
+
+def assert_checksums_valid(packet) -> None:
+    """scapy fills in the checksums it would send; they must equal the ones we wrote."""
+    fresh = packet.__class__(bytes(packet))
+    for layer in (IP, TCP, UDP):
+        if layer in fresh:
+            del fresh[layer].chksum
+    rebuilt = packet.__class__(bytes(fresh))
+    for layer in (IP, TCP, UDP):
+        if layer in packet:
+            assert packet[layer].chksum == rebuilt[layer].chksum, layer.__name__
+
+
+def test_a_tcp_super_packet_weighs_what_its_segments_weigh_on_the_wire() -> None:
+    frame = tcp4()
+    assert frame.segments == 4
+    assert len(frame) == frame.wire_len == len(PAYLOAD) + 4 * 40
+    plain = Frame(VNET.pack(0, GSO_NONE, 0, 0, 0, 0) + bytes(IP() / UDP() / Raw(b"x" * 100)))
+    assert (plain.segments, len(plain)) == (1, 128)
+
+
+def test_tcp_segments_are_what_a_nic_would_send() -> None:
+    frame = tcp4("FPA")
+    parts = split(frame)
+    assert len(parts) == frame.segments == 4
+    assert sum(len(p) for p in parts) == len(frame)
+    packets = [parse(p) for p in parts]
+    for i, pkt in enumerate(packets):
+        assert_checksums_valid(pkt)
+        assert pkt[IP].len == len(parts[i])
+        assert pkt[IP].id == 1000 + i
+        assert pkt[IP].flags == "DF"
+        assert pkt[TCP].seq == (4_294_967_000 + i * 1448) % 2**32  # wraps past 2^32
+        assert pkt[TCP].ack == 7 and pkt[TCP].window == 512
+    assert [str(p[TCP].flags) for p in packets] == ["A", "A", "A", "FPA"]
+    assert b"".join(bytes(p[TCP].payload) for p in packets) == PAYLOAD
+    assert [len(p[TCP].payload) for p in packets] == [1448, 1448, 1448, 780]
+
+
+def test_cwr_is_kept_on_the_first_segment_only() -> None:
+    packets = [parse(p) for p in split(tcp4("CA"))]
+    assert [str(p[TCP].flags) for p in packets] == ["AC", "A", "A", "A"]
+
+
+def test_tcp_over_ipv6_and_ecn_marked_gso() -> None:
+    frame = super_packet(
+        IPv6(src="fd00::1", dst="fd00::2") / TCP(sport=1, dport=2, seq=10, flags="PA"),
+        GSO_TCPV6 | GSO_ECN,
+        gso_size=1000,
+    )
+    assert frame.segments == 6 and len(frame) == len(PAYLOAD) + 6 * 60
+    packets = [parse(p) for p in split(frame)]
+    for i, pkt in enumerate(packets):
+        assert_checksums_valid(pkt)
+        assert pkt[IPv6].plen == len(pkt[TCP])
+        assert pkt[TCP].seq == 10 + 1000 * i
+    assert b"".join(bytes(p[TCP].payload) for p in packets) == PAYLOAD
+
+
+def test_udp_gso_gives_datagrams_of_gso_size() -> None:
+    frame = super_packet(
+        IP(src="10.9.0.1", dst="10.9.0.2") / UDP(sport=5000, dport=6000), GSO_UDP_L4, 1200
+    )
+    packets = [parse(p) for p in split(frame)]
+    assert len(packets) == 5 == frame.segments
+    for pkt in packets:
+        assert_checksums_valid(pkt)
+        assert pkt[UDP].len == 8 + len(pkt[UDP].payload)
+    assert [len(p[UDP].payload) for p in packets] == [1200] * 4 + [324]
+    assert b"".join(bytes(p[UDP].payload) for p in packets) == PAYLOAD
+
+
+def test_a_frame_of_one_segment_is_not_copied() -> None:
+    frame = tcp4()
+    small = super_packet(IP() / TCP(), GSO_TCPV4, gso_size=9000)
+    assert small.segments == 1 and split(small) == [small]
+    assert split(frame)[0] is not frame
+
+
+@given(st.binary(min_size=0, max_size=300))
+def test_checksum_is_rfc_1071(data: bytes) -> None:
+    # The textbook loop: 16-bit big-endian words, end-around carry, complement.
+    padded = data + b"\0" * (len(data) % 2)
+    total = 0
+    for i in range(0, len(padded), 2):
+        total += padded[i] << 8 | padded[i + 1]
+        total = (total & 0xFFFF) + (total >> 16)
+    want = ~total & 0xFFFF
+    got = checksum(data)
+    # 0 and 0xFFFF are the same number in one's complement; we always give 0xFFFF.
+    assert got == (want or 0xFFFF)
+    split_at = (len(data) // 2) & ~1
+    assert checksum(data[:split_at], data[split_at:]) == got
+
+
+# -- the pipeline with super-packets ----------------------------------------------------------
+
+
+def run(pipeline: Pipeline, frames: list, until: float = 10.0) -> list:
+    for f in frames:
+        pipeline.push(f, 0.0)
+    out = []
+    while (due := pipeline.next_due()) is not None and due <= until:
+        out += pipeline.pop_ready(due)
+    return out
+
+
+def test_a_plain_link_moves_super_packets_whole_and_counts_wire_packets() -> None:
+    pipeline = Pipeline.from_profile(LinkProfile(delay_s=0.005))
+    out = run(pipeline, [tcp4(), tcp4()])
+    assert [type(p) for p in out] == [Frame, Frame] and all(p.segments == 4 for p in out)
+    total = pipeline.snapshot()["total"]
+    assert total["packets_in"] == total["packets_out"] == 8
+    assert total["bytes_out"] == 2 * len(tcp4())
+
+
+@pytest.mark.parametrize(
+    "profile",
+    [
+        LinkProfile(loss=0.01),
+        LinkProfile(gilbert_elliott=GilbertElliott(p=0.01, r=0.5)),
+        LinkProfile(rate_bps=1e6),  # 5.3 kB takes 42 ms on the wire: too long to move whole
+    ],
+    ids=["loss", "gilbert-elliott", "slow-rate"],
+)
+def test_per_packet_effects_get_wire_packets(profile: LinkProfile) -> None:
+    out = run(Pipeline.from_profile(profile), [tcp4() for _ in range(5)])
+    assert out and all(type(p) is Frame and p.segments == 1 for p in out)
+
+
+def test_a_fast_rate_keeps_super_packets_whole() -> None:
+    out = run(Pipeline.from_profile(LinkProfile(rate_bps=1e9)), [tcp4()])
+    assert len(out) == 1 and out[0].segments == 4
+
+
+def test_a_trace_gets_wire_packets_and_gives_them_back_when_it_stops() -> None:
+    from netem.traces import Trace
+
+    pipeline = Pipeline.from_profile(LinkProfile())
+    segment = pipeline.stage("segment")
+    assert isinstance(segment, Segment)
+    trace = Trace(format="csv", duration_s=1.0, steps=((0.0, 12e6),))
+    pipeline.play_trace(trace, now=0.0)
+    assert segment.splits(tcp4())
+    pipeline.play_trace(None, now=0.5)
+    assert not segment.splits(tcp4())
+
+
+def test_loss_is_drawn_per_wire_packet() -> None:
+    pipeline = Pipeline.from_profile(LinkProfile(loss=0.25), seed=3)
+    out = run(pipeline, [tcp4() for _ in range(500)])
+    lost = pipeline.snapshot()["total"]["dropped_packets"]["loss"]
+    assert lost + len(out) == 2000
+    assert 0.22 < lost / 2000 < 0.28  # per packet; whole frames would lose in steps of 4
+
+
+def test_the_rate_queue_limit_counts_wire_packets_and_admits_a_partial_frame() -> None:
+    rate = Rate(rate_bps=1e6, queue_packets=10)
+    rate.push(tcp4(), 0.0)
+    rate.push(tcp4(), 0.0)  # 8 wire packets queued
+    rate.push(tcp4(), 0.0)  # room for 2 of its 4
+    assert sum(wire_packets(p) for p in rate._queue) == 10
+    drops = rate.counters.dropped_packets
+    assert drops == {"queue_full": 2}
+    assert rate.counters.packets_in == 12
