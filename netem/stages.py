@@ -131,25 +131,49 @@ class Stage:
 
 
 class Gate(Stage):
-    """A zero-time stage that lets each packet through or drops it when it arrives."""
+    """A zero-time stage that lets each packet through or drops it when it arrives.
+
+    A gate decides on a whole packet (`verdict`: an outage) or on each wire packet
+    (`losses`: which of a super-packet's `n` wire packets are lost). A super-packet that
+    loses none passes whole; one that loses some is split, and only those are dropped. So
+    loss stays per wire packet while most super-packets of a lightly lossy link stay whole.
+    """
+
+    loss_reason = "loss"
 
     def __init__(self) -> None:
         super().__init__()
         self._passed: deque[tuple[float, bytes]] = deque()
 
     def verdict(self, packet: bytes, now: float) -> str | None:
-        """The drop reason for `packet`, or None to let it through."""
-        raise NotImplementedError
+        """The drop reason for the whole of `packet`, or None (default: none)."""
+        return None
+
+    def losses(self, n: int) -> list[int]:
+        """Which of the next `n` wire packets are lost, in order (default: none)."""
+        return []
 
     def push(self, packet: bytes, now: float) -> None:
         c = self.counters
-        c.packets_in += wire_packets(packet)
-        c.bytes_in += len(packet)
+        n, size = wire_packets(packet), len(packet)
+        c.packets_in += n
+        c.bytes_in += size
         reason = self.verdict(packet, now)
-        if reason is None:
+        if reason is not None:
+            c.drop(reason, size, n)
+            return
+        lost = self.losses(n)
+        if not lost:
             self._passed.append((now, packet))
+        elif len(lost) == n:
+            c.drop(self.loss_reason, size, n)
         else:
-            c.drop(reason, len(packet), wire_packets(packet))
+            gone = set(lost)
+            for i, part in enumerate(split(packet)):  # type: ignore[arg-type]
+                if i in gone:
+                    c.drop(self.loss_reason, len(part))
+                else:
+                    self._passed.append((now, part))  # type: ignore[arg-type]
 
     def pop_ready(self, now: float) -> list[bytes]:
         return _pop_timed(self._passed, now, self.counters)
@@ -191,27 +215,29 @@ class Outage(Gate):
     def verdict(self, packet: bytes, now: float) -> str | None:
         return "outage" if self.since <= now < self.until else None
 
+    def losses(self, n: int) -> list[int]:
+        return []
+
 
 class Segment(Stage):
     """Splits super-packets (`netem.gso.Frame`) into wire packets where that matters.
 
-    A later stage acts per wire packet when the profile loses packets (each is lost on its
-    own), when a trace plays (each waits for its own delivery opportunity) and when the rate
-    would keep a super-packet on the wire longer than `SPLIT_ABOVE_S`. Elsewhere a
-    super-packet moves whole, which is what makes offloads pay. Zero time; drops nothing.
+    A later stage acts per wire packet when a trace plays (each waits for its own delivery
+    opportunity) and when the rate would keep a super-packet on the wire longer than
+    `SPLIT_ABOVE_S`. (Loss gates split for themselves, only a super-packet that loses some
+    of its packets.) Elsewhere a super-packet moves whole, which is what makes offloads pay.
+    Zero time; drops nothing.
     """
 
     name = "segment"
 
     def __init__(self) -> None:
         super().__init__()
-        self.per_packet = False
         self.tracing = False
         self.split_above_bytes = math.inf
         self._passed: deque[tuple[float, bytes]] = deque()
 
     def configure(self, profile: LinkProfile) -> None:
-        self.per_packet = profile.loss > 0.0 or profile.gilbert_elliott is not None
         rate = profile.rate_bps
         self.split_above_bytes = math.inf if rate is None else rate * SPLIT_ABOVE_S / 8.0
 
@@ -220,7 +246,7 @@ class Segment(Stage):
         return (
             type(packet) is Frame
             and packet.segments > 1
-            and (self.per_packet or self.tracing or packet.wire_len > self.split_above_bytes)
+            and (self.tracing or packet.wire_len > self.split_above_bytes)
         )
 
     def push(self, packet: bytes, now: float) -> None:
@@ -244,23 +270,50 @@ class Segment(Stage):
 
 
 class RandomLoss(Gate):
-    """Drops each packet independently with probability `loss`."""
+    """Drops each wire packet independently with probability `loss`.
+
+    Instead of a draw per packet it draws how many packets pass before the next loss (a
+    geometric number, which is the same process), so a super-packet costs one comparison.
+    """
 
     name = "loss"
 
     def __init__(self, loss: float = 0.0, seed: int | str = 0) -> None:
         super().__init__()
-        self.loss = loss
         self._rng = random.Random(f"{seed}:{self.name}")
+        self.loss = 0.0
+        self._skip = 0  # wire packets that pass before the next loss
+        self._set(loss)
+
+    def _set(self, loss: float) -> None:
+        if loss != self.loss:
+            self.loss = loss
+            self._skip = self._gap()  # memoryless: a fresh draw is as good as the old one
+
+    def _gap(self) -> int:
+        p = self.loss
+        if p <= 0.0 or p >= 1.0:  # (no loss: never asked; certain loss: no gaps)
+            return 0
+        # P(gap = k) = (1-p)^k p; 1 - random() is in (0, 1], so the log is finite.
+        return int(math.log(1.0 - self._rng.random()) / math.log1p(-p))
 
     def configure(self, profile: LinkProfile) -> None:
         # A Gilbert-Elliott model replaces the independent loss (netem's `loss gemodel`).
-        self.loss = 0.0 if profile.gilbert_elliott is not None else profile.loss
+        self._set(0.0 if profile.gilbert_elliott is not None else profile.loss)
 
-    def verdict(self, packet: bytes, now: float) -> str | None:
-        if self.loss > 0.0 and self._rng.random() < self.loss:
-            return "loss"
-        return None
+    def losses(self, n: int) -> list[int]:
+        if self.loss <= 0.0:
+            return []
+        if self._skip >= n:
+            self._skip -= n
+            return []
+        out: list[int] = []
+        i = self._skip
+        while i < n:
+            out.append(i)
+            i += 1 + self._gap()
+        self._skip = i - n
+        return out
 
 
 class GilbertElliottLoss(Gate):
@@ -279,19 +332,24 @@ class GilbertElliottLoss(Gate):
         if self.model is None:
             self.bad = False
 
-    def verdict(self, packet: bytes, now: float) -> str | None:
+    def losses(self, n: int) -> list[int]:
         m = self.model
         if m is None:
-            return None
+            return []
         rng = self._rng
-        lost = rng.random() < (m.bad_loss if self.bad else m.good_loss)
-        # Step the chain after deciding, so the first packet sees the good state.
-        if self.bad:
-            if rng.random() < m.r:
-                self.bad = False
-        elif rng.random() < m.p:
-            self.bad = True
-        return "loss" if lost else None
+        out: list[int] = []
+        bad = self.bad
+        for i in range(n):
+            if rng.random() < (m.bad_loss if bad else m.good_loss):
+                out.append(i)
+            # Step the chain after deciding, so the first packet sees the good state.
+            if bad:
+                if rng.random() < m.r:
+                    bad = False
+            elif rng.random() < m.p:
+                bad = True
+        self.bad = bad
+        return out
 
 
 class Rate(Stage):

@@ -180,18 +180,31 @@ def test_a_plain_link_moves_super_packets_whole_and_counts_wire_packets() -> Non
     assert total["bytes_out"] == 2 * len(tcp4())
 
 
+def test_a_slow_link_gets_wire_packets() -> None:
+    # 5.3 kB take 42 ms at 1 Mbit/s: moved whole, the first segment would wait for the last.
+    out = run(Pipeline.from_profile(LinkProfile(rate_bps=1e6)), [tcp4() for _ in range(5)])
+    assert len(out) == 20 and all(type(p) is Frame and p.segments == 1 for p in out)
+
+
 @pytest.mark.parametrize(
     "profile",
-    [
-        LinkProfile(loss=0.01),
-        LinkProfile(gilbert_elliott=GilbertElliott(p=0.01, r=0.5)),
-        LinkProfile(rate_bps=1e6),  # 5.3 kB takes 42 ms on the wire: too long to move whole
-    ],
-    ids=["loss", "gilbert-elliott", "slow-rate"],
+    [LinkProfile(loss=0.05), LinkProfile(gilbert_elliott=GilbertElliott(p=0.05, r=0.8))],
+    ids=["random", "gilbert-elliott"],
 )
-def test_per_packet_effects_get_wire_packets(profile: LinkProfile) -> None:
-    out = run(Pipeline.from_profile(profile), [tcp4() for _ in range(5)])
-    assert out and all(type(p) is Frame and p.segments == 1 for p in out)
+def test_a_lossy_link_splits_only_the_super_packets_that_lose_packets(
+    profile: LinkProfile,
+) -> None:
+    pipeline = Pipeline.from_profile(profile, seed=2)
+    out = run(pipeline, [tcp4() for _ in range(2000)])
+    whole = [p for p in out if p.segments == 4]
+    lost = pipeline.snapshot()["total"]["dropped_packets"]["loss"]
+    assert sum(p.segments for p in out) + lost == 8000
+    assert all(p.segments in (1, 4) for p in out)
+    # A frame passes whole exactly when none of its 4 packets is lost.
+    share = len(whole) / 2000
+    if profile.gilbert_elliott is None:
+        assert share == pytest.approx(0.95**4, abs=0.03)
+    assert 0 < len(out) - len(whole) < 4 * (2000 - len(whole))
 
 
 def test_a_fast_rate_keeps_super_packets_whole() -> None:
@@ -216,7 +229,7 @@ def test_loss_is_drawn_per_wire_packet() -> None:
     pipeline = Pipeline.from_profile(LinkProfile(loss=0.25), seed=3)
     out = run(pipeline, [tcp4() for _ in range(500)])
     lost = pipeline.snapshot()["total"]["dropped_packets"]["loss"]
-    assert lost + len(out) == 2000
+    assert lost + sum(p.segments for p in out) == 2000
     assert 0.22 < lost / 2000 < 0.28  # per packet; whole frames would lose in steps of 4
 
 
