@@ -183,6 +183,7 @@ class Relay:
         self._handlers[fd_a] = ("tun", "uplink")
         self._handlers[fd_b] = ("tun", "downlink")
         self._handlers[self._wake_r.fileno()] = ("wake", None)
+        self._fds = list(self._handlers)  # what select() watches, rebuilt when it changes
         if control_path is not None:
             self._listen(control_path)
 
@@ -198,6 +199,7 @@ class Relay:
         sock.setblocking(False)
         self._listener = sock
         self._handlers[sock.fileno()] = ("listen", None)
+        self._fds = list(self._handlers)
 
     def _accept(self) -> None:
         assert self._listener is not None
@@ -208,9 +210,11 @@ class Relay:
         conn.settimeout(1.0)  # replies are small; never let a stuck client stall the link
         self._conns[conn] = bytearray()
         self._handlers[conn.fileno()] = ("conn", conn)
+        self._fds = list(self._handlers)
 
     def _drop_conn(self, conn: socket.socket) -> None:
         self._handlers.pop(conn.fileno(), None)
+        self._fds = list(self._handlers)
         self._conns.pop(conn, None)
         conn.close()
 
@@ -352,7 +356,9 @@ class Relay:
         offload = self.offload
         for direction, fd in (("uplink", self.fd_b), ("downlink", self.fd_a)):
             pipeline = self.pipelines[direction]
-            exit_ = pipeline.next_exit()
+            handoff, exit_ = pipeline.deadlines()
+            if (exit_ is None or exit_ > now) and (handoff is None or handoff > now):
+                continue  # nothing of this direction is due: leave its stages alone
             if exit_ is not None and exit_ <= now:
                 # How late the first packet of this batch leaves (after the clock read).
                 self.lateness.append(self.clock() - exit_)
@@ -371,7 +377,7 @@ class Relay:
         soft: float | None = None
         hard: float | None = None
         for pipeline in self.pipelines.values():
-            due, exit_ = pipeline.next_handoff(), pipeline.next_exit()
+            due, exit_ = pipeline.deadlines()
             if due is not None and (soft is None or due < soft):
                 soft = due
             if exit_ is not None and (hard is None or exit_ < hard):
@@ -392,7 +398,7 @@ class Relay:
             now = clock()
             timeout = timer.timeout(*self._deadlines(), now)
             try:
-                ready = select.select(list(handlers), [], [], timeout)[0]
+                ready = select.select(self._fds, [], [], timeout)[0]
             except InterruptedError:  # pragma: no cover - PEP 475 retries; kept for safety
                 ready = []
             stats["wakeups"] += 1
