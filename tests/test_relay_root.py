@@ -340,7 +340,6 @@ def test_loss_on_an_offloaded_link_is_per_wire_packet_and_segments_pass_checksum
     up = counters["uplink"]
     lost = up["total"]["dropped_packets"]["loss"]
     assert 0.012 <= lost / up["total"]["packets_in"] <= 0.03
-    assert up["stages"]["segment"]["packets_out"] == up["total"]["packets_in"]
 
 
 def test_udp_gso_datagrams_cross_whole_or_split_for_loss(pair) -> None:
