@@ -4,7 +4,7 @@ Exit codes mean the same thing for every verb:
   0  done as asked
   1  the run or the measurement failed (a node died, a link out of tolerance)
   2  bad input (scenario file, option, unknown run id)
-  3  this host cannot do it (not root, a kernel feature missing)
+  3  this host cannot do it (not root, a kernel feature missing, a link rate beyond its relay)
   130 interrupted (Ctrl-C); everything created was removed
 """
 
@@ -90,14 +90,31 @@ def _fail(err: BaseException) -> typer.Exit:
 @app.command()
 def validate(
     files: Annotated[list[Path], typer.Argument(help="Scenario YAML files.", show_default=False)],
+    host: Annotated[
+        bool,
+        typer.Option(
+            "--host",
+            help=(
+                "Also check the link rates against what this host's userspace data plane "
+                "carries (measured in throwaway namespaces, a few seconds, cached for a day; "
+                "root)."
+            ),
+        ),
+    ] = False,
 ) -> None:
     """Check scenario files against schema v1 and report every error with file:line:column.
 
-    Example: testbed validate scenarios/*.yaml
+    With --host, also say which link rates this host cannot emulate: where the links are the
+    userspace relay (no sch_netem), a rate above what the relay carries even for TCP is an
+    error, one above what it carries one packet at a time (UDP without GSO, as ROS 2 DDS
+    sends) a note. Exits 2 for a bad file, 3 for such an error (or without root), 0 with notes.
+
+    Example: testbed validate scenarios/*.yaml ; sudo testbed validate --host scenarios/default.yaml
     """
     from testbed.scenario import ScenarioError, load
 
     bad = 0
+    scenarios = []
     for path in files:
         try:
             scenario = load(path)
@@ -106,12 +123,56 @@ def validate(
             for line in str(err).splitlines():
                 con.error(line)
             continue
+        scenarios.append((path, scenario))
         con.ok(
             f"{path}: valid ({len(scenario.topology.vehicles)} vehicle(s), "
             f"{len(scenario.topology.cells)} cell(s), {len(scenario.timeline)} timeline event(s))"
         )
+    if host and scenarios and _validate_host(scenarios) and not bad:
+        raise typer.Exit(EXIT_HOST)
     if bad:
         raise typer.Exit(EXIT_BAD_INPUT)
+
+
+def _validate_host(scenarios: list[tuple[Path, Any]]) -> int:
+    """`validate --host`: each scenario's link rates against this host's data plane (measured
+    once for all); prints them per file and returns how many files have an error."""
+    from testbed import capacity
+    from testbed.links import choose_backend
+    from testbed.namespaces import require_root
+
+    try:
+        require_root()  # the netem probe and the measurement make namespaces
+    except HostError as err:
+        raise _fail(HostError(f"validate --host: {err}")) from None
+    failed = 0
+    plane = None
+    for path, scenario in scenarios:
+        try:
+            backend = choose_backend(scenario)
+        except HostError as err:  # `backend: tc` on a kernel without netem, needing netem
+            failed += 1
+            con.error(f"{path}: {err}")
+            continue
+        if backend.name != "userspace":
+            con.ok(f"{path}: links on {backend.describe()}: not limited by the relay")
+            continue
+        if plane is None:
+            try:
+                plane = capacity.host_data_plane(progress=con.plain)
+            except KNOWN_ERRORS as err:
+                raise _fail(err) from None
+            con.plain(f"host data plane: {plane.text()}; {plane.source()}")
+        warnings = capacity.check_links(scenario, plane)
+        failed += any(w.level == "error" for w in warnings)
+        if not warnings:
+            con.ok(f"{path}: every link rate is within what this host's relay carries")
+        for w in warnings:
+            if w.level == "error":
+                con.error(f"{path}: {w.message}")
+            else:
+                con.plain(f"note: {path}: {w.message}")
+    return failed
 
 
 @app.command()
@@ -165,6 +226,16 @@ def up(
 def run(
     file: ScenarioFile,
     runs_dir: RunsDir = Path("runs"),
+    no_capacity_check: Annotated[
+        bool,
+        typer.Option(
+            "--no-capacity-check",
+            help=(
+                "Skip the check of the link rates against this host's userspace data plane "
+                "before the run (which measures it, a few seconds, when no figure is cached)."
+            ),
+        ),
+    ] = False,
 ) -> None:
     """Run a scenario: build its network, check every vehicle reaches its edge server with real
     packets, run the EdgeLoc ROS 2 nodes in the namespaces while the timeline plays, tear down,
@@ -172,7 +243,9 @@ def run(
     nodes/<node>.json, connectivity.json, events.jsonl, scenario.yaml, run.mcap) with the
     report built from run.mcap (report.html, report.md, summary.json, plots/, trajectories/);
     the last lines are the headline numbers and the report's path. A run that fails or is
-    interrupted still gets a (partial) report when anything was recorded.
+    interrupted still gets a (partial) report when anything was recorded. Before it starts, it
+    says which link rates this host's relay cannot carry (as `validate --host`; it never fails
+    the run).
 
     Example: testbed run scenarios/default.yaml
     """
@@ -184,7 +257,9 @@ def run(
     except ScenarioError as err:
         raise _fail(err) from None
     try:
-        result = run_scenario(scenario, runs_dir, progress=con.plain)
+        result = run_scenario(
+            scenario, runs_dir, progress=con.plain, capacity_check=not no_capacity_check
+        )
     except (*KNOWN_ERRORS, KeyboardInterrupt) as err:
         folder = getattr(err, "run_folder", None)
         if folder is not None and scenario.report.enabled:
@@ -479,10 +554,12 @@ def link_test(
     """Bring the scenario's network up, measure every link direction (RTT, one-way delay,
     TCP/UDP goodput, loss over 10,000 datagrams) against its profile, tear down.
 
-    Exits 1 when a figure is out of tolerance (delay 0.5 ms over the measured baseline, rate
-    5% of configured x payload fraction, loss 0.5 percentage points).
+    First it says which link rates this host's relay cannot carry (as `validate --host`; in
+    the JSON as `capacity`). Exits 1 when a figure is out of tolerance (delay 0.5 ms over the
+    measured baseline, rate 5% of configured x payload fraction, loss 0.5 percentage points).
     Example: testbed link-test scenarios/smoke.yaml --quick
     """
+    from testbed.capacity import check_scenario
     from testbed.linktest import link_test as measure
     from testbed.scenario import ScenarioError, load
 
@@ -490,8 +567,10 @@ def link_test(
         scenario = load(file)
     except ScenarioError as err:
         raise _fail(err) from None
+    progress = None if json_out else con.plain
     try:
-        report = measure(scenario, quick=quick, progress=None if json_out else con.plain)
+        capacity = check_scenario(scenario, progress=progress)
+        report = measure(scenario, quick=quick, progress=progress, capacity=capacity)
     except KNOWN_ERRORS as err:
         raise _fail(err) from None
     if json_out:

@@ -35,7 +35,7 @@ import statistics
 import struct
 import time
 from dataclasses import asdict, dataclass, field
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, Protocol
 
 from netem.netns import netns_path
 from netem.profile import LinkProfile
@@ -288,6 +288,9 @@ class LinkTestReport:
     links: list[LinkResult]
     seconds: float = 0.0
     host_cpu: CpuLoad | None = None  # the host's CPUs over the test (None: not measured)
+    #: The links' rates against the host's data plane beforehand (`CapacityCheck.to_dict`;
+    #: None: not checked).
+    capacity: dict[str, Any] | None = None
 
     @property
     def ok(self) -> bool:
@@ -300,6 +303,7 @@ class LinkTestReport:
             "ok": self.ok,
             "seconds": self.seconds,
             "host_cpu": None if self.host_cpu is None else self.host_cpu.to_dict(),
+            "capacity": self.capacity,
             "tolerances": {
                 "delay_ms": DELAY_TOL_S * 1000,
                 "rate_fraction": RATE_TOL,
@@ -509,12 +513,29 @@ def _rate_verdict(what: str, measured_bps: float, want_bps: float) -> Verdict:
     )
 
 
-def link_test(scenario: Any, quick: bool = False, progress: Any = None) -> LinkTestReport:
-    """`testbed link-test`: build the scenario's network, measure every link, tear down."""
+class CapacityNote(Protocol):
+    """A check of the links' rates against the host's data plane, as `link_test` prints and
+    reports it (`testbed.capacity.CapacityCheck`; declared here since that module builds on
+    this one's traffic helpers)."""
+
+    def lines(self) -> list[str]: ...
+    def to_dict(self) -> dict[str, Any]: ...
+
+
+def link_test(
+    scenario: Any, quick: bool = False, progress: Any = None, capacity: CapacityNote | None = None
+) -> LinkTestReport:
+    """`testbed link-test`: print `capacity` (which link rates this host's data plane cannot
+    carry; kept in the report), build the scenario's network, measure every link, tear down."""
     from testbed.topology import build
 
+    if capacity is not None and progress is not None:
+        for line in capacity.lines():
+            progress(line)
     with build(scenario, mode="run") as net:
         assert net.control is not None
         if hasattr(net.control, "watch"):
             net.control.watch()
-        return LinkTest(net, quick=quick, progress=progress).run()
+        report = LinkTest(net, quick=quick, progress=progress).run()
+    report.capacity = None if capacity is None else capacity.to_dict()
+    return report

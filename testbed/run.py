@@ -1,14 +1,16 @@
 """A run of a scenario, start to finish, leaving `runs/<run-id>/` behind.
 
-Steps: build the topology with its emulated links (the backend `auto` picks, profiles
-applied), a short link self-test (`linktest.json`, when the scenario's `report.link_test` is
-on), prove with real packets that every vehicle reaches its core/edge server through its gNB,
-play the timeline for the scenario's `duration` (`events.jsonl`, a progress line every few
-seconds) while the EdgeLoc nodes run (`testbed.supervisor`: started after the connectivity
-check, stopped before teardown, their stats and the links' byte counters go into run.json),
-tear everything down and write `run.json` (backend, link-test verdict, timeline lateness).
-Teardown happens whatever a step does (Ctrl-C included). A link relay or node process that
-dies, or a timeline event that fails, fails the run within a second.
+Steps: (with `capacity_check`, as `testbed run` does) say which link rates this host's
+userspace data plane cannot carry (`testbed.capacity`), build the topology with its emulated
+links (the backend `auto` picks, profiles applied), a short link self-test (`linktest.json`,
+when the scenario's `report.link_test` is on), prove with real packets that every vehicle
+reaches its core/edge server through its gNB, play the timeline for the scenario's `duration`
+(`events.jsonl`, a progress line every few seconds) while the EdgeLoc nodes run
+(`testbed.supervisor`: started after the connectivity check, stopped before teardown, their
+stats and the links' byte counters go into run.json), tear everything down and write `run.json`
+(backend, link-test verdict, timeline lateness). Teardown happens whatever a step does (Ctrl-C
+included). A link relay or node process that dies, or a timeline event that fails, fails the
+run within a second.
 
 Recording (`testbed.recording`, when the scenario's `record.enabled`): the nodes record what
 they publish into `parts/`, this process records the link counters every 0.5 s
@@ -29,11 +31,13 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from netem.errors import NetemError
 from nodes.recording import RecordingError
 from nodes.recording import layout as names
 from nodes.recording.jsonfile import write_json
 from nodes.recording.parts import PartWriter
 from testbed import __version__, recording
+from testbed.capacity import CapacityCheck, check_scenario
 from testbed.connectivity import EchoResult, vehicles_reach_cores
 from testbed.errors import TestbedError
 from testbed.linktest import LinkTest, LinkTestReport
@@ -56,6 +60,7 @@ class RunResult:
     timings_s: dict[str, float] = field(default_factory=dict)
     nodes: dict[str, Any] = field(default_factory=dict)
     link_counters: dict[str, Any] = field(default_factory=dict)
+    capacity: CapacityCheck | None = None
 
     @property
     def ok(self) -> bool:
@@ -78,6 +83,7 @@ class RunResult:
             "timeline": self.timeline,
             "nodes": self.nodes,
             "link_counters": self.link_counters,
+            "capacity": None if self.capacity is None else self.capacity.to_dict(),
         }
 
 
@@ -306,11 +312,15 @@ class Recording:
         )
 
 
-def run_scenario(scenario: Scenario, runs_dir: Path, progress: Progress) -> RunResult:
+def run_scenario(
+    scenario: Scenario, runs_dir: Path, progress: Progress, capacity_check: bool = False
+) -> RunResult:
     """Run `scenario`; everything it creates is gone when this returns or raises. With
     recording on, `run.mcap` is written either way; a raised exception carries `run_folder`
-    (once the folder exists)."""
-    run = _Run(scenario, runs_dir, progress)
+    (once the folder exists). `capacity_check` first prints which link rates this host's data
+    plane cannot carry (`testbed.capacity`; measuring it, a few seconds, when no figure is
+    cached), into run.json too; it never fails the run (`testbed run` turns it on)."""
+    run = _Run(scenario, runs_dir, progress, capacity_check)
     status = "interrupted"
     try:
         result = run.run()
@@ -337,18 +347,34 @@ def run_scenario(scenario: Scenario, runs_dir: Path, progress: Progress) -> RunR
 class _Run:
     """One run's steps; `folder`, `result` and `recording` stay readable after a failure."""
 
-    def __init__(self, scenario: Scenario, runs_dir: Path, progress: Progress) -> None:
+    def __init__(
+        self, scenario: Scenario, runs_dir: Path, progress: Progress, capacity_check: bool
+    ) -> None:
         self.scenario, self.runs_dir, self.progress = scenario, runs_dir, progress
+        self.capacity_check = capacity_check
         self.folder: Path | None = None
         self.result: RunResult | None = None
         self.recording: Recording | None = None
 
     def run(self) -> RunResult:
         scenario, progress = self.scenario, self.progress
+        capacity = None
+        if self.capacity_check:
+            # Before the network exists: its relays would compete with the measurement.
+            try:
+                capacity = check_scenario(scenario, progress=progress)
+            except (TestbedError, NetemError, OSError) as err:
+                # No figure is no reason to stop a run; what would (no root) stops the build
+                # next, with its own message.
+                progress(f"warning: link capacity not checked: {err}")
+            else:
+                for line in capacity.lines():
+                    progress(line)
         t0 = time.perf_counter()
         with build(scenario, mode="run") as net:
             t_up = time.perf_counter() - t0
             result = RunResult(net.run_id, self.runs_dir / net.run_id, net.backend_text())
+            result.capacity = capacity
             self.result = result
             result.folder.mkdir(parents=True, exist_ok=False)
             self.folder = result.folder
@@ -389,6 +415,8 @@ class _Run:
             net.control.watch()  # a relay that dies sets the failure `_check` raises in POLL_S
         if scenario.report.link_test:
             report = LinkTest(net, quick=True, progress=progress).run()
+            if result.capacity is not None:
+                report.capacity = result.capacity.to_dict()
             result.linktest = report
             write_json(result.folder / names.LINKTEST_FILE, report.to_dict())
             for line in report.text().splitlines():

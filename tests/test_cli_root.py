@@ -126,6 +126,15 @@ def test_run_leaves_a_run_folder_and_no_namespaces(state_dir: Path, tmp_path: Pa
     run = json.loads((folder / "run.json").read_text())
     assert run["ok"] is True and run["run_id"] == folder.name
     assert run["link_backend"].startswith(("userspace (", "tc ("))
+    # Before the network is built: the link rates against this host's data plane (measured
+    # now: the state dir is fresh), in run.json too.
+    assert run["capacity"]["backend"] == run["link_backend"]
+    lines = result.stdout.splitlines()
+    built = next(i for i, line in enumerate(lines) if line.startswith(f"run {folder.name}: "))
+    if run["link_backend"].startswith("userspace"):
+        assert run["capacity"]["data_plane"]["tcp_bps"] > 0
+        assert "measuring this host's userspace data plane" in "\n".join(lines[:built])
+        assert any(line.startswith("host data plane: TCP ") for line in lines[:built])
     assert run["timeline"]["applied"] == 2 and run["timeline"]["lateness"]["count"] == 2
     events = [json.loads(x) for x in (folder / "events.jsonl").read_text().splitlines()]
     assert [(e["kind"], e["scheduled_s"]) for e in events] == [("shape", 0.0), ("shape", 2.0)]

@@ -497,7 +497,9 @@ SMOKE = Path(__file__).resolve().parent.parent / "scenarios" / "smoke.yaml"
 def _fake_run(folder: Path, outcome: BaseException | None) -> object:
     """A stand-in for `testbed.run.run_scenario` that leaves `folder` with its run.mcap."""
 
-    def run_scenario(scenario: object, runs_dir: Path, progress: object) -> object:
+    def run_scenario(
+        scenario: object, runs_dir: Path, progress: object, capacity_check: bool = False
+    ) -> object:
         if outcome is not None:
             outcome.run_folder = folder  # type: ignore[attr-defined]
             raise outcome
