@@ -36,6 +36,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from netem.gso import Frame, split
+from netem.nr import Occasion
 from netem.profile import LinkProfile, check_profile
 from netem.traces import OPPORTUNITY_BYTES, Trace
 
@@ -580,6 +581,104 @@ class TraceLink(Stage):
             return self._left[0][0]
         if self._queue:
             return self._next if self._next is not None else self._end
+        return None
+
+    def queued(self) -> int:
+        return len(self._queue) + len(self._left)
+
+
+class Slots(Stage):
+    """Sends only in the occasions of a TDD pattern, each carrying up to its transport block.
+
+    The air link of one NR direction (`netem.nr`): `occasions` are the windows of one period
+    that carry data, with their capacity in bytes; the pattern repeats every `period_s` from
+    `epoch_s`. A packet may use an occasion that starts at least `lead_s` after it arrived (the
+    grant is decided before the slot: K2 and processing; 0 is a configured grant on every
+    occasion). Packets are served in order; one larger than an occasion continues in the next
+    ones, and a packet leaves at the end of the occasion that carried its last byte, as a
+    transport block is decoded at the end of its slot.
+    """
+
+    name = "slots"
+
+    def __init__(
+        self,
+        occasions: Sequence[Occasion],
+        period_s: float,
+        lead_s: float = 0.0,
+        epoch_s: float = 0.0,
+    ) -> None:
+        super().__init__()
+        if not occasions:
+            raise ValueError("a slot stage needs at least one occasion that carries data")
+        self.occasions = sorted(occasions, key=lambda o: o.start_s)
+        self.period_s = period_s
+        self.lead_s = lead_s
+        self.epoch_s = epoch_s
+        self._queue: deque[tuple[float, bytes]] = deque()  # (arrival, packet)
+        self._head_left = 0  # bytes of the head packet still to send
+        self._left: deque[tuple[float, bytes]] = deque()
+        self._cursor = (0, 0)  # (period, index) of the next occasion not yet used
+        self.occasions_used = 0
+
+    def _occasion(self, cursor: tuple[int, int]) -> tuple[float, float, int]:
+        n, k = cursor
+        o = self.occasions[k]
+        base = self.epoch_s + n * self.period_s
+        return base + o.start_s, base + o.end_s, o.capacity_bytes
+
+    def _step(self, cursor: tuple[int, int]) -> tuple[int, int]:
+        n, k = cursor
+        return (n, k + 1) if k + 1 < len(self.occasions) else (n + 1, 0)
+
+    def _first_at_or_after(self, t: float) -> tuple[int, int]:
+        """The first occasion that starts at or after `t` (never one already used)."""
+        n = max(0, math.floor((t - self.epoch_s) / self.period_s))
+        cursor = (n, 0)
+        while self._occasion(cursor)[0] < t - 1e-12:
+            cursor = self._step(cursor)
+        return max(cursor, self._cursor)
+
+    def _advance(self, now: float) -> None:
+        q = self._queue
+        while q:
+            start, end, budget = self._occasion(self._cursor)
+            if end > now:
+                return
+            if q[0][0] + self.lead_s > start + 1e-12:
+                # The head was not there in time for this occasion: on to its first one.
+                self._cursor = self._first_at_or_after(q[0][0] + self.lead_s)
+                continue
+            self.occasions_used += 1
+            while q and budget > 0 and q[0][0] + self.lead_s <= start + 1e-12:
+                if self._head_left <= budget:
+                    budget -= self._head_left
+                    self._left.append((end, q.popleft()[1]))
+                    self._head_left = len(q[0][1]) if q else 0
+                else:
+                    self._head_left -= budget
+                    budget = 0
+            self._cursor = self._step(self._cursor)
+
+    def push(self, packet: bytes, now: float) -> None:
+        c = self.counters
+        c.packets_in += wire_packets(packet)
+        c.bytes_in += len(packet)
+        self._advance(now)
+        if not self._queue:
+            self._head_left = len(packet)
+            self._cursor = self._first_at_or_after(now + self.lead_s)
+        self._queue.append((now, packet))
+
+    def pop_ready(self, now: float) -> list[bytes]:
+        self._advance(now)
+        return _pop_timed(self._left, now, self.counters)
+
+    def next_due(self) -> float | None:
+        if self._left:
+            return self._left[0][0]
+        if self._queue:
+            return self._occasion(self._cursor)[1]
         return None
 
     def queued(self) -> int:

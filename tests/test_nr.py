@@ -1,0 +1,209 @@
+"""The NR slot model (`netem.nr`) and the `Slots` stage, with a fake clock (no root).
+
+Transport block sizes are checked against values computed outside this project (MATLAB's 5G
+Toolbox, as published in srsRAN's scheduler unit-test data) and one derivation by hand; the
+stage's delays against the closed-form oracle with a Kolmogorov-Smirnov test (scipy).
+"""
+
+from __future__ import annotations
+
+import math
+import random
+
+import numpy as np
+import pytest
+
+from netem.nr import (
+    Carrier,
+    DelayOracle,
+    NrError,
+    TddPattern,
+    occasions,
+    rate_bps,
+    tbs_bits,
+)
+from netem.stages import Slots
+
+stats = pytest.importorskip("scipy.stats", reason="scipy (in .[test]) runs the KS tests")
+
+#: OpenAirInterface's default band-78 gNB (gnb.sa.band78.fr1.106PRB.usrpb210.conf).
+OAI = TddPattern("DDDDDDDSUU", special=(6, 4, 4), numerology=1)
+SLOT = 0.0005
+
+
+def test_the_oai_pattern_gives_uplink_a_fifth_of_the_air_time() -> None:
+    assert OAI.period_s == pytest.approx(0.005)
+    ul = OAI.windows("uplink")
+    symbol = SLOT / 14
+    assert [(round(s, 9), round(e, 9), n) for s, e, n in ul] == [
+        (round(7 * SLOT + 10 * symbol, 9), round(8 * SLOT, 9), 4),
+        (round(8 * SLOT, 9), round(9 * SLOT, 9), 14),
+        (round(9 * SLOT, 9), round(10 * SLOT, 9), 14),
+    ]
+    assert OAI.share("uplink") == pytest.approx((4 / 14 + 2) / 10)
+    assert OAI.windows("downlink")[-1][1] == pytest.approx(7 * SLOT + 6 * symbol)
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "message"),
+    [
+        ({"slots": "DDXU"}, "string of D, S and U"),
+        ({"slots": "DDDSU", "special": (10, 2, 1)}, "add up to 13, not 14"),
+        ({"slots": "DDDSU", "numerology": 5}, r"numerology must be 0\.\.4"),
+        ({"slots": "DDDDDSU"}, "3.5 ms"),
+        ({"slots": "DDDD"}, "no uplink"),
+    ],
+)
+def test_bad_patterns_say_what_is_wrong(kwargs: dict, message: str) -> None:
+    with pytest.raises(NrError, match=message):
+        TddPattern(**kwargs)
+
+
+# Inputs (symbols, DMRS RE/PRB, overhead RE/PRB, code rate, Qm, layers, scaling field, PRBs)
+# and TBS from srsRAN's tbs_calculator_test_data.h (generated with MATLAB's 5G Toolbox).
+@pytest.mark.parametrize(
+    ("args", "want"),
+    [
+        ((12, 6, 0, 0.1, 2, 1, 0, 6), 160),
+        ((12, 6, 12, 0.9, 2, 1, 2, 6), 336),
+        ((12, 36, 12, 0.9, 4, 4, 0, 11), 15112),
+        ((12, 6, 0, 0.9, 8, 4, 0, 11), 44040),
+        ((12, 6, 0, 0.1, 8, 4, 0, 11), 4872),
+        ((12, 36, 0, 0.1, 8, 4, 0, 11), 3824),
+    ],
+)
+def test_tbs_matches_matlab(args: tuple, want: int) -> None:
+    symbols, dmrs, oh, rate, qm, layers, scaling, prbs = args
+    got = tbs_bits(
+        prbs, None, symbols, dmrs, oh, layers, qm=qm, code_rate=rate, scaling=2.0**-scaling
+    )
+    assert got == want
+
+
+def test_tbs_of_a_full_oai_slot_by_hand() -> None:
+    # 106 PRBs, MCS 20 (64QAM, R = 567/1024), 14 symbols, one DMRS symbol (12 RE/PRB):
+    # N_RE = min(156, 168 - 12) x 106 = 16536; N_info = 16536 x 567/1024 x 6 = 54936.8;
+    # n = floor(log2(54912.8)) - 5 = 10; N' = 1024 x round(53.63) = 55296; C = ceil(55320 /
+    # 8424) = 7; TBS = 8 x 7 x ceil(55320 / 56) - 24 = 55304.
+    assert tbs_bits(106, 20) == 55304
+    with pytest.raises(NrError, match=r"mcs must be 0\.\.28"):
+        tbs_bits(106, 29)
+
+
+def test_rate_of_a_saturated_direction_is_its_transport_blocks_per_second() -> None:
+    carrier = Carrier(n_prb=106, mcs=20)
+    ul = occasions(OAI, "uplink", carrier)
+    assert [o.capacity_bytes for o in ul] == [
+        carrier.tbs_bits(4) // 8,
+        55304 // 8,
+        55304 // 8,
+    ]
+    assert rate_bps(OAI, "uplink", carrier) == pytest.approx(
+        sum(o.capacity_bytes for o in ul) * 8 / 0.005
+    )
+
+
+# -- the stage ---------------------------------------------------------------------------------
+
+
+def run(stage: Slots, arrivals: list[tuple[float, bytes]]) -> list[tuple[float, float, bytes]]:
+    """Push each packet at its time, collect (arrival, departure, packet) in order."""
+    out: list[tuple[float, float, bytes]] = []
+    pending = list(arrivals)
+    times: dict[int, float] = {}
+    while pending or stage.queued():
+        due = stage.next_due()
+        if pending and (due is None or pending[0][0] < due):
+            t, packet = pending.pop(0)
+            times[id(packet)] = t
+            stage.push(packet, t)
+            continue
+        assert due is not None
+        for packet in stage.pop_ready(due):
+            out.append((times[id(packet)], due, packet))
+    return out
+
+
+def poisson_probes(n: int, mean_gap_s: float, size: int, seed: int = 1) -> list:
+    rng = random.Random(seed)
+    t, out = 0.0, []
+    for i in range(n):
+        t += rng.expovariate(1 / mean_gap_s)
+        out.append((t, i.to_bytes(4, "big") + bytes(size - 4)))
+    return out
+
+
+def test_uplink_leaves_only_at_the_end_of_uplink_windows_and_matches_the_oracle() -> None:
+    carrier = Carrier()
+    lead = 2 * SLOT  # K2 = 2 slots (OAI's min_rxtxtime)
+    stage = Slots(occasions(OAI, "uplink", carrier), OAI.period_s, lead_s=lead)
+    got = run(stage, poisson_probes(1000, 0.013, 100))
+    assert len(got) == 1000
+    ends = [o.end_s for o in occasions(OAI, "uplink", carrier)]
+    for _, left, _ in got:
+        phase = left % OAI.period_s
+        assert (
+            min(abs(phase - e) % OAI.period_s for e in ends) < 1e-9
+            or min(abs(phase - e + OAI.period_s) for e in ends) < 1e-9
+        )
+    oracle = DelayOracle.for_direction(OAI, "uplink", carrier, lead_s=lead)
+    delays = [left - arrived for arrived, left, _ in got]
+    assert min(delays) >= oracle.minimum - 1e-9 and max(delays) <= oracle.maximum + 1e-9
+    cdf = np.vectorize(oracle.cdf)
+    assert stats.kstest(delays, cdf).pvalue > 0.05
+    # The histogram repeats with the TDD period: the gaps between modes are 5 ms.
+    assert oracle.maximum - oracle.minimum < OAI.period_s + lead
+
+
+def test_the_oracle_is_a_distribution() -> None:
+    oracle = DelayOracle.for_direction(OAI, "uplink", Carrier(), lead_s=0.001, fixed_s=0.002)
+    assert oracle.cdf(oracle.minimum) == pytest.approx(0.0)
+    assert oracle.cdf(oracle.maximum) == pytest.approx(1.0)
+    xs = [oracle.minimum + i * 1e-5 for i in range(800)]
+    assert all(a <= b for a, b in zip(map(oracle.cdf, xs), map(oracle.cdf, xs[1:]), strict=False))
+    assert oracle.quantile(0.5) == pytest.approx(
+        next(x for x in xs if oracle.cdf(x) >= 0.5), abs=2e-5
+    )
+    # Monte Carlo of the model's own definition against the closed-form mean.
+    rng = random.Random(3)
+    windows = [(o.start_s, o.end_s) for o in occasions(OAI, "uplink", Carrier())]
+    total = 0.0
+    for _ in range(20000):
+        t = rng.uniform(0, OAI.period_s)
+        ready = t + 0.001
+        end = min(
+            e + k * OAI.period_s
+            for k in range(3)
+            for s, e in windows
+            if s + k * OAI.period_s >= ready
+        )
+        total += end - t + 0.002
+    assert total / 20000 == pytest.approx(oracle.mean(), rel=0.01)
+
+
+def test_a_saturating_flow_gets_the_sum_of_its_transport_blocks() -> None:
+    carrier = Carrier(n_prb=51, mcs=16)
+    stage = Slots(occasions(OAI, "uplink", carrier), OAI.period_s)
+    got = run(stage, [(0.0, bytes(1500)) for _ in range(3000)])
+    first, last = got[0][1], got[-1][1]
+    carried = sum(len(p) for _, t, p in got if first < t <= last)
+    assert carried * 8 / (last - first) == pytest.approx(rate_bps(OAI, "uplink", carrier), rel=0.02)
+
+
+def test_a_200_kb_message_completes_when_the_occasions_have_carried_it() -> None:
+    carrier = Carrier(n_prb=106, mcs=10)
+    ul = occasions(OAI, "uplink", carrier)
+    stage = Slots(ul, OAI.period_s, lead_s=2 * SLOT)
+    got = run(stage, [(0.0001, bytes(200_000))])
+    # Closed form: the first occasion starting after 0.0001 + 1 ms, then whole occasions
+    # until the bytes are carried.
+    left, k, n = 200_000, 0, 0
+    while ul[k].start_s + n * OAI.period_s < 0.0011:
+        k, n = (k + 1, n) if k + 1 < len(ul) else (0, n + 1)
+    while True:
+        left -= ul[k].capacity_bytes
+        if left <= 0:
+            break
+        k, n = (k + 1, n) if k + 1 < len(ul) else (0, n + 1)
+    assert got[0][1] == pytest.approx(ul[k].end_s + n * OAI.period_s, abs=1e-9)
+    assert math.isclose(got[0][1] % OAI.period_s, ul[k].end_s % OAI.period_s, abs_tol=1e-9)
