@@ -18,6 +18,7 @@ Nouns:
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -311,3 +312,94 @@ class DelayOracle:
     @property
     def maximum(self) -> float:
         return max(p[1] for p in self.pieces)
+
+
+@dataclass(frozen=True)
+class Radio:
+    """The NR air interface of a link: TDD pattern, carrier and grant lead.
+
+    Plain data (it travels in a `LinkProfile` to the relay as JSON); the direction is the
+    pipeline's (uplink data uses the uplink windows). `k2_slots` is how long
+    before its slot a packet must be there to be scheduled in it (the grant's K2 plus gNB
+    processing; 0 models a configured grant on every occasion). Every relay's slot grid starts
+    at 0 on CLOCK_MONOTONIC, so all the links of a host, and so of a cell, share one grid.
+    """
+
+    slots: str = "DDDDDDDSUU"
+    special: tuple[int, int, int] = (6, 4, 4)
+    numerology: int = 1
+    n_prb: int = 106
+    mcs: int = 20
+    layers: int = 1
+    dmrs_re_per_prb: int = 12
+    k2_slots: int = 2
+
+    def pattern(self) -> TddPattern:
+        return TddPattern(self.slots, tuple(self.special), self.numerology)  # type: ignore[arg-type]
+
+    def carrier(self) -> Carrier:
+        return Carrier(self.n_prb, self.mcs, self.layers, self.dmrs_re_per_prb)
+
+    @property
+    def lead_s(self) -> float:
+        return self.k2_slots * slot_s(self.numerology)
+
+    def occasions(self, direction: Direction) -> list[Occasion]:
+        return occasions(self.pattern(), direction, self.carrier())
+
+    def oracle(self, direction: Direction, fixed_s: float = 0.0) -> DelayOracle:
+        """The idle one-way delay of `direction` for a packet that fits one window."""
+        return DelayOracle.for_direction(
+            self.pattern(), direction, self.carrier(), self.lead_s, fixed_s
+        )
+
+    def rate_bps(self, direction: Direction) -> float:
+        return rate_bps(self.pattern(), direction, self.carrier())
+
+    def check(self) -> None:
+        """Raise `NrError` naming the field when a value is out of range."""
+        self.pattern()
+        if not 0 <= self.mcs < len(MCS_TABLE_1):
+            raise NrError(f"mcs must be 0..{len(MCS_TABLE_1) - 1} (TS 38.214 Table 5.1.3.1-1)")
+        if not 1 <= self.n_prb <= 275:
+            raise NrError(f"n_prb must be 1..275 (TS 38.101), got {self.n_prb}")
+        if not 1 <= self.layers <= 4:
+            raise NrError(f"layers must be 1..4, got {self.layers}")
+        if not 0 <= self.k2_slots <= 32:
+            raise NrError(f"k2_slots must be 0..32 (TS 38.214 §6.1.2.1), got {self.k2_slots}")
+        for direction in ("uplink", "downlink"):
+            if not self.occasions(direction):  # type: ignore[arg-type]
+                raise NrError(
+                    f"{direction} has no window that carries data in {self.slots} "
+                    f"{self.special} (windows too short for the DMRS)"
+                )
+
+    def to_dict(self) -> dict[str, object]:
+        return {**dataclasses.asdict(self), "special": list(self.special)}
+
+    @classmethod
+    def from_dict(cls, data: dict[str, object]) -> Radio:
+        data = dict(data)
+        if "special" in data:
+            data["special"] = tuple(data["special"])  # type: ignore[arg-type]
+        return cls(**data)  # type: ignore[arg-type]
+
+
+#: Named radios, each value with its source. Only what the model has today: TDD windows,
+#: transport blocks and the grant lead (scheduling requests and HARQ come later, issue #16).
+RADIO_PROFILES: dict[str, Radio] = {
+    # OpenAirInterface's default band-78 gNB, gnb.sa.band78.fr1.106PRB.usrpb210.conf:
+    # subcarrierSpacing 1 (30 kHz), dl_UL_TransmissionPeriodicity 6 (5 ms) with
+    # nrofDownlinkSlots 7, nrofDownlinkSymbols 6, nrofUplinkSymbols 4, nrofUplinkSlots 2;
+    # 106 PRBs; min_rxtxtime 2 (K2 = 2 slots). MCS 20 is a mid-cell link adaptation choice
+    # (an assumption, not from the file).
+    "oai-tdd-30k": Radio(
+        slots="DDDDDDDSUU", special=(6, 4, 4), numerology=1, n_prb=106, mcs=20, k2_slots=2
+    ),
+    # srsRAN Project configs/low_latency.yml: a 2 ms period at 30 kHz of 2 downlink slots, a
+    # special slot of 10 downlink symbols, and 1 uplink slot; min K1 = K2 = 2. 106 PRBs (a
+    # 40 MHz carrier at 30 kHz, TS 38.101-1 Table 5.3.2-1) and MCS 20 are assumptions.
+    "srsran-lowlat": Radio(
+        slots="DDSU", special=(10, 4, 0), numerology=1, n_prb=106, mcs=20, k2_slots=2
+    ),
+}

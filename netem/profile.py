@@ -14,6 +14,7 @@ from dataclasses import dataclass
 from typing import Any, Literal
 
 from netem.errors import ProfileError
+from netem.nr import NrError, Radio
 
 JitterDistribution = Literal["normal", "uniform", "pareto"]
 JITTER_DISTRIBUTIONS: tuple[str, ...] = ("normal", "uniform", "pareto")
@@ -56,6 +57,8 @@ class LinkProfile:
     queue_packets: int | None = DEFAULT_QUEUE_PACKETS
     queue_time_s: float | None = None
     reorder: bool = False
+    #: The NR air interface (TDD slots, transport blocks, grant lead); userspace backend only.
+    radio: Radio | None = None
 
     def replace(self, **changes: Any) -> LinkProfile:
         """A copy with `changes` applied (the timeline's `set` action)."""
@@ -69,7 +72,10 @@ class LinkProfile:
         return self.loss
 
     def to_dict(self) -> dict[str, Any]:
-        return dataclasses.asdict(self)
+        out = dataclasses.asdict(self)
+        if self.radio is not None:
+            out["radio"] = self.radio.to_dict()
+        return out
 
     @classmethod
     def from_dict(cls, data: dict[str, Any]) -> LinkProfile:
@@ -77,6 +83,9 @@ class LinkProfile:
         ge = data.get("gilbert_elliott")
         if isinstance(ge, dict):
             data["gilbert_elliott"] = GilbertElliott(**ge)
+        radio = data.get("radio")
+        if isinstance(radio, dict):
+            data["radio"] = Radio.from_dict(radio)
         return cls(**data)
 
 
@@ -133,3 +142,13 @@ def check_profile(profile: LinkProfile, backend: Literal["tc", "userspace"] = "u
         raise bad("queue_time_s", qt, "a number of seconds > 0, or null")
     if not isinstance(profile.reorder, bool):
         raise bad("reorder", profile.reorder, "true or false")
+    if profile.radio is not None:
+        if backend == "tc":
+            raise ProfileError(
+                "link profile field `radio`: the NR slot model runs in the userspace relay only"
+                " (tc's qdiscs have no slot clock); use backend userspace or auto"
+            )
+        try:
+            profile.radio.check()
+        except (NrError, TypeError) as exc:
+            raise ProfileError(f"link profile field `radio`: {exc}") from None

@@ -506,8 +506,8 @@ def main(argv: list[str] | None = None) -> int:
     try:
         fds.append(open_tun_in(args.netns_a, end_a))
         fds.append(open_tun_in(args.netns_b, end_b))
-        uplink = Pipeline.from_profile(args.uplink, seed=f"{args.seed}:uplink")
-        downlink = Pipeline.from_profile(args.downlink, seed=f"{args.seed}:downlink")
+        uplink = Pipeline.from_profile(args.uplink, f"{args.seed}:uplink", "uplink")
+        downlink = Pipeline.from_profile(args.downlink, f"{args.seed}:downlink", "downlink")
         relay = Relay(
             fds[0], fds[1], uplink, downlink, args.control, mtu=args.mtu, offload=args.offload
         )

@@ -21,7 +21,8 @@ it stands for (`segments`); counters and queue limits count wire packets.
 Stages built for a `LinkProfile` (in this order): `Outage` gate, `Segment` (splits
 super-packets where a later stage acts per wire packet), `RandomLoss`, `GilbertElliottLoss`,
 `Rate` (serialisation + drop-tail queue), `TraceLink` (delivery opportunities from a bandwidth
-trace; idle unless a trace plays) and `Delay` (+ jitter). `Pipeline.apply(profile)`
+trace; idle unless a trace plays), `Slots` (the NR air interface of `netem.nr`: TDD windows and
+transport blocks; transparent without a radio) and `Delay` (+ jitter). `Pipeline.apply(profile)`
 reconfigures the same stages in place, so queued packets stay queued.
 """
 
@@ -36,7 +37,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from netem.gso import Frame, split
-from netem.nr import Occasion
+from netem.nr import Direction, Occasion
 from netem.profile import LinkProfile, check_profile
 from netem.traces import OPPORTUNITY_BYTES, Trace
 
@@ -227,7 +228,8 @@ class Segment(Stage):
     """Splits super-packets (`netem.gso.Frame`) into wire packets where that matters.
 
     A later stage acts per wire packet when a trace plays (each waits for its own delivery
-    opportunity) and when the rate would keep a super-packet on the wire longer than
+    opportunity), on a radio (each takes its place in the transport blocks of the slots) and
+    when the rate would keep a super-packet on the wire longer than
     `SPLIT_ABOVE_S`. (Loss gates split for themselves, only a super-packet that loses some
     of its packets.) Elsewhere a super-packet moves whole, which is what makes offloads pay.
     Zero time; drops nothing.
@@ -238,19 +240,22 @@ class Segment(Stage):
     def __init__(self) -> None:
         super().__init__()
         self.tracing = False
+        self.radio = False
         self.split_above_bytes = math.inf
         self._passed: deque[tuple[float, bytes]] = deque()
 
     def configure(self, profile: LinkProfile) -> None:
         rate = profile.rate_bps
         self.split_above_bytes = math.inf if rate is None else rate * SPLIT_ABOVE_S / 8.0
+        # On a radio each wire packet takes its place in the transport blocks.
+        self.radio = profile.radio is not None
 
     def splits(self, packet: Any) -> bool:
         """Whether `packet` leaves this stage as its wire packets."""
         return (
             type(packet) is Frame
             and packet.segments > 1
-            and (self.tracing or packet.wire_len > self.split_above_bytes)
+            and (self.tracing or self.radio or packet.wire_len > self.split_above_bytes)
         )
 
     def push(self, packet: bytes, now: float) -> None:
@@ -603,15 +608,15 @@ class Slots(Stage):
 
     def __init__(
         self,
-        occasions: Sequence[Occasion],
-        period_s: float,
+        occasions: Sequence[Occasion] = (),
+        period_s: float = 0.0,
         lead_s: float = 0.0,
         epoch_s: float = 0.0,
+        direction: Direction = "uplink",
     ) -> None:
         super().__init__()
-        if not occasions:
-            raise ValueError("a slot stage needs at least one occasion that carries data")
-        self.occasions = sorted(occasions, key=lambda o: o.start_s)
+        self.direction = direction  # whose windows a radio profile gives this stage
+        self.occasions: list[Occasion] = []
         self.period_s = period_s
         self.lead_s = lead_s
         self.epoch_s = epoch_s
@@ -620,6 +625,34 @@ class Slots(Stage):
         self._left: deque[tuple[float, bytes]] = deque()
         self._cursor = (0, 0)  # (period, index) of the next occasion not yet used
         self.occasions_used = 0
+        if occasions:
+            self.set_occasions(occasions, period_s, lead_s)
+
+    @property
+    def active(self) -> bool:
+        """False: no radio on this link, and the stage is transparent."""
+        return bool(self.occasions)
+
+    def set_occasions(self, occasions: Sequence[Occasion], period_s: float, lead_s: float) -> None:
+        """Switch to another slot grid or capacity in place (MCS, PRBs, pattern changes).
+
+        Queued packets stay; they continue in the new grid's first usable occasion.
+        """
+        self.occasions = sorted(occasions, key=lambda o: o.start_s)
+        self.period_s, self.lead_s = period_s, lead_s
+        if self._queue:
+            self._cursor = (0, 0)
+            self._cursor = self._first_at_or_after(self._queue[0][0] + lead_s)
+
+    def configure(self, profile: LinkProfile) -> None:
+        radio = profile.radio
+        if radio is None:
+            self.occasions = []
+            while self._queue:  # a radio switched off: what waited for a slot leaves now
+                self._left.append((self._queue[0][0], self._queue.popleft()[1]))
+            return
+        period = radio.pattern().period_s
+        self.set_occasions(radio.occasions(self.direction), period, radio.lead_s)
 
     def _occasion(self, cursor: tuple[int, int]) -> tuple[float, float, int]:
         n, k = cursor
@@ -641,7 +674,7 @@ class Slots(Stage):
 
     def _advance(self, now: float) -> None:
         q = self._queue
-        while q:
+        while q and self.occasions:
             start, end, budget = self._occasion(self._cursor)
             if end > now:
                 return
@@ -664,6 +697,9 @@ class Slots(Stage):
         c = self.counters
         c.packets_in += wire_packets(packet)
         c.bytes_in += len(packet)
+        if not self.occasions:
+            self._left.append((now, packet))
+            return
         self._advance(now)
         if not self._queue:
             self._head_left = len(packet)
@@ -810,12 +846,18 @@ class Pipeline(Stage):
         self._deadlines: tuple[float | None, float | None] | None = None
 
     @classmethod
-    def from_profile(cls, profile: LinkProfile, seed: int | str = 0) -> Pipeline:
-        """The standard chain for a `LinkProfile`; `seed` makes loss and jitter reproducible."""
+    def from_profile(
+        cls, profile: LinkProfile, seed: int | str = 0, direction: Direction = "uplink"
+    ) -> Pipeline:
+        """The standard chain for a `LinkProfile`; `seed` makes loss and jitter reproducible.
+
+        `direction` says which windows of a radio (`profile.radio`) this pipeline sends in.
+        """
         check_profile(profile)
         rate = Rate()
         trace = TraceLink()
         segment = Segment()
+        slots = Slots(direction=direction)
         pipeline = cls(
             [
                 Outage(),
@@ -824,6 +866,7 @@ class Pipeline(Stage):
                 GilbertElliottLoss(seed=seed),
                 rate,
                 trace,
+                slots,
                 Delay(seed=seed),
             ],
             profile,

@@ -207,3 +207,58 @@ def test_a_200_kb_message_completes_when_the_occasions_have_carried_it() -> None
         k, n = (k + 1, n) if k + 1 < len(ul) else (0, n + 1)
     assert got[0][1] == pytest.approx(ul[k].end_s + n * OAI.period_s, abs=1e-9)
     assert math.isclose(got[0][1] % OAI.period_s, ul[k].end_s % OAI.period_s, abs_tol=1e-9)
+
+
+# -- a radio in a link profile ----------------------------------------------------------------
+
+
+def test_a_profile_with_a_radio_gates_its_pipeline_and_round_trips_as_json() -> None:
+    import json
+
+    from netem.nr import Radio
+    from netem.profile import LinkProfile, check_profile
+    from netem.stages import Pipeline
+
+    radio = Radio(mcs=9, k2_slots=2)
+    profile = LinkProfile(radio=radio, delay_s=0.001)
+    assert LinkProfile.from_dict(json.loads(json.dumps(profile.to_dict()))) == profile
+    pipeline = Pipeline.from_profile(profile)
+    got = run(pipeline, poisson_probes(600, 0.011, 200, seed=4))  # type: ignore[arg-type]
+    oracle = radio.oracle("uplink", fixed_s=0.001)
+    delays = [left - arrived for arrived, left, _ in got]
+    assert stats.kstest(delays, np.vectorize(oracle.cdf)).pvalue > 0.05
+    # In place: a worse MCS keeps the grid and shrinks the blocks; no radio makes it a wire.
+    pipeline.apply(profile.replace(radio=Radio(mcs=0)))
+    slots = pipeline.stage("slots")
+    assert isinstance(slots, Slots) and slots.occasions[1].capacity_bytes < 1000
+    pipeline.apply(profile.replace(radio=None))
+    t0 = 100.0
+    pipeline.push(bytes(100), t0)
+    assert pipeline.pop_ready(t0 + 0.001) == [bytes(100)]
+    with pytest.raises(ValueError, match="userspace relay only"):
+        check_profile(profile, backend="tc")
+    with pytest.raises(ValueError, match=r"`radio`: mcs must be 0\.\.28"):
+        check_profile(LinkProfile(radio=Radio(mcs=31)))
+    with pytest.raises(ValueError, match="`radio`: a TDD pattern"):
+        check_profile(LinkProfile(radio=Radio(slots="DDQU")))
+
+
+def test_a_downlink_pipeline_sends_in_the_downlink_windows() -> None:
+    from netem.nr import Radio
+    from netem.profile import LinkProfile
+    from netem.stages import Pipeline
+
+    radio = Radio(k2_slots=1)
+    pipeline = Pipeline.from_profile(LinkProfile(radio=radio), direction="downlink")
+    got = run(pipeline, poisson_probes(400, 0.007, 300, seed=5))  # type: ignore[arg-type]
+    ends = [o.end_s for o in radio.occasions("downlink")]
+    period = radio.pattern().period_s
+    assert all(
+        min(abs((t - e) % period) for e in ends) < 1e-9
+        or min(abs((t - e) % period - period) for e in ends) < 1e-9
+        for _, t, _ in got
+    )
+    delays = [t - a for a, t, _ in got]
+    oracle = radio.oracle("downlink")
+    assert stats.kstest(delays, np.vectorize(oracle.cdf)).pvalue > 0.05
+    assert oracle.mean() < radio.oracle("uplink").mean()  # 7 of 10 slots are downlink

@@ -11,6 +11,7 @@ import secrets
 import signal
 import socket
 import statistics
+import struct
 import threading
 import time
 from collections.abc import Iterator
@@ -372,3 +373,60 @@ def test_udp_gso_datagrams_cross_whole_or_split_for_loss(pair) -> None:
         else:
             assert len(sizes) == wire - counters["uplink"]["total"]["dropped_packets"]["loss"]
             assert 0.18 <= 1 - len(sizes) / wire <= 0.32
+
+
+# -- an NR radio on the link ------------------------------------------------------------------
+
+
+def test_a_radio_uplink_sends_in_uplink_slots_with_the_oracles_delays(pair) -> None:
+    import random
+
+    from netem.nr import Radio
+
+    radio = Radio(k2_slots=2)  # OAI's band-78 pattern, DDDDDDDSUU
+    period = radio.pattern().period_s
+    ends = [o.end_s for o in radio.occasions("uplink")]
+    rng = random.Random(7)
+    got: list[tuple[float, float]] = []
+    with link_for(pair, uplink=LinkProfile(radio=radio)):
+        receiver = udp_socket(pair[1], (ADDR_B, PORT))
+        receiver.settimeout(0.5)
+        sender = udp_socket(pair[0])
+        done = threading.Event()
+
+        def receive() -> None:
+            while not done.is_set():
+                try:
+                    data = receiver.recv(2048)
+                except TimeoutError:
+                    continue
+                got.append((struct.unpack("!d", data[:8])[0], time.monotonic()))
+
+        thread = threading.Thread(target=receive, daemon=True)
+        thread.start()
+        for _ in range(800):
+            time.sleep(rng.expovariate(1 / 0.004))
+            sender.sendto(struct.pack("!d", time.monotonic()) + bytes(92), (ADDR_B, PORT))
+        time.sleep(0.2)
+        done.set()
+        thread.join(2)
+        sender.close()
+        receiver.close()
+    assert len(got) >= 790
+
+    # Every datagram arrives just after the end of an uplink window (the relay's exit, then
+    # the receiving stack): never inside the downlink part of the period.
+    def after_an_end(t: float) -> float:
+        return min((t - e) % period for e in ends)
+
+    late = sorted(after_an_end(r) for _, r in got)
+    assert late[int(0.99 * len(late))] < 0.0006, late[-10:]
+    # One-way delays against the closed form, within what this host's timers allow.
+    oracle = radio.oracle("uplink")
+    delays = sorted(r - s for s, r in got)
+    n = len(delays)
+    shift = [delays[i] - oracle.quantile((i + 0.5) / n) for i in range(n)]
+    # The path without the radio (TUN, relay, receiving stack) adds 0.1-0.3 ms here; a slot
+    # (0.5 ms) more or less of grant lead would be off by more than the tolerance.
+    assert statistics.median(shift) == pytest.approx(0.0, abs=0.0005)
+    assert statistics.fmean(abs(x) for x in shift) < 0.0006  # Wasserstein-1 distance
