@@ -601,7 +601,8 @@ class Slots(Stage):
     grant is decided before the slot: K2 and processing; 0 is a configured grant on every
     occasion). Packets are served in order; one larger than an occasion continues in the next
     ones, and a packet leaves at the end of the occasion that carried its last byte, as a
-    transport block is decoded at the end of its slot.
+    transport block is decoded at the end of its slot. The gNB's buffer for the direction is
+    drop-tail at the profile's `queue_packets`.
     """
 
     name = "slots"
@@ -625,6 +626,8 @@ class Slots(Stage):
         self._left: deque[tuple[float, bytes]] = deque()
         self._cursor = (0, 0)  # (period, index) of the next occasion not yet used
         self.occasions_used = 0
+        self.queue_packets: int | None = None  # drop-tail limit of the gNB's buffer
+        self._queued_packets = 0
         if occasions:
             self.set_occasions(occasions, period_s, lead_s)
 
@@ -646,10 +649,12 @@ class Slots(Stage):
 
     def configure(self, profile: LinkProfile) -> None:
         radio = profile.radio
+        self.queue_packets = profile.queue_packets
         if radio is None:
             self.occasions = []
             while self._queue:  # a radio switched off: what waited for a slot leaves now
                 self._left.append((self._queue[0][0], self._queue.popleft()[1]))
+            self._queued_packets = 0
             return
         period = radio.pattern().period_s
         self.set_occasions(radio.occasions(self.direction), period, radio.lead_s)
@@ -686,7 +691,9 @@ class Slots(Stage):
             while q and budget > 0 and q[0][0] + self.lead_s <= start + 1e-12:
                 if self._head_left <= budget:
                     budget -= self._head_left
-                    self._left.append((end, q.popleft()[1]))
+                    packet = q.popleft()[1]
+                    self._queued_packets -= wire_packets(packet)
+                    self._left.append((end, packet))
                     self._head_left = len(q[0][1]) if q else 0
                 else:
                     self._head_left -= budget
@@ -701,6 +708,11 @@ class Slots(Stage):
             self._left.append((now, packet))
             return
         self._advance(now)
+        n = wire_packets(packet)
+        if self.queue_packets is not None and self._queued_packets + n > self.queue_packets:
+            c.drop("queue_full", len(packet), n)
+            return
+        self._queued_packets += n
         if not self._queue:
             self._head_left = len(packet)
             self._cursor = self._first_at_or_after(now + self.lead_s)

@@ -15,6 +15,7 @@ dies, and `check()` raises `RelayError` with the relay's last words.
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import json
 import os
 import selectors
@@ -327,7 +328,15 @@ class UserspaceLink:
             check_profile(profile)
             changes = profile.to_dict()
         else:
-            changes = dict(profile)
+            # A model given as an object (a Radio, a Gilbert-Elliott chain) goes as its fields.
+            changes = {
+                k: v.to_dict()
+                if hasattr(v, "to_dict")
+                else dataclasses.asdict(v)
+                if dataclasses.is_dataclass(v)
+                else v  # type: ignore[arg-type]
+                for k, v in profile.items()
+            }
         reply = self.request({"op": "set", "direction": direction, "profile": changes})
         for d, data in reply.get("profiles", {}).items():
             self.profiles[d] = LinkProfile.from_dict(data)

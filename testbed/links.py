@@ -160,6 +160,12 @@ def choose_backend(
     wanted = scenario.links.backend
     if wanted == "userspace":
         return BackendChoice("userspace", "asked for by the scenario")
+    radios = [s.name for s in scenario.links.links if s.uplink.radio or s.downlink.radio]
+    if wanted == "auto" and radios:
+        # The loader refuses `tc` with a radio; `auto` must not pick it either.
+        return BackendChoice(
+            "userspace", f"auto: {', '.join(radios)} have an NR radio, which only the relay models"
+        )
     ok, detail = probe()
     if wanted == "auto":
         if ok:

@@ -68,3 +68,53 @@ def test_link_test_notices_a_link_that_is_not_its_profile(state_dir: Path, scena
     rate = next(v for v in direction.verdicts if v.what == "tcp Mbit/s")
     assert not rate.ok and rate.measured < 0.6 * rate.expected
     assert not direction.ok
+
+
+RADIO_SCENARIO = """\
+name: lt-radio
+seed: 5
+duration: 10s
+topology:
+  cells:
+    - {gnb: gnb1, core: core1}
+  vehicles:
+    - {name: av1, gnb: gnb1}
+links:
+  air:
+    uplink: {radio: oai-tdd-30k, delay: 1ms}
+    downlink: {radio: {profile: srsran-lowlat, mcs: 9}}
+"""
+
+
+def test_a_radio_link_is_measured_against_its_oracle(
+    state_dir: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    import dataclasses
+
+    from netem.nr import Radio
+
+    path = tmp_path / "radio.yaml"
+    path.write_text(RADIO_SCENARIO)
+    scenario = load(path)
+    assert links.choose_backend(scenario).name == "userspace"
+    with build(scenario, mode="run") as net:
+        test = LinkTest(net, quick=True)
+        link = net.links["av1-gnb1"]
+        up = test.direction(link, "uplink")
+        # An oracle that expects the grant 4 slots later than the link gives it.
+        oracle = Radio.oracle
+        monkeypatch.setattr(
+            Radio,
+            "oracle",
+            lambda self, d, fixed_s=0.0: oracle(
+                dataclasses.replace(self, k2_slots=self.k2_slots + 4), d, fixed_s
+            ),
+        )
+        down = test.direction(link, "downlink")
+    verdicts = {v.what: v for v in up.verdicts}
+    assert {"radio W1 ms", "delay ms", "tcp Mbit/s"} <= set(verdicts), up.verdicts
+    assert up.ok, up.verdicts
+    # The TCP rate is judged against the radio's transport blocks, ~24 Mbit/s for OAI's uplink.
+    assert 20 < verdicts["tcp Mbit/s"].expected < 30
+    late = {v.what: v for v in down.verdicts}["radio W1 ms"]
+    assert not late.ok and late.measured > 1.5  # four 0.5 ms slots off the oracle

@@ -278,3 +278,12 @@ def test_both_link_controllers_are_complete() -> None:
         missing = [n for n in wanted if not callable(getattr(impl, n, None))]
         assert missing == [], (impl.__name__, missing)
         assert isinstance(impl.counts, bool)
+
+
+def test_auto_picks_the_relay_for_a_radio_and_says_why() -> None:
+    from netem.nr import RADIO_PROFILES
+
+    scenario = _with("auto", LinkProfile(radio=RADIO_PROFILES["oai-tdd-30k"]))
+    choice = choose_backend(scenario, lambda: (True, "ok"))
+    assert choice.name == "userspace"
+    assert "NR radio, which only the relay models" in choice.reason

@@ -21,6 +21,7 @@ from typing import Any
 import yaml
 from yaml.nodes import Node
 
+from netem.nr import RADIO_PROFILES, SYMBOLS_PER_SLOT, NrError, Radio
 from netem.profile import GilbertElliott, LinkProfile
 from netem.traces import TraceError, TraceProblem, default_format
 from testbed import units
@@ -149,15 +150,20 @@ def _compose(text: str, ctx: Context) -> Node | None:
 # ---- profiles -------------------------------------------------------------------------------
 
 
-def profile_changes(section: Section) -> dict[str, object]:
+def profile_changes(section: Section, ctx: Context | None = None) -> dict[str, object]:
     """`LinkProfile` fields (SI) set by the profile keys written in `section`.
 
     Keys that set one of two alternatives also clear the other (a loss percentage removes a
     Gilbert-Elliott model, a packet queue limit removes a time limit), so merging and `set`
-    events never leave both in place.
+    events never leave both in place. A radio whose fields do not fit together (a pattern
+    whose period TS 38.331 does not allow, say) is reported to `ctx` at its line.
     """
     v = section.values
     changes: dict[str, object] = {}
+    if "radio" in v:
+        radio = _radio(v["radio"], section, ctx)
+        if radio is not False:
+            changes["radio"] = radio
     if "rate" in v:
         changes["rate_bps"] = v["rate"]
     if "delay" in v:
@@ -183,6 +189,51 @@ def profile_changes(section: Section) -> dict[str, object]:
     if "reorder" in v:
         changes["reorder"] = v["reorder"]
     return changes
+
+
+def _radio(value: object, section: Section, ctx: Context | None) -> Radio | bool | None:
+    """The `Radio` a profile's `radio` key names or describes (False: reported, none built)."""
+    if value is None:
+        return None
+    if isinstance(value, str):
+        return RADIO_PROFILES[value]
+    assert isinstance(value, Section)
+    if not value.clean:
+        return False
+    v = value.values
+    base = RADIO_PROFILES[v.get("profile", "oai-tdd-30k")]
+    dl, _, ul = base.special
+    dl, ul = v.get("special_dl", dl), v.get("special_ul", ul)
+    changes: dict[str, object] = {"special": (dl, SYMBOLS_PER_SLOT - dl - ul, ul)}
+    for key, attr in (
+        ("tdd", "slots"),
+        ("numerology", "numerology"),
+        ("prbs", "n_prb"),
+        ("mcs", "mcs"),
+        ("layers", "layers"),
+        ("k2", "k2_slots"),
+    ):
+        if key in v:
+            changes[attr] = v[key]
+    radio = dataclasses.replace(base, **changes)  # type: ignore[arg-type]
+    problem = None
+    if dl + ul > SYMBOLS_PER_SLOT:
+        problem = f"special_dl {dl} + special_ul {ul} symbols, more than a slot's 14"
+    else:
+        try:
+            radio.check()
+        except NrError as exc:
+            problem = str(exc)
+    if problem is None:
+        return radio
+    if ctx is not None:
+        ctx.add(
+            section.at("radio"),
+            section.path_of("radio"),
+            "a radio whose fields fit together (TS 38.211/38.213/38.331)",
+            problem,
+        )
+    return False
 
 
 def _trace_problems(text: str, fmt: str) -> list[TraceProblem]:
@@ -381,7 +432,9 @@ class _Builder:
                 pair: Section | None = links.get(kind)
                 for direction in ("uplink", "downlink"):
                     profile = pair.get(direction) if pair else None
-                    defaults[kind][direction] = profile_changes(profile) if profile else {}
+                    defaults[kind][direction] = (
+                        profile_changes(profile, self.ctx) if profile else {}
+                    )
             overrides: Items | None = links.get("overrides")
             seen: dict[str, str] = {}
             for _, override, _ in overrides.good() if overrides else ():
@@ -398,7 +451,7 @@ class _Builder:
                     continue
                 seen[name] = override.path
                 merged[name] = {
-                    d: profile_changes(override[d]) if d in override else {}
+                    d: profile_changes(override[d], self.ctx) if d in override else {}
                     for d in ("uplink", "downlink")
                 }
         if not self.topology_ok or self.ctx.issues:
@@ -414,6 +467,16 @@ class _Builder:
                 model.LinkSpec(name, kind, lower, upper, profiles["uplink"], profiles["downlink"])  # type: ignore[arg-type]
             )
         backend = links.get("backend", "auto") if links is not None else "auto"
+        radios = [s.name for s in specs if s.uplink.radio or s.downlink.radio]
+        if backend == "tc" and radios and links is not None:
+            self.ctx.add(
+                links.at("backend"),
+                links.path_of("backend"),
+                "userspace or auto for links with a radio",
+                f"tc, with a radio on {', '.join(radios)}",
+                "the NR slot model runs in the userspace relay; tc's qdiscs have no slot clock",
+            )
+            return None
         return model.Links(backend=backend, links=tuple(specs))
 
     # -- timeline --
@@ -448,7 +511,7 @@ class _Builder:
             if not event.clean:
                 return None
             return model.SetEvent(
-                at, event["set"], event["direction"], profile_changes(event), line=line
+                at, event["set"], event["direction"], profile_changes(event, self.ctx), line=line
             )
         if event.tag == "shape":
             self._check_node(event, "shape")

@@ -183,11 +183,11 @@ class Fusion:
     answer's Cauchy weight when `robust_c` is set (beyond the paper, `nodes.edgeloc.fusion`).
 
     The defaults are the default scenario's tuning (replay sweeps of scenarios/default.yaml,
-    seeds 1-4 and 7; `python tests/bench/run.py splits` prints the comparison): k_s = 2/s with the midpoint at
-    Δt0 = -1.4 s gives u(100 ms) = 0.047, a time constant of ~2 s at ~10 answers/s, where
-    the paper's k_s = 20/s, Δt0 = 250 ms (u(100 ms) = 0.95) makes the fused pose follow each
-    DNN answer and its ~1.8 m noise; robust_c = 2 cut the EdgeLoc total by ~9% on those
-    seeds (1376 m against 1515 m mean).
+    seeds 1-4 and 7; `python tests/bench/run.py splits` prints the comparison): k_s = 2/s
+    with the midpoint at Δt0 = -1.4 s gives u(100 ms) = 0.047, a time constant of ~2 s at
+    ~10 answers/s, where the paper's k_s = 20/s, Δt0 = 250 ms (u(100 ms) = 0.95) makes the
+    fused pose follow each DNN answer and its ~1.8 m noise; robust_c = 2 cut the EdgeLoc
+    total by ~9% on those seeds (1376 m against 1515 m mean).
     """
 
     k_s: float = 2.0  # 1/s

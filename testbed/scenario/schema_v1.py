@@ -14,6 +14,7 @@ from __future__ import annotations
 
 from typing import Any
 
+from netem.nr import RADIO_PROFILES
 from netem.profile import JITTER_DISTRIBUTIONS, GilbertElliott, LinkProfile
 from testbed.scenario import model
 from testbed.scenario.kinds import (
@@ -69,6 +70,61 @@ AT = Field(
     required=True,
 )
 CPU = Nullable(Float(0.0, 1024.0, lo_open=True, noun="a number of CPU cores"))
+
+RADIO = Obj(
+    "A 5G NR air interface: a named radio with some of its fields changed. A mapping starts"
+    " from its `profile` (default oai-tdd-30k), in a `set` event too: name the profile there"
+    " to change another one.",
+    [
+        Field(
+            "profile",
+            Enum(tuple(RADIO_PROFILES)),
+            "The named radio these fields change (default oai-tdd-30k).",
+            attr=None,
+        ),
+        Field(
+            "tdd",
+            Str("a TDD pattern of D, S and U slots like DDDDDDDSUU", r"^[DSU]{1,160}$"),
+            "Slots of one TDD period: D downlink, S special, U uplink (TS 38.331).",
+            attr=None,
+        ),
+        Field(
+            "special_dl",
+            Int(0, 14, noun="a number of symbols"),
+            "Downlink symbols of the special slot.",
+            attr=None,
+        ),
+        Field(
+            "special_ul",
+            Int(0, 14, noun="a number of symbols"),
+            "Uplink symbols of the special slot; the rest of its 14 are the guard.",
+            attr=None,
+        ),
+        Field(
+            "numerology",
+            Int(0, 4, noun="a numerology µ"),
+            "µ: subcarrier spacing 15·2^µ kHz, slot 1 ms / 2^µ (TS 38.211 §4.2).",
+            attr=None,
+        ),
+        Field("prbs", Int(1, 275, noun="a number of PRBs"), "Resource blocks.", attr=None),
+        Field(
+            "mcs",
+            Int(0, 28, noun="an MCS index of TS 38.214 Table 5.1.3.1-1"),
+            "Modulation and coding scheme (64QAM table).",
+            attr=None,
+        ),
+        Field("layers", Int(1, 4, noun="a number of MIMO layers"), "MIMO layers.", attr=None),
+        Field(
+            "k2",
+            Int(0, 32, noun="a number of slots"),
+            "Slots a packet must be there before the slot that carries it (K2 and processing;"
+            " 0: a configured grant in every slot).",
+            attr=None,
+        ),
+    ],
+    fill_defaults=False,
+    ref="radio",
+)
 
 # Each profile key maps to one or more LinkProfile attributes; `loader.profile_changes` says how.
 PROFILE_FIELDS: tuple[Field, ...] = (
@@ -131,6 +187,12 @@ PROFILE_FIELDS: tuple[Field, ...] = (
         attr="queue_packets",
     ),
     Field("reorder", Bool(), "Let jitter reorder packets (otherwise order is kept)."),
+    Field(
+        "radio",
+        Nullable(Either(Enum(tuple(RADIO_PROFILES)), RADIO)),
+        "5G NR air interface of this direction (userspace backend): a named radio "
+        f"({', '.join(RADIO_PROFILES)}), or a mapping that changes one; null: a plain link.",
+    ),
 )
 
 PROFILE = Obj(
