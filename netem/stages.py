@@ -135,7 +135,24 @@ class Stage:
         """Take the settings of `profile` that concern this stage (default: none)."""
 
 
-class Gate(Stage):
+class Instant(Stage):
+    """A stage that holds no packet: what enters at `now` is ready at `now`, in order."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self._passed: deque[tuple[float, bytes]] = deque()
+
+    def pop_ready(self, now: float) -> list[bytes]:
+        return _pop_timed(self._passed, now, self.counters)
+
+    def next_due(self) -> float | None:
+        return self._passed[0][0] if self._passed else None
+
+    def queued(self) -> int:
+        return len(self._passed)
+
+
+class Gate(Instant):
     """A zero-time stage that lets each packet through or drops it when it arrives.
 
     A gate decides on a whole packet (`verdict`: an outage) or on each wire packet
@@ -145,10 +162,6 @@ class Gate(Stage):
     """
 
     loss_reason = "loss"
-
-    def __init__(self) -> None:
-        super().__init__()
-        self._passed: deque[tuple[float, bytes]] = deque()
 
     def verdict(self, packet: bytes, now: float) -> str | None:
         """The drop reason for the whole of `packet`, or None (default: none)."""
@@ -179,15 +192,6 @@ class Gate(Stage):
                     c.drop(self.loss_reason, len(part))
                 else:
                     self._passed.append((now, part))  # type: ignore[arg-type]
-
-    def pop_ready(self, now: float) -> list[bytes]:
-        return _pop_timed(self._passed, now, self.counters)
-
-    def next_due(self) -> float | None:
-        return self._passed[0][0] if self._passed else None
-
-    def queued(self) -> int:
-        return len(self._passed)
 
 
 def _pop_timed(queue: deque[tuple[float, bytes]], now: float, c: StageCounters) -> list[bytes]:
@@ -224,7 +228,7 @@ class Outage(Gate):
         return []
 
 
-class Segment(Stage):
+class Segment(Instant):
     """Splits super-packets (`netem.gso.Frame`) into wire packets where that matters.
 
     A later stage acts per wire packet when a trace plays (each waits for its own delivery
@@ -242,7 +246,6 @@ class Segment(Stage):
         self.tracing = False
         self.radio = False
         self.split_above_bytes = math.inf
-        self._passed: deque[tuple[float, bytes]] = deque()
 
     def configure(self, profile: LinkProfile) -> None:
         rate = profile.rate_bps
@@ -267,15 +270,6 @@ class Segment(Stage):
                 self._passed.append((now, part))  # type: ignore[arg-type]
         else:
             self._passed.append((now, packet))
-
-    def pop_ready(self, now: float) -> list[bytes]:
-        return _pop_timed(self._passed, now, self.counters)
-
-    def next_due(self) -> float | None:
-        return self._passed[0][0] if self._passed else None
-
-    def queued(self) -> int:
-        return len(self._passed)
 
 
 class RandomLoss(Gate):
