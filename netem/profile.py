@@ -1,7 +1,8 @@
 """What one direction of an emulated link does to packets.
 
 A `LinkProfile` is pure data: rate, delay, jitter and its distribution, loss (random or
-Gilbert-Elliott), queue limit and whether reordering is allowed. Backends (`tc`, `userspace`)
+Gilbert-Elliott), queue limit, whether reordering is allowed, and an optional NR air interface
+(`netem.nr.Radio`, userspace backend only). Backends (`tc`, `userspace`)
 turn a profile into qdiscs or relay stages; the timeline changes a live link by handing the
 backend a new profile, which it applies in place.
 """
