@@ -248,10 +248,13 @@ class DelayOracle:
 
     def __init__(
         self,
-        starts_ends: Sequence[tuple[float, float]],
+        starts_ends: Sequence[tuple[float, float]] | Sequence[tuple[float, float, int]],
         period_s: float,
         lead_s: float = 0.0,
         fixed_s: float = 0.0,
+        bler: float = 0.0,
+        max_retx: int = 0,
+        harq_s: float = 0.0,
     ) -> None:
         if not starts_ends:
             raise NrError("no occasion in the period: this direction never sends")
@@ -259,14 +262,22 @@ class DelayOracle:
         self.fixed_s = fixed_s
         # Occasion k serves arrivals in (start_{k-1} - lead, start_k - lead]; a packet there
         # waits from its arrival t to end_k: a delay uniform on [end_k - (start_k - lead),
-        # end_k - (start_{k-1} - lead)).
-        windows = sorted(starts_ends)
-        self.pieces: list[tuple[float, float]] = []
-        for k, (start, end) in enumerate(windows):
+        # end_k - (start_{k-1} - lead)). With HARQ, a share bler^j (1 - bler) of them waits
+        # for j retransmissions more: the same piece shifted by where the j-th one ends.
+        # (start, end, capacity): a retransmission needs a window that carries as much.
+        windows = sorted((w[0], w[1], w[2] if len(w) > 2 else 0) for w in starts_ends)
+        self.delivered = 1.0 - (bler ** (max_retx + 1) if bler > 0 else 0.0)
+        self.pieces: list[tuple[float, float, float]] = []  # (low, high, weight)
+        for k, (start, end, size) in enumerate(windows):
             previous = windows[k - 1][0] - (period_s if k == 0 else 0.0)
-            low = end - start + lead_s
-            high = end - previous + lead_s
-            self.pieces.append((low + fixed_s, high + fixed_s))
+            low = end - start + lead_s + fixed_s
+            high = end - previous + lead_s + fixed_s
+            t = end
+            for j in range(max_retx + 1 if bler > 0 else 1):
+                if j:
+                    t = _next_end(windows, period_s, t + harq_s, size)
+                weight = (bler**j) * (1.0 - bler) / self.delivered
+                self.pieces.append((low + t - end, high + t - end, weight))
 
     @classmethod
     def for_direction(
@@ -276,18 +287,23 @@ class DelayOracle:
         carrier: Carrier,
         lead_s: float = 0.0,
         fixed_s: float = 0.0,
+        bler: float = 0.0,
+        max_retx: int = 0,
+        harq_s: float = 0.0,
     ) -> DelayOracle:
-        windows = [(o.start_s, o.end_s) for o in occasions(pattern, direction, carrier)]
-        return cls(windows, pattern.period_s, lead_s, fixed_s)
+        windows = [
+            (o.start_s, o.end_s, o.capacity_bytes) for o in occasions(pattern, direction, carrier)
+        ]
+        return cls(windows, pattern.period_s, lead_s, fixed_s, bler, max_retx, harq_s)
 
     def cdf(self, x: float) -> float:
-        """P(delay <= x)."""
+        """P(delay <= x) of a delivered packet."""
         total = 0.0
-        for low, high in self.pieces:
+        for low, high, weight in self.pieces:
             if x >= high:
-                total += high - low
+                total += (high - low) * weight
             elif x > low:
-                total += x - low
+                total += (x - low) * weight
         return total / self.period_s
 
     def quantile(self, q: float) -> float:
@@ -303,7 +319,7 @@ class DelayOracle:
         return hi
 
     def mean(self) -> float:
-        return sum((h - lo) * (h + lo) / 2 for lo, h in self.pieces) / self.period_s
+        return sum((h - lo) * (h + lo) / 2 * w for lo, h, w in self.pieces) / self.period_s
 
     @property
     def minimum(self) -> float:
@@ -312,6 +328,19 @@ class DelayOracle:
     @property
     def maximum(self) -> float:
         return max(p[1] for p in self.pieces)
+
+
+def _next_end(
+    windows: Sequence[tuple[float, float, int]], period_s: float, t: float, size: int
+) -> float:
+    """The end of the first window (repeating every period) that starts at or after `t` and
+    carries at least `size` bytes."""
+    n = math.floor(t / period_s)
+    while True:
+        for start, end, capacity in windows:
+            if n * period_s + start >= t - 1e-12 and capacity >= size:
+                return n * period_s + end
+        n += 1
 
 
 @dataclass(frozen=True)
@@ -333,6 +362,17 @@ class Radio:
     layers: int = 1
     dmrs_re_per_prb: int = 12
     k2_slots: int = 2
+    #: First-transmission block error rate; link adaptation aims at 10% (TS 38.214 §5.2.2.1).
+    bler: float = 0.0
+    #: HARQ retransmissions before a block is lost (srsRAN's default max_nof_harq_retxs: 4).
+    max_retx: int = 4
+    #: Slots from a failed block's end to the earliest slot of its retransmission (K1/K2 and
+    #: processing, OpenAirInterface's min_rxtxtime 2).
+    harq_slots: int = 2
+
+    @property
+    def harq_s(self) -> float:
+        return self.harq_slots * slot_s(self.numerology)
 
     def pattern(self) -> TddPattern:
         return TddPattern(self.slots, tuple(self.special), self.numerology)  # type: ignore[arg-type]
@@ -350,11 +390,23 @@ class Radio:
     def oracle(self, direction: Direction, fixed_s: float = 0.0) -> DelayOracle:
         """The idle one-way delay of `direction` for a packet that fits one window."""
         return DelayOracle.for_direction(
-            self.pattern(), direction, self.carrier(), self.lead_s, fixed_s
+            self.pattern(),
+            direction,
+            self.carrier(),
+            self.lead_s,
+            fixed_s,
+            self.bler,
+            self.max_retx,
+            self.harq_s,
         )
 
     def rate_bps(self, direction: Direction) -> float:
+        """Transport blocks per second of `direction`, in bit/s (retransmissions included)."""
         return rate_bps(self.pattern(), direction, self.carrier())
+
+    def goodput_bps(self, direction: Direction) -> float:
+        """What a saturated `direction` delivers: a share `bler` of the blocks are resends."""
+        return self.rate_bps(direction) * (1.0 - self.bler)
 
     def check(self) -> None:
         """Raise `NrError` naming the field when a value is out of range."""
@@ -367,6 +419,12 @@ class Radio:
             raise NrError(f"layers must be 1..4, got {self.layers}")
         if not 0 <= self.k2_slots <= 32:
             raise NrError(f"k2_slots must be 0..32 (TS 38.214 §6.1.2.1), got {self.k2_slots}")
+        if not 0.0 <= self.bler < 1.0:
+            raise NrError(f"bler must be a fraction in [0, 1), got {self.bler}")
+        if not 0 <= self.max_retx <= 16:
+            raise NrError(f"max_retx must be 0..16, got {self.max_retx}")
+        if not 0 <= self.harq_slots <= 32:
+            raise NrError(f"harq_slots must be 0..32, got {self.harq_slots}")
         for direction in ("uplink", "downlink"):
             if not self.occasions(direction):  # type: ignore[arg-type]
                 raise NrError(
@@ -386,7 +444,7 @@ class Radio:
 
 
 #: Named radios, each value with its source. Only what the model has today: TDD windows,
-#: transport blocks and the grant lead (scheduling requests and HARQ come later, issue #16).
+#: transport blocks, the grant lead and HARQ (scheduling requests and RLC come later, #16).
 RADIO_PROFILES: dict[str, Radio] = {
     # OpenAirInterface's default band-78 gNB, gnb.sa.band78.fr1.106PRB.usrpb210.conf:
     # subcarrierSpacing 1 (30 kHz), dl_UL_TransmissionPeriodicity 6 (5 ms) with
@@ -394,12 +452,28 @@ RADIO_PROFILES: dict[str, Radio] = {
     # 106 PRBs; min_rxtxtime 2 (K2 = 2 slots). MCS 20 is a mid-cell link adaptation choice
     # (an assumption, not from the file).
     "oai-tdd-30k": Radio(
-        slots="DDDDDDDSUU", special=(6, 4, 4), numerology=1, n_prb=106, mcs=20, k2_slots=2
+        slots="DDDDDDDSUU",
+        special=(6, 4, 4),
+        numerology=1,
+        n_prb=106,
+        mcs=20,
+        k2_slots=2,
+        bler=0.1,  # OAI's link adaptation targets 10% first-transmission BLER
+        max_retx=4,  # OAI's and srsRAN's default HARQ retransmissions
+        harq_slots=2,  # min_rxtxtime 2
     ),
     # srsRAN Project configs/low_latency.yml: a 2 ms period at 30 kHz of 2 downlink slots, a
     # special slot of 10 downlink symbols, and 1 uplink slot; min K1 = K2 = 2. 106 PRBs (a
     # 40 MHz carrier at 30 kHz, TS 38.101-1 Table 5.3.2-1) and MCS 20 are assumptions.
     "srsran-lowlat": Radio(
-        slots="DDSU", special=(10, 4, 0), numerology=1, n_prb=106, mcs=20, k2_slots=2
+        slots="DDSU",
+        special=(10, 4, 0),
+        numerology=1,
+        n_prb=106,
+        mcs=20,
+        k2_slots=2,
+        bler=0.1,  # the CQI definition's 10% target (TS 38.214 §5.2.2.1)
+        max_retx=4,  # srsRAN's max_nof_harq_retxs default
+        harq_slots=2,  # min K1 = K2 = 2
     ),
 }

@@ -597,6 +597,12 @@ class Slots(Stage):
     ones, and a packet leaves at the end of the occasion that carried its last byte, as a
     transport block is decoded at the end of its slot. The gNB's buffer for the direction is
     drop-tail at the profile's `queue_packets`.
+
+    HARQ: each transport block fails with probability `bler` and is sent again in the first
+    free occasion that starts `harq_s` after the failed one ended (that occasion carries the
+    retransmission instead of new data), at most `max_retx` times; a block that still fails is
+    lost with every packet that had bytes in it (a residual loss). Packets leave in order, as
+    PDCP delivers them: one held back by a retransmission holds back those behind it.
     """
 
     name = "slots"
@@ -608,6 +614,7 @@ class Slots(Stage):
         lead_s: float = 0.0,
         epoch_s: float = 0.0,
         direction: Direction = "uplink",
+        seed: int | str = 0,
     ) -> None:
         super().__init__()
         self.direction = direction  # whose windows a radio profile gives this stage
@@ -622,6 +629,14 @@ class Slots(Stage):
         self.occasions_used = 0
         self.queue_packets: int | None = None  # drop-tail limit of the gNB's buffer
         self._queued_packets = 0
+        self.bler, self.max_retx, self.harq_s = 0.0, 0, 0.0
+        self._rng = random.Random(f"{seed}:{self.name}")
+        self._reserved: set[tuple[int, int]] = set()  # occasions taken by retransmissions
+        self._head_floor = 0.0  # a retransmitted block that held some of the head's bytes
+        self._head_lost = False
+        self._last_exit = -math.inf
+        self.blocks = 0
+        self.retransmissions = [0] * 1  # blocks by the retransmissions they needed
         if occasions:
             self.set_occasions(occasions, period_s, lead_s)
 
@@ -652,6 +667,12 @@ class Slots(Stage):
             return
         period = radio.pattern().period_s
         self.set_occasions(radio.occasions(self.direction), period, radio.lead_s)
+        self.set_harq(radio.bler, radio.max_retx, radio.harq_s)
+
+    def set_harq(self, bler: float, max_retx: int, harq_s: float) -> None:
+        self.bler, self.max_retx, self.harq_s = bler, max_retx, harq_s
+        if len(self.retransmissions) < max_retx + 2:
+            self.retransmissions += [0] * (max_retx + 2 - len(self.retransmissions))
 
     def _occasion(self, cursor: tuple[int, int]) -> tuple[float, float, int]:
         n, k = cursor
@@ -681,18 +702,61 @@ class Slots(Stage):
                 # The head was not there in time for this occasion: on to its first one.
                 self._cursor = self._first_at_or_after(q[0][0] + self.lead_s)
                 continue
+            if self._cursor in self._reserved:  # a retransmission has this one
+                self._reserved.discard(self._cursor)
+                self._cursor = self._step(self._cursor)
+                continue
             self.occasions_used += 1
+            completing: list[tuple[bytes, float, bool]] = []
+            partial = False
             while q and budget > 0 and q[0][0] + self.lead_s <= start + 1e-12:
                 if self._head_left <= budget:
                     budget -= self._head_left
                     packet = q.popleft()[1]
                     self._queued_packets -= wire_packets(packet)
-                    self._left.append((end, packet))
+                    completing.append((packet, self._head_floor, self._head_lost))
+                    self._head_floor, self._head_lost = 0.0, False
                     self._head_left = len(q[0][1]) if q else 0
                 else:
                     self._head_left -= budget
                     budget = 0
+                    partial = True
+            used = self._cursor
             self._cursor = self._step(self._cursor)
+            ok_at = self._deliver_block(end, self.occasions[used[1]].capacity_bytes)
+            for packet, floor, lost in completing:
+                if lost or ok_at is None:
+                    self.counters.drop("harq", len(packet), wire_packets(packet))
+                    continue
+                leave = max(ok_at, floor, self._last_exit)  # in order, as PDCP delivers
+                self._last_exit = leave
+                self._left.append((leave, packet))
+            if partial:
+                if ok_at is None:
+                    self._head_lost = True
+                else:
+                    self._head_floor = max(self._head_floor, ok_at)
+
+    def _deliver_block(self, end: float, size: int) -> float | None:
+        """When the block of `size` bytes sent in the occasion ending at `end` is decoded
+        (None: never). A retransmission needs an occasion that carries a block that big."""
+        self.blocks += 1
+        if self.bler <= 0.0:
+            self.retransmissions[0] += 1
+            return end
+        t = end
+        for attempt in range(self.max_retx + 1):
+            if attempt:
+                cursor = self._first_at_or_after(t + self.harq_s)
+                while cursor in self._reserved or self.occasions[cursor[1]].capacity_bytes < size:
+                    cursor = self._step(cursor)
+                self._reserved.add(cursor)
+                t = self._occasion(cursor)[1]
+            if self._rng.random() >= self.bler:
+                self.retransmissions[attempt] += 1
+                return t
+        self.retransmissions[self.max_retx + 1] += 1
+        return None
 
     def push(self, packet: bytes, now: float) -> None:
         c = self.counters
@@ -863,7 +927,7 @@ class Pipeline(Stage):
         rate = Rate()
         trace = TraceLink()
         segment = Segment()
-        slots = Slots(direction=direction)
+        slots = Slots(direction=direction, seed=seed)
         pipeline = cls(
             [
                 Outage(),

@@ -541,7 +541,7 @@ def _radio_capped(profile: LinkProfile, direction: Direction) -> LinkProfile:
     """`profile` with the rate its radio's transport blocks allow (IP bytes per second)."""
     if profile.radio is None:
         return profile
-    cap = profile.radio.rate_bps(direction)
+    cap = profile.radio.goodput_bps(direction)
     return profile.replace(rate_bps=cap if profile.rate_bps is None else min(cap, profile.rate_bps))
 
 

@@ -262,3 +262,58 @@ def test_a_downlink_pipeline_sends_in_the_downlink_windows() -> None:
     oracle = radio.oracle("downlink")
     assert stats.kstest(delays, np.vectorize(oracle.cdf)).pvalue > 0.05
     assert oracle.mean() < radio.oracle("uplink").mean()  # 7 of 10 slots are downlink
+
+
+# -- HARQ -------------------------------------------------------------------------------------
+
+
+def harq_stage(bler: float, max_retx: int = 4) -> tuple[Slots, object]:
+    from netem.nr import Radio
+    from netem.profile import LinkProfile
+    from netem.stages import Pipeline
+
+    radio = Radio(bler=bler, max_retx=max_retx)
+    pipeline = Pipeline.from_profile(LinkProfile(radio=radio), seed=9)
+    slots = pipeline.stage("slots")
+    assert isinstance(slots, Slots)
+    return slots, radio
+
+
+def test_harq_retransmits_a_tenth_of_the_blocks_one_after_another() -> None:
+    slots, radio = harq_stage(0.1)
+    got = run(slots, poisson_probes(10_000, 0.011, 100, seed=11))
+    shares = slots.retransmissions
+    n = slots.blocks  # probes that met in one occasion share its block
+    assert n == sum(shares) and n > 8000
+    for j, p in enumerate((0.9, 0.09, 0.009)):
+        sigma = math.sqrt(n * p * (1 - p))
+        assert abs(shares[j] - n * p) <= 3 * sigma, (j, shares)
+    delays = [left - arrived for arrived, left, _ in got]
+    oracle = radio.oracle("uplink")  # type: ignore[attr-defined]
+    assert stats.kstest(delays, np.vectorize(oracle.cdf)).pvalue > 0.01
+    # A retransmission costs about one TDD period on OAI's 5 ms pattern.
+    once = [d for d in delays if d > oracle.quantile(0.9) + 0.002]
+    assert once and all(d < 2 * 0.005 + 0.006 for d in once[:50])
+
+
+def test_a_block_that_fails_every_try_is_lost_with_its_packets() -> None:
+    slots, _ = harq_stage(0.3, max_retx=1)
+    n = 5_000
+    got = run(slots, poisson_probes(n, 0.011, 100, seed=12))
+    lost = slots.counters.dropped_packets.get("harq", 0)
+    assert lost + len(got) == n
+    p = 0.3**2  # BLER^(max_retx + 1)
+    assert abs(lost - n * p) <= 3 * math.sqrt(n * p * (1 - p))
+
+
+def test_packets_leave_in_order_and_retransmissions_take_their_occasions() -> None:
+    slots, radio = harq_stage(0.2)
+    got = run(slots, [(0.0, i.to_bytes(4, "big") + bytes(1496)) for i in range(4000)])
+    seqs = [int.from_bytes(p[:4], "big") for _, _, p in got]
+    assert seqs == sorted(seqs) and len(seqs) == 4000 - slots.counters.dropped
+    times = [t for _, t, _ in got]
+    assert times == sorted(times)
+    # Saturated, a fifth of the occasions carry retransmissions instead of new data.
+    carried = sum(len(p) for _, t, p in got if times[0] < t <= times[-1])
+    rate = carried * 8 / (times[-1] - times[0])
+    assert rate == pytest.approx(0.8 * radio.rate_bps("uplink"), rel=0.06)  # type: ignore[attr-defined]

@@ -212,6 +212,9 @@ def _radio(value: object, section: Section, ctx: Context | None) -> Radio | bool
         ("mcs", "mcs"),
         ("layers", "layers"),
         ("k2", "k2_slots"),
+        ("bler", "bler"),
+        ("max_retx", "max_retx"),
+        ("harq_slots", "harq_slots"),
     ):
         if key in v:
             changes[attr] = v[key]

@@ -115,6 +115,24 @@ RADIO = Obj(
         ),
         Field("layers", Int(1, 4, noun="a number of MIMO layers"), "MIMO layers.", attr=None),
         Field(
+            "bler",
+            Percent(noun="a block error rate"),
+            "First-transmission block error rate (10% is what link adaptation aims at).",
+            attr=None,
+        ),
+        Field(
+            "max_retx",
+            Int(0, 16, noun="a number of HARQ retransmissions"),
+            "Retransmissions of a failed block before it is lost.",
+            attr=None,
+        ),
+        Field(
+            "harq_slots",
+            Int(0, 32, noun="a number of slots"),
+            "Slots from a failed block's end to the earliest slot of its retransmission.",
+            attr=None,
+        ),
+        Field(
             "k2",
             Int(0, 32, noun="a number of slots"),
             "Slots a packet must be there before the slot that carries it (K2 and processing;"
