@@ -268,14 +268,15 @@ class DelayOracle:
         windows = sorted((w[0], w[1], w[2] if len(w) > 2 else 0) for w in starts_ends)
         self.delivered = 1.0 - (bler ** (max_retx + 1) if bler > 0 else 0.0)
         self.pieces: list[tuple[float, float, float]] = []  # (low, high, weight)
-        for k, (start, end, size) in enumerate(windows):
+        for k, (start, end, _) in enumerate(windows):
             previous = windows[k - 1][0] - (period_s if k == 0 else 0.0)
             low = end - start + lead_s + fixed_s
             high = end - previous + lead_s + fixed_s
             t = end
             for j in range(max_retx + 1 if bler > 0 else 1):
                 if j:
-                    t = _next_end(windows, period_s, t + harq_s, size)
+                    # An idle link's small packet fits any window: the first one will do.
+                    t = _next_end(windows, period_s, t + harq_s, 0)
                 weight = (bler**j) * (1.0 - bler) / self.delivered
                 self.pieces.append((low + t - end, high + t - end, weight))
 

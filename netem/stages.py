@@ -599,8 +599,8 @@ class Slots(Stage):
     drop-tail at the profile's `queue_packets`.
 
     HARQ: each transport block fails with probability `bler` and is sent again in the first
-    free occasion that starts `harq_s` after the failed one ended (that occasion carries the
-    retransmission instead of new data), at most `max_retx` times; a block that still fails is
+    occasion that starts `harq_s` after the failed one ended and has the block's bytes free
+    (they are taken from its new data), at most `max_retx` times; a block that still fails is
     lost with every packet that had bytes in it (a residual loss). Packets leave in order, as
     PDCP delivers them: one held back by a retransmission holds back those behind it.
     """
@@ -631,7 +631,8 @@ class Slots(Stage):
         self._queued_packets = 0
         self.bler, self.max_retx, self.harq_s = 0.0, 0, 0.0
         self._rng = random.Random(f"{seed}:{self.name}")
-        self._reserved: set[tuple[int, int]] = set()  # occasions taken by retransmissions
+        # Bytes of occasions that retransmissions have taken, by occasion.
+        self._reserved: dict[tuple[int, int], int] = {}
         self._head_floor = 0.0  # a retransmitted block that held some of the head's bytes
         self._head_lost = False
         self._last_exit = -math.inf
@@ -702,11 +703,12 @@ class Slots(Stage):
                 # The head was not there in time for this occasion: on to its first one.
                 self._cursor = self._first_at_or_after(q[0][0] + self.lead_s)
                 continue
-            if self._cursor in self._reserved:  # a retransmission has this one
-                self._reserved.discard(self._cursor)
+            budget -= self._reserved.pop(self._cursor, 0)  # what retransmissions took
+            if budget <= 0:
                 self._cursor = self._step(self._cursor)
                 continue
             self.occasions_used += 1
+            free = budget
             completing: list[tuple[bytes, float, bool]] = []
             partial = False
             while q and budget > 0 and q[0][0] + self.lead_s <= start + 1e-12:
@@ -721,9 +723,8 @@ class Slots(Stage):
                     self._head_left -= budget
                     budget = 0
                     partial = True
-            used = self._cursor
             self._cursor = self._step(self._cursor)
-            ok_at = self._deliver_block(end, self.occasions[used[1]].capacity_bytes)
+            ok_at = self._deliver_block(end, free - budget)
             for packet, floor, lost in completing:
                 if lost or ok_at is None:
                     self.counters.drop("harq", len(packet), wire_packets(packet))
@@ -737,9 +738,13 @@ class Slots(Stage):
                 else:
                     self._head_floor = max(self._head_floor, ok_at)
 
+    def _free(self, cursor: tuple[int, int]) -> int:
+        return self.occasions[cursor[1]].capacity_bytes - self._reserved.get(cursor, 0)
+
     def _deliver_block(self, end: float, size: int) -> float | None:
         """When the block of `size` bytes sent in the occasion ending at `end` is decoded
-        (None: never). A retransmission needs an occasion that carries a block that big."""
+        (None: never). A retransmission takes `size` bytes of a later occasion that has them
+        free; the rest of that occasion still carries new data."""
         self.blocks += 1
         if self.bler <= 0.0:
             self.retransmissions[0] += 1
@@ -748,9 +753,9 @@ class Slots(Stage):
         for attempt in range(self.max_retx + 1):
             if attempt:
                 cursor = self._first_at_or_after(t + self.harq_s)
-                while cursor in self._reserved or self.occasions[cursor[1]].capacity_bytes < size:
+                while self._free(cursor) < size:
                     cursor = self._step(cursor)
-                self._reserved.add(cursor)
+                self._reserved[cursor] = self._reserved.get(cursor, 0) + size
                 t = self._occasion(cursor)[1]
             if self._rng.random() >= self.bler:
                 self.retransmissions[attempt] += 1
