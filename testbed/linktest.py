@@ -56,8 +56,10 @@ DELAY_TOL_S = 0.0005
 #: A radio direction's delay distribution may be this far from the oracle (Wasserstein-1);
 #: the relay's timer lateness and the receiving stack add ~0.1-0.3 ms here.
 RADIO_TOL_S = 0.0005
-#: Spacing of a radio direction's delay probes, in TDD periods (not a whole number).
-RADIO_PROBE_PERIODS = 1.1373
+#: Spacing of a radio direction's delay probes, in TDD periods: not a whole number, so their
+#: phases cover the period, and more than one retransmission's delay, so a probe held up by
+#: HARQ does not hold up the next (PDCP's in-order delivery, which the oracle leaves out).
+RADIO_PROBE_PERIODS = 3.1373
 RATE_TOL = 0.05
 LOSS_TOL = 0.005
 LOSS_PACKETS = 10_000
@@ -432,7 +434,7 @@ class LinkTest:
         radio = profile.radio
         oracle = radio.oracle(direction) if radio is not None else None
         if radio is not None:
-            # Probes 1.1373 TDD periods apart land at phases spread evenly over the period
+            # Probes 3.1373 TDD periods apart land at phases spread evenly over the period
             # (every 5 ms on a 5 ms pattern would see one phase: the aliasing of srsRAN's
             # ping sawtooth), which is what the oracle's uniform arrivals assume.
             owd = owd_ms(count, 1 / (RADIO_PROBE_PERIODS * radio.pattern().period_s))
