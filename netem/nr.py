@@ -248,7 +248,7 @@ class DelayOracle:
 
     def __init__(
         self,
-        starts_ends: Sequence[tuple[float, float]] | Sequence[tuple[float, float, int]],
+        starts_ends: Sequence[tuple[float, float]],
         period_s: float,
         lead_s: float = 0.0,
         fixed_s: float = 0.0,
@@ -264,11 +264,10 @@ class DelayOracle:
         # waits from its arrival t to end_k: a delay uniform on [end_k - (start_k - lead),
         # end_k - (start_{k-1} - lead)). With HARQ, a share bler^j (1 - bler) of them waits
         # for j retransmissions more: the same piece shifted by where the j-th one ends.
-        # (start, end, capacity): a retransmission needs a window that carries as much.
-        windows = sorted((w[0], w[1], w[2] if len(w) > 2 else 0) for w in starts_ends)
+        windows = sorted(starts_ends)
         self.delivered = 1.0 - (bler ** (max_retx + 1) if bler > 0 else 0.0)
         self.pieces: list[tuple[float, float, float]] = []  # (low, high, weight)
-        for k, (start, end, _) in enumerate(windows):
+        for k, (start, end) in enumerate(windows):
             previous = windows[k - 1][0] - (period_s if k == 0 else 0.0)
             low = end - start + lead_s + fixed_s
             high = end - previous + lead_s + fixed_s
@@ -276,7 +275,7 @@ class DelayOracle:
             for j in range(max_retx + 1 if bler > 0 else 1):
                 if j:
                     # An idle link's small packet fits any window: the first one will do.
-                    t = _next_end(windows, period_s, t + harq_s, 0)
+                    t = _next_end(windows, period_s, t + harq_s)
                 weight = (bler**j) * (1.0 - bler) / self.delivered
                 self.pieces.append((low + t - end, high + t - end, weight))
 
@@ -292,9 +291,7 @@ class DelayOracle:
         max_retx: int = 0,
         harq_s: float = 0.0,
     ) -> DelayOracle:
-        windows = [
-            (o.start_s, o.end_s, o.capacity_bytes) for o in occasions(pattern, direction, carrier)
-        ]
+        windows = [(o.start_s, o.end_s) for o in occasions(pattern, direction, carrier)]
         return cls(windows, pattern.period_s, lead_s, fixed_s, bler, max_retx, harq_s)
 
     def cdf(self, x: float) -> float:
@@ -331,15 +328,12 @@ class DelayOracle:
         return max(p[1] for p in self.pieces)
 
 
-def _next_end(
-    windows: Sequence[tuple[float, float, int]], period_s: float, t: float, size: int
-) -> float:
-    """The end of the first window (repeating every period) that starts at or after `t` and
-    carries at least `size` bytes."""
+def _next_end(windows: Sequence[tuple[float, float]], period_s: float, t: float) -> float:
+    """The end of the first window (repeating every period) that starts at or after `t`."""
     n = math.floor(t / period_s)
     while True:
-        for start, end, capacity in windows:
-            if n * period_s + start >= t - 1e-12 and capacity >= size:
+        for start, end in windows:
+            if n * period_s + start >= t - 1e-12:
                 return n * period_s + end
         n += 1
 
