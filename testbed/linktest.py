@@ -57,9 +57,10 @@ DELAY_TOL_S = 0.0005
 #: the relay's timer lateness and the receiving stack add ~0.1-0.3 ms here.
 RADIO_TOL_S = 0.0005
 #: Spacing of a radio direction's delay probes, in TDD periods: not a whole number, so their
-#: phases cover the period, and more than one retransmission's delay, so a probe held up by
-#: HARQ does not hold up the next (PDCP's in-order delivery, which the oracle leaves out).
-RADIO_PROBE_PERIODS = 3.1373
+#: phases cover the period, and more than one retransmission's delay on a 5 ms pattern, so a
+#: probe held up by HARQ seldom holds up the next (PDCP's in-order delivery, which the oracle
+#: leaves out).
+RADIO_PROBE_PERIODS = 2.1373
 RATE_TOL = 0.05
 LOSS_TOL = 0.005
 LOSS_PACKETS = 10_000
@@ -421,9 +422,13 @@ class LinkTest:
             got = udp_stream(src.netns, dst.netns, addr, count, 64, rate_pps * 64 * 8, tail)
             return [(r - s) * 1000 for r, s, _, _ in got]
 
-        # Baseline: the same probe with this direction neutral for a moment.
+        # Baseline: the same probe with this direction neutral for a moment. A radio's probes
+        # are sparse, and a host that idles between packets wakes later (~0.2 ms more here at
+        # 10 ms than at 2 ms): its baseline is taken at the same spacing.
+        radio = profile.radio
+        base_pps = 500.0 if radio is None else 1 / (RADIO_PROBE_PERIODS * radio.pattern().period_s)
         with neutral(self.control, link.name, direction):
-            base = owd_ms(100 if self.quick else 300, 500)
+            base = owd_ms(100 if self.quick else 300, base_pps)
         # Sparse datagrams (5 ms apart): a link that keeps order must not hold one back
         # behind its predecessor's jitter, or the median would measure the clamping. Enough
         # of them that the median's standard error (1.25 sd / sqrt(n)) stays near 0.15 ms
@@ -431,15 +436,11 @@ class LinkTest:
         jitter_ms = profile.jitter_s * 1000
         low, per_sd, high = (100, 8.4, 600) if self.quick else (300, 12.5, 1500)
         count = int(min(high, max(low, (per_sd * jitter_ms) ** 2)))
-        radio = profile.radio
         oracle = radio.oracle(direction) if radio is not None else None
-        if radio is not None:
-            # Probes 3.1373 TDD periods apart land at phases spread evenly over the period
-            # (every 5 ms on a 5 ms pattern would see one phase: the aliasing of srsRAN's
-            # ping sawtooth), which is what the oracle's uniform arrivals assume.
-            owd = owd_ms(count, 1 / (RADIO_PROBE_PERIODS * radio.pattern().period_s))
-        else:
-            owd = owd_ms(count, 200)
+        # A radio's probes, 2.1373 TDD periods apart, land at phases spread evenly over the
+        # period (every 5 ms on a 5 ms pattern would see one phase: the aliasing of srsRAN's
+        # ping sawtooth), which is what the oracle's uniform arrivals assume.
+        owd = owd_ms(count, 200 if radio is None else base_pps)
         if base:
             result.baseline_ms = statistics.median(base)
         if len(owd) >= 2:
