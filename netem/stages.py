@@ -46,7 +46,7 @@ from netem.traces import OPPORTUNITY_BYTES, Trace
 #: pacing rate (tcp_tso_autosize), so from ~20 Mbit/s up most stay whole, and a packet is
 #: at most 2 ms late for the wire time of the ones sent with it. (tc's netem and tbf on a
 #: TSO device serialise a super-packet whole at any rate; at 1 ms instead of 2 the relay
-#: splits most of a 100 Mbit/s TCP flow and needs about a third more CPU.)
+#: splits most of a 100 Mbit/s TCP flow, one write per wire packet.)
 SPLIT_ABOVE_S = 0.002
 
 # Pareto jitter: shape 3 has a finite variance; samples are shifted and scaled to mean 0 and
@@ -626,7 +626,6 @@ class Slots(Stage):
         self._head_left = 0  # bytes of the head packet still to send
         self._left: deque[tuple[float, bytes]] = deque()
         self._cursor = (0, 0)  # (period, index) of the next occasion not yet used
-        self.occasions_used = 0
         self.queue_packets: int | None = None  # drop-tail limit of the gNB's buffer
         self._queued_packets = 0
         self.bler, self.max_retx, self.harq_s = 0.0, 0, 0.0
@@ -637,14 +636,10 @@ class Slots(Stage):
         self._head_lost = False
         self._last_exit = -math.inf
         self.blocks = 0
-        self.retransmissions = [0] * 1  # blocks by the retransmissions they needed
+        # Blocks by the retransmissions they needed; the last entry counts those lost.
+        self.retransmissions: list[int] = [0]
         if occasions:
             self.set_occasions(occasions, period_s, lead_s)
-
-    @property
-    def active(self) -> bool:
-        """False: no radio on this link, and the stage is transparent."""
-        return bool(self.occasions)
 
     def set_occasions(self, occasions: Sequence[Occasion], period_s: float, lead_s: float) -> None:
         """Switch to another slot grid or capacity in place (MCS, PRBs, pattern changes).
@@ -672,8 +667,7 @@ class Slots(Stage):
 
     def set_harq(self, bler: float, max_retx: int, harq_s: float) -> None:
         self.bler, self.max_retx, self.harq_s = bler, max_retx, harq_s
-        if len(self.retransmissions) < max_retx + 2:
-            self.retransmissions += [0] * (max_retx + 2 - len(self.retransmissions))
+        self.retransmissions += [0] * max(0, max_retx + 2 - len(self.retransmissions))
 
     def _occasion(self, cursor: tuple[int, int]) -> tuple[float, float, int]:
         n, k = cursor
@@ -707,7 +701,6 @@ class Slots(Stage):
             if budget <= 0:
                 self._cursor = self._step(self._cursor)
                 continue
-            self.occasions_used += 1
             free = budget
             completing: list[tuple[bytes, float, bool]] = []
             partial = False
