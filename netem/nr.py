@@ -236,14 +236,22 @@ def rate_bps(pattern: TddPattern, direction: Direction, carrier: Carrier) -> flo
 
 
 class DelayOracle:
-    """Closed-form one-way delay of an idle NR direction for a packet that fits one window.
+    """Closed-form one-way delay of an idle NR direction, a mixture of uniform pieces.
 
-    A packet arriving at `t` (uniform over the period: an idle UE's traffic is not locked to
-    the slot grid) leaves at the end of the first occasion that starts at or after
-    `t + lead_s`, plus `fixed_s` (the wired part of the link). `lead_s` is the time between
-    the data being there and the slot that carries it (K2 and processing, or 0 for a
-    configured grant on every occasion). The delay is then a mixture of uniform pieces, one
-    per occasion; `cdf` and `quantile` are exact.
+    A packet arrives at `t`, uniform over the period (an idle UE's traffic is not locked to
+    the slot grid). Which cut `c_k` of the period it falls before decides when it leaves: the
+    arrivals in `(c_{k-1}, c_k]` all leave at the same time `T` (or, with HARQ, at one of
+    a few times with known probabilities), so their delay is uniform on
+    `[T - c_k, T - c_{k-1})`. `fixed_s` is the wired part of the link. `cdf` and `quantile`
+    are exact; they describe the delivered packets (a residual HARQ loss is not a delay).
+
+    - The scheduled model (`DelayOracle(...)`, the downlink, a configured grant, or an uplink
+      whose buffer the gNB sees at once): cut `k` is occasion `k`'s start minus `lead_s`, and
+      a packet that fits one window leaves at that occasion's end.
+    - Scheduling request (`DelayOracle.scheduling_request`): cut `k` is the start of SR
+      window `k`; the SR's small first grant comes `grant_delay_s` after the SR window ends,
+      and, when the packet is larger, the buffer status report in it brings grants for the
+      rest after the same delay from its decoding (TS 38.321 §5.4.4, §5.4.5).
     """
 
     def __init__(
@@ -258,26 +266,72 @@ class DelayOracle:
     ) -> None:
         if not starts_ends:
             raise NrError("no occasion in the period: this direction never sends")
+        grid = _Windows([(s, e, 1) for s, e in starts_ends], period_s)
+        harq = _Harq(bler, max_retx, harq_s, grid)
+        cuts = [start - lead_s for start, _, _ in grid.windows]
+        # An idle link's small packet fits any window, so a retransmission takes the first.
+        outcomes = [harq.decodes(end) for _, end, _ in grid.windows]
+        self._build(cuts, outcomes, period_s, fixed_s)
+
+    @classmethod
+    def scheduling_request(
+        cls,
+        occasions: Sequence[Occasion],
+        sr_windows: Sequence[tuple[float, float]],
+        period_s: float,
+        grant_delay_s: float,
+        first_grant_bytes: int,
+        size_bytes: int,
+        fixed_s: float = 0.0,
+        bler: float = 0.0,
+        max_retx: int = 0,
+        harq_s: float = 0.0,
+    ) -> DelayOracle:
+        """An idle UE's `size_bytes` packet that must ask for its grant with an SR.
+
+        Exact while the packet's blocks and their retransmissions do not compete for one
+        occasion (an idle UE, a packet of a few blocks).
+        """
+        if not occasions or not sr_windows:
+            raise NrError("no uplink occasion or no SR window in the period")
+        grid = _Windows([(o.start_s, o.end_s, o.capacity_bytes) for o in occasions], period_s)
+        harq = _Harq(bler, max_retx, harq_s, grid)
+        srs = sorted(sr_windows)
+        outcomes = []
+        for _, sr_end in srs:
+            _, end, capacity = grid.first(sr_end + grant_delay_s)
+            first = min(size_bytes, first_grant_bytes, capacity)
+            mixture: dict[float, float] = {}
+            for t1, p1 in harq.decodes(end):
+                # The rest goes in the occasions its buffer status report is granted.
+                rest = [
+                    harq.decodes(e) for e in grid.carrying(t1 + grant_delay_s, size_bytes - first)
+                ]
+                for t, p in _max_of([[(t1, p1)], *rest]):
+                    mixture[t] = mixture.get(t, 0.0) + p
+            outcomes.append(sorted(mixture.items()))
+        inst = cls.__new__(cls)
+        inst._build([start for start, _ in srs], outcomes, period_s, fixed_s)
+        return inst
+
+    def _build(
+        self,
+        cuts: Sequence[float],
+        outcomes: Sequence[Sequence[tuple[float, float]]],
+        period_s: float,
+        fixed_s: float,
+    ) -> None:
         self.period_s = period_s
         self.fixed_s = fixed_s
-        # Occasion k serves arrivals in (start_{k-1} - lead, start_k - lead]; a packet there
-        # waits from its arrival t to end_k: a delay uniform on [end_k - (start_k - lead),
-        # end_k - (start_{k-1} - lead)). With HARQ, a share bler^j (1 - bler) of them waits
-        # for j retransmissions more: the same piece shifted by where the j-th one ends.
-        windows = sorted(starts_ends)
-        self.delivered = 1.0 - (bler ** (max_retx + 1) if bler > 0 else 0.0)
         self.pieces: list[tuple[float, float, float]] = []  # (low, high, weight)
-        for k, (start, end) in enumerate(windows):
-            previous = windows[k - 1][0] - (period_s if k == 0 else 0.0)
-            low = end - start + lead_s + fixed_s
-            high = end - previous + lead_s + fixed_s
-            t = end
-            for j in range(max_retx + 1 if bler > 0 else 1):
-                if j:
-                    # An idle link's small packet fits any window: the first one will do.
-                    t = _next_end(windows, period_s, t + harq_s)
-                weight = (bler**j) * (1.0 - bler) / self.delivered
-                self.pieces.append((low + t - end, high + t - end, weight))
+        delivered = 0.0
+        for k, cut in enumerate(cuts):
+            previous = cuts[k - 1] - (period_s if k == 0 else 0.0)
+            for leave, p in outcomes[k]:
+                self.pieces.append((leave - cut + fixed_s, leave - previous + fixed_s, p))
+                delivered += (cut - previous) * p
+        #: The share of packets delivered (the rest is lost after the last retransmission).
+        self.delivered = delivered / period_s
 
     @classmethod
     def for_direction(
@@ -302,7 +356,7 @@ class DelayOracle:
                 total += (high - low) * weight
             elif x > low:
                 total += (x - low) * weight
-        return total / self.period_s
+        return total / (self.period_s * self.delivered)
 
     def quantile(self, q: float) -> float:
         """The delay below which a fraction `q` of packets fall (bisection on the exact cdf)."""
@@ -317,36 +371,118 @@ class DelayOracle:
         return hi
 
     def mean(self) -> float:
-        return sum((h - lo) * (h + lo) / 2 * w for lo, h, w in self.pieces) / self.period_s
+        total = sum((h - lo) * (h + lo) / 2 * w for lo, h, w in self.pieces)
+        return total / (self.period_s * self.delivered)
 
     @property
     def minimum(self) -> float:
-        return min(p[0] for p in self.pieces)
+        return min(p[0] for p in self.pieces if p[2] > 0)
 
     @property
     def maximum(self) -> float:
-        return max(p[1] for p in self.pieces)
+        return max(p[1] for p in self.pieces if p[2] > 0)
 
 
-def _next_end(windows: Sequence[tuple[float, float]], period_s: float, t: float) -> float:
-    """The end of the first window (repeating every period) that starts at or after `t`."""
-    n = math.floor(t / period_s)
-    while True:
-        for start, end in windows:
-            if n * period_s + start >= t - 1e-12:
-                return n * period_s + end
-        n += 1
+class _Windows:
+    """Windows `(start, end, capacity)` of one period, repeating every `period_s`."""
+
+    def __init__(self, windows: Sequence[tuple[float, float, int]], period_s: float) -> None:
+        self.windows = sorted(windows)
+        self.period_s = period_s
+
+    def first(self, t: float) -> tuple[float, float, int]:
+        """The first window that starts at or after `t`."""
+        n = math.floor(t / self.period_s)
+        while True:
+            for start, end, capacity in self.windows:
+                if n * self.period_s + start >= t - 1e-12:
+                    base = n * self.period_s
+                    return base + start, base + end, capacity
+            n += 1
+
+    def carrying(self, t: float, size: int) -> list[float]:
+        """The ends of the windows from `t` on that carry `size` bytes, each filled whole."""
+        ends: list[float] = []
+        while size > 0:
+            start, end, capacity = self.first(t)
+            ends.append(end)
+            size -= capacity
+            t = start + 1e-9
+        return ends
+
+
+class _Harq:
+    """When a block sent in a window ending at `end` is decoded, with its probabilities."""
+
+    def __init__(self, bler: float, max_retx: int, harq_s: float, grid: _Windows) -> None:
+        self.bler, self.max_retx, self.harq_s, self.grid = bler, max_retx, harq_s, grid
+
+    def decodes(self, end: float) -> list[tuple[float, float]]:
+        """(decoded at, probability) per attempt; they add up to less than 1 by the loss."""
+        if self.bler <= 0.0:
+            return [(end, 1.0)]
+        out, t = [], end
+        for attempt in range(self.max_retx + 1):
+            if attempt:
+                t = self.grid.first(t + self.harq_s)[1]
+            out.append((t, self.bler**attempt * (1.0 - self.bler)))
+        return out
+
+
+def _max_of(blocks: Sequence[Sequence[tuple[float, float]]]) -> list[tuple[float, float]]:
+    """The distribution of the latest decoding of independent blocks (all of them decoded)."""
+    times = sorted({t for block in blocks for t, _ in block})
+    out, before = [], 0.0
+    for t in times:
+        upto = 1.0
+        for block in blocks:
+            upto *= sum(p for u, p in block if u <= t)
+        out.append((t, upto - before))
+        before = upto
+    return [(t, p) for t, p in out if p > 0]
+
+
+#: How an uplink gets its grants: `sr` asks with a scheduling request, then its buffer
+#: status reports bring the grants (TS 38.321 §5.4.4, §5.4.5); `configured` sends in a
+#: configured grant's periodic occasions without asking (type 1, TS 38.321 §5.8.2); `ideal`
+#: is a gNB that sees the UE's buffer as data arrives (no request: a bound, not a real cell).
+UL_ACCESS = ("sr", "configured", "ideal")
+#: Slot periods TS 38.331 allows for an SR resource (periodicityAndOffset, sl1..sl640).
+SR_PERIODS = (1, 2, 4, 5, 8, 10, 16, 20, 40, 80, 160, 320, 640)
+#: Configured grant periods in whole slots (TS 38.331 ConfiguredGrantConfig periodicity,
+#: n x 14 symbols; the 2- and 7-symbol ones are left out).
+CG_PERIODS = (1, 2, 4, 5, 8, 10, 16, 20, 32, 40, 64, 80, 128, 160, 256, 320, 512, 640)
+
+
+@dataclass(frozen=True)
+class Grid:
+    """What a `netem.stages.Slots` stage needs to send one direction of a radio.
+
+    `occasions` of one `period_s` (the TDD period, or a multiple of it when an SR or a
+    configured grant repeats more slowly) and how packets get them: `access` "sr" waits for
+    a grant (`sr_windows`, `grant_delay_s`, `first_grant_bytes`); otherwise a packet may use
+    any occasion that starts `lead_s` after it arrived.
+    """
+
+    occasions: tuple[Occasion, ...]
+    period_s: float
+    lead_s: float
+    access: str = "ideal"
+    sr_windows: tuple[tuple[float, float], ...] = ()
+    #: From a decoded SR or buffer status report to the first occasion it may grant.
+    grant_delay_s: float = 0.0
+    first_grant_bytes: int = 0
 
 
 @dataclass(frozen=True)
 class Radio:
-    """The NR air interface of a link: TDD pattern, carrier and grant lead.
+    """The NR air interface of a link: TDD pattern, carrier, uplink access and HARQ.
 
     Plain data (it travels in a `LinkProfile` to the relay as JSON); the direction is the
-    pipeline's (uplink data uses the uplink windows). `k2_slots` is how long
-    before its slot a packet must be there to be scheduled in it (the grant's K2 plus gNB
-    processing; 0 models a configured grant on every occasion). Every relay's slot grid starts
-    at 0 on CLOCK_MONOTONIC, so all the links of a host, and so of a cell, share one grid.
+    pipeline's (uplink data uses the uplink windows). `k2_slots` is the grant's K2: from the
+    DCI to the PUSCH (or, for the downlink and an `ideal` uplink, how long before its slot a
+    packet must be there). Every relay's slot grid starts at 0 on CLOCK_MONOTONIC, so all
+    the links of a host, and so of a cell, share one grid.
     """
 
     slots: str = "DDDDDDDSUU"
@@ -364,6 +500,22 @@ class Radio:
     #: Slots from a failed block's end to the earliest slot of its retransmission (K1/K2 and
     #: processing, OpenAirInterface's min_rxtxtime 2).
     harq_slots: int = 2
+    #: How the uplink gets grants (`UL_ACCESS`); the downlink is always scheduled by the gNB.
+    ul_access: str = "sr"
+    #: SR resource: every `sr_period_slots` slots, in slot `sr_offset` of that period, in the
+    #: slot's uplink symbols. OpenAirInterface puts it in the first slot after the downlink
+    #: slots (slot 7, the special slot) with period sl10 (nr_rrc_config.c set_SR_periodandoffset).
+    sr_period_slots: int = 10
+    sr_offset: int = 7
+    #: The first grant after an SR, in bytes: small, room for a buffer status report and a
+    #: little data (576 bits in srsRAN's log of its issue #603).
+    sr_grant_bytes: int = 72
+    #: gNB processing from a decoded SR or buffer status report to the DCI of its grant
+    #: (an assumption; K2 follows).
+    grant_slots: int = 2
+    #: Configured grant: every `cg_period_slots` slots, in slot `cg_offset` of that period.
+    cg_period_slots: int = 10
+    cg_offset: int = 8
 
     @property
     def harq_s(self) -> float:
@@ -379,25 +531,74 @@ class Radio:
     def lead_s(self) -> float:
         return self.k2_slots * slot_s(self.numerology)
 
-    def occasions(self, direction: Direction) -> list[Occasion]:
-        return occasions(self.pattern(), direction, self.carrier())
+    def access(self, direction: Direction) -> str:
+        return self.ul_access if direction == "uplink" else "ideal"
 
-    def oracle(self, direction: Direction, fixed_s: float = 0.0) -> DelayOracle:
-        """The idle one-way delay of `direction` for a packet that fits one window."""
-        return DelayOracle.for_direction(
-            self.pattern(),
-            direction,
-            self.carrier(),
+    def grid(self, direction: Direction) -> Grid:
+        """The occasions of `direction` and how its packets get them."""
+        pattern, slot = self.pattern(), slot_s(self.numerology)
+        base = occasions(pattern, direction, self.carrier())
+        access = self.access(direction)
+        if access == "ideal":
+            return Grid(tuple(base), pattern.period_s, self.lead_s)
+        n = len(self.slots)
+        if access == "configured":
+            repeat = math.lcm(n, self.cg_period_slots)
+            chosen = [
+                o
+                for o in _repeated(base, pattern.period_s, repeat // n)
+                if (_slot_of(o.start_s, slot) - self.cg_offset) % self.cg_period_slots == 0
+            ]
+            return Grid(tuple(chosen), repeat * slot, 0.0, "configured")
+        repeat = math.lcm(n, self.sr_period_slots)
+        ul_windows = {_slot_of(s, slot): (s, e) for s, e, _ in pattern.windows("uplink")}
+        srs = []
+        for i in range(self.sr_offset, repeat, self.sr_period_slots):
+            s, e = ul_windows[i % n]
+            offset = (i // n) * pattern.period_s
+            srs.append((offset + s, offset + e))
+        return Grid(
+            tuple(_repeated(base, pattern.period_s, repeat // n)),
+            repeat * slot,
             self.lead_s,
-            fixed_s,
-            self.bler,
-            self.max_retx,
-            self.harq_s,
+            "sr",
+            tuple(srs),
+            (self.grant_slots + self.k2_slots) * slot,
+            self.sr_grant_bytes,
         )
+
+    def occasions(self, direction: Direction) -> list[Occasion]:
+        """The occasions of one grid period (see `grid`) that carry `direction`'s data."""
+        return list(self.grid(direction).occasions)
+
+    def oracle(
+        self, direction: Direction, fixed_s: float = 0.0, size_bytes: int = 100
+    ) -> DelayOracle:
+        """The idle one-way delay of `direction` for a `size_bytes` packet.
+
+        Without a scheduling request the packet must fit one window (the size is then
+        not needed).
+        """
+        grid = self.grid(direction)
+        harq = (self.bler, self.max_retx, self.harq_s)
+        if grid.access == "sr":
+            return DelayOracle.scheduling_request(
+                grid.occasions,
+                grid.sr_windows,
+                grid.period_s,
+                grid.grant_delay_s,
+                grid.first_grant_bytes,
+                size_bytes,
+                fixed_s,
+                *harq,
+            )
+        windows = [(o.start_s, o.end_s) for o in grid.occasions]
+        return DelayOracle(windows, grid.period_s, grid.lead_s, fixed_s, *harq)
 
     def rate_bps(self, direction: Direction) -> float:
         """Transport blocks per second of `direction`, in bit/s (retransmissions included)."""
-        return rate_bps(self.pattern(), direction, self.carrier())
+        grid = self.grid(direction)
+        return sum(o.capacity_bytes for o in grid.occasions) * 8 / grid.period_s
 
     def goodput_bps(self, direction: Direction) -> float:
         """What a saturated `direction` delivers: a share `bler` of the blocks are resends."""
@@ -405,7 +606,7 @@ class Radio:
 
     def check(self) -> None:
         """Raise `NrError` naming the field when a value is out of range."""
-        self.pattern()
+        pattern = self.pattern()
         if not 0 <= self.mcs < len(MCS_TABLE_1):
             raise NrError(f"mcs must be 0..{len(MCS_TABLE_1) - 1} (TS 38.214 Table 5.1.3.1-1)")
         if not 1 <= self.n_prb <= 275:
@@ -420,11 +621,67 @@ class Radio:
             raise NrError(f"max_retx must be 0..16, got {self.max_retx}")
         if not 0 <= self.harq_slots <= 32:
             raise NrError(f"harq_slots must be 0..32, got {self.harq_slots}")
+        if self.ul_access not in UL_ACCESS:
+            allowed = ", ".join(UL_ACCESS)
+            raise NrError(f"ul_access must be one of {allowed}, got {self.ul_access!r}")
         for direction in ("uplink", "downlink"):
-            if not self.occasions(direction):  # type: ignore[arg-type]
+            if not occasions(pattern, direction, self.carrier()):  # type: ignore[arg-type]
                 raise NrError(
                     f"{direction} has no window that carries data in {self.slots} "
                     f"{self.special} (windows too short for the DMRS)"
+                )
+        if self.ul_access == "sr":
+            self._check_sr(pattern)
+        elif self.ul_access == "configured":
+            self._check_cg(pattern)
+
+    def _check_sr(self, pattern: TddPattern) -> None:
+        if self.sr_period_slots not in SR_PERIODS:
+            raise NrError(
+                f"sr_period must be one of TS 38.331's {', '.join(map(str, SR_PERIODS))} "
+                f"slots, got {self.sr_period_slots}"
+            )
+        if not 0 <= self.sr_offset < self.sr_period_slots:
+            raise NrError(
+                f"sr_offset must be a slot of the SR period 0..{self.sr_period_slots - 1}, "
+                f"got {self.sr_offset}"
+            )
+        if not 1 <= self.sr_grant_bytes <= 100_000:
+            raise NrError(f"sr_grant must be 1..100000 bytes, got {self.sr_grant_bytes}")
+        if not 0 <= self.grant_slots <= 32:
+            raise NrError(f"grant_slots must be 0..32, got {self.grant_slots}")
+        n = len(self.slots)
+        uplink = {_slot_of(s, pattern.slot_s) for s, _, _ in pattern.windows("uplink")}
+        for i in range(self.sr_offset, math.lcm(n, self.sr_period_slots), self.sr_period_slots):
+            if i % n not in uplink:
+                raise NrError(
+                    f"an SR every {self.sr_period_slots} slots from slot {self.sr_offset} falls "
+                    f"in slot {i % n} ({self.slots[i % n]}) of {self.slots}, which has no "
+                    f"uplink symbols"
+                )
+
+    def _check_cg(self, pattern: TddPattern) -> None:
+        if self.cg_period_slots not in CG_PERIODS:
+            raise NrError(
+                f"cg_period must be one of {', '.join(map(str, CG_PERIODS))} slots "
+                f"(TS 38.331 ConfiguredGrantConfig), got {self.cg_period_slots}"
+            )
+        if not 0 <= self.cg_offset < self.cg_period_slots:
+            raise NrError(
+                f"cg_offset must be a slot of the grant period 0..{self.cg_period_slots - 1}, "
+                f"got {self.cg_offset}"
+            )
+        n = len(self.slots)
+        carrying = {
+            _slot_of(o.start_s, pattern.slot_s)
+            for o in occasions(pattern, "uplink", self.carrier())
+        }
+        for i in range(self.cg_offset, math.lcm(n, self.cg_period_slots), self.cg_period_slots):
+            if i % n not in carrying:
+                raise NrError(
+                    f"a configured grant every {self.cg_period_slots} slots from slot "
+                    f"{self.cg_offset} falls in slot {i % n} ({self.slots[i % n]}) of "
+                    f"{self.slots}, which carries no uplink data"
                 )
 
     def to_dict(self) -> dict[str, object]:
@@ -438,8 +695,21 @@ class Radio:
         return cls(**data)  # type: ignore[arg-type]
 
 
-#: Named radios, each value with its source. Only what the model has today: TDD windows,
-#: transport blocks, the grant lead and HARQ (scheduling requests and RLC come later, #16).
+def _slot_of(t: float, slot: float) -> int:
+    return math.floor(t / slot + 1e-9)
+
+
+def _repeated(base: Sequence[Occasion], period_s: float, times: int) -> list[Occasion]:
+    """`base`'s occasions over `times` consecutive periods."""
+    return [
+        Occasion(k * period_s + o.start_s, k * period_s + o.end_s, o.capacity_bytes)
+        for k in range(times)
+        for o in base
+    ]
+
+
+#: Named radios, each value with its source. What the model has today: TDD windows, transport
+#: blocks, uplink access (SR and grants, or a configured grant) and HARQ (RLC comes later, #16).
 RADIO_PROFILES: dict[str, Radio] = {
     # OpenAirInterface's default band-78 gNB, gnb.sa.band78.fr1.106PRB.usrpb210.conf:
     # subcarrierSpacing 1 (30 kHz), dl_UL_TransmissionPeriodicity 6 (5 ms) with
@@ -456,6 +726,13 @@ RADIO_PROFILES: dict[str, Radio] = {
         bler=0.1,  # OAI's link adaptation targets 10% first-transmission BLER
         max_retx=4,  # OAI's and srsRAN's default HARQ retransmissions
         harq_slots=2,  # min_rxtxtime 2
+        ul_access="sr",
+        sr_period_slots=10,  # nr_rrc_config.c: sl10 for an SR slot offset below 10
+        sr_offset=7,  # "SR in the first uplink slot": nrofDownlinkSlots, the special slot
+        sr_grant_bytes=72,  # an assumption: srsRAN's 576-bit first grant (issue #603)
+        grant_slots=2,  # an assumption; any of 0..7 puts the PUSCH one period after the SR
+        cg_period_slots=10,  # for ul_access: configured, once per TDD period...
+        cg_offset=8,  # ...in its first full uplink slot
     ),
     # srsRAN Project configs/low_latency.yml: a 2 ms period at 30 kHz of 2 downlink slots, a
     # special slot of 10 downlink symbols, and 1 uplink slot; min K1 = K2 = 2. 106 PRBs (a
@@ -470,5 +747,14 @@ RADIO_PROFILES: dict[str, Radio] = {
         bler=0.1,  # the CQI definition's 10% target (TS 38.214 §5.2.2.1)
         max_retx=4,  # srsRAN's max_nof_harq_retxs default
         harq_slots=2,  # min K1 = K2 = 2
+        ul_access="sr",
+        sr_period_slots=4,  # SR every 2 ms (low_latency.yml)
+        sr_offset=3,  # in the uplink slot
+        sr_grant_bytes=72,  # the 576-bit first grant of srsRAN's issue #603 log
+        # PUSCH 8 slots after the SR slot: of what this pattern allows (its uplink slots are
+        # 4 apart), the nearest to the SR -> grant -> PUSCH of 9 slots measured in #603.
+        grant_slots=2,
+        cg_period_slots=4,
+        cg_offset=3,
     ),
 }

@@ -591,18 +591,29 @@ class Slots(Stage):
 
     The air link of one NR direction (`netem.nr`): `occasions` are the windows of one period
     that carry data, with their capacity in bytes; the pattern repeats every `period_s` from
-    `epoch_s`. A packet may use an occasion that starts at least `lead_s` after it arrived (the
-    grant is decided before the slot: K2 and processing; 0 is a configured grant on every
-    occasion). Packets are served in order; one larger than an occasion continues in the next
+    `epoch_s`. Packets are served in order; one larger than an occasion continues in the next
     ones, and a packet leaves at the end of the occasion that carried its last byte, as a
     transport block is decoded at the end of its slot. The gNB's buffer for the direction is
     drop-tail at the profile's `queue_packets`.
 
+    Grants (`access`):
+    - "ideal" (the downlink, where the gNB holds the data, and a configured grant, whose
+      occasions are given): a packet may use an occasion that starts at least `lead_s` after
+      it arrived (K2 and processing; 0 for a configured grant).
+    - "sr" (a UE that must ask): data that no buffer status report (BSR) has announced
+      triggers a scheduling request in the first SR window (`sr_windows`) that starts after
+      it, unless a PUSCH goes first and carries the BSR. The SR brings a first grant of
+      `first_grant_bytes` in the first occasion `grant_delay_s` after the SR window; every
+      PUSCH carries a BSR of what had arrived when it started, and the gNB grants what BSRs
+      announced in the occasions `grant_delay_s` after it decoded them (TS 38.321 §5.4.4-5).
+      A PUSCH carries data that arrived before it started.
+
     HARQ: each transport block fails with probability `bler` and is sent again in the first
     occasion that starts `harq_s` after the failed one ended and has the block's bytes free
     (they are taken from its new data), at most `max_retx` times; a block that still fails is
-    lost with every packet that had bytes in it (a residual loss). Packets leave in order, as
-    PDCP delivers them: one held back by a retransmission holds back those behind it.
+    lost with every packet that had bytes in it (a residual loss; its BSR is lost too, and
+    what it announced is asked for again). Packets leave in order, as PDCP delivers them: one
+    held back by a retransmission holds back those behind it.
     """
 
     name = "slots"
@@ -622,7 +633,8 @@ class Slots(Stage):
         self.period_s = period_s
         self.lead_s = lead_s
         self.epoch_s = epoch_s
-        self._queue: deque[tuple[float, bytes]] = deque()  # (arrival, packet)
+        # (arrival, packet, bytes that had arrived up to and with it)
+        self._queue: deque[tuple[float, bytes, int]] = deque()
         self._head_left = 0  # bytes of the head packet still to send
         self._left: deque[tuple[float, bytes]] = deque()
         self._cursor = (0, 0)  # (period, index) of the next occasion not yet used
@@ -635,9 +647,23 @@ class Slots(Stage):
         self._head_floor = 0.0  # a retransmitted block that held some of the head's bytes
         self._head_lost = False
         self._last_exit = -math.inf
+        self._used_until = -math.inf  # just after the start of the last occasion visited
         self.blocks = 0
         # Blocks by the retransmissions they needed; the last entry counts those lost.
         self.retransmissions: list[int] = [0]
+        # Scheduling requests and grants (access "sr"); byte counts are cumulative.
+        self.access = "ideal"
+        self.sr_windows: list[tuple[float, float]] = []
+        self.grant_delay_s = 0.0
+        self.first_grant_bytes = 0
+        self._arrived = 0  # bytes that entered the buffer
+        self._sent = 0  # bytes that left it in a PUSCH
+        self._announced = 0  # bytes a BSR announced (decoded or on its way)
+        self._granted = 0  # bytes the gNB has granted so far (announced and decoded)
+        self._reports: list[tuple[float, int]] = []  # (grantable from, bytes announced)
+        self._first_grant: float | None = None  # start of the occasion an SR was granted
+        self._sr_floor = -math.inf  # no SR before this (a lost BSR is noticed after it)
+        self.scheduling_requests = 0
         if occasions:
             self.set_occasions(occasions, period_s, lead_s)
 
@@ -648,9 +674,34 @@ class Slots(Stage):
         """
         self.occasions = sorted(occasions, key=lambda o: o.start_s)
         self.period_s, self.lead_s = period_s, lead_s
-        if self._queue:
-            self._cursor = (0, 0)
-            self._cursor = self._first_at_or_after(self._queue[0][0] + lead_s)
+        self._reserved.clear()  # (occasions of the old grid)
+        # Cursors of the old grid mean nothing in the new one: on from what was used.
+        self._cursor = (0, 0)
+        if self.occasions:
+            after = self._used_until
+            if self._queue:
+                after = max(after, self._queue[0][0] + self._lead())
+            self._cursor = self._first_at_or_after(after)
+
+    def set_access(
+        self,
+        access: str,
+        sr_windows: Sequence[tuple[float, float]] = (),
+        grant_delay_s: float = 0.0,
+        first_grant_bytes: int = 0,
+    ) -> None:
+        """How packets get occasions: "ideal" (after `lead_s`) or "sr" (see the class)."""
+        if access == "sr" and self.access != "sr":
+            # What waits now is announced: the gNB grants it from its next occasion on.
+            waiting = self._head_left + sum(len(p) for _, p, _ in list(self._queue)[1:])
+            self._announced = self._granted = self._arrived
+            self._sent = self._arrived - (waiting if self._queue else 0)
+            self._reports.clear()
+            self._first_grant = None
+        self.access = access
+        self.sr_windows = sorted(sr_windows)
+        self.grant_delay_s = grant_delay_s
+        self.first_grant_bytes = first_grant_bytes
 
     def configure(self, profile: LinkProfile) -> None:
         radio = profile.radio
@@ -660,14 +711,19 @@ class Slots(Stage):
             while self._queue:  # a radio switched off: what waited for a slot leaves now
                 self._left.append((self._queue[0][0], self._queue.popleft()[1]))
             self._queued_packets = 0
+            self.set_access("ideal")
             return
-        period = radio.pattern().period_s
-        self.set_occasions(radio.occasions(self.direction), period, radio.lead_s)
+        grid = radio.grid(self.direction)
+        self.set_access(grid.access, grid.sr_windows, grid.grant_delay_s, grid.first_grant_bytes)
+        self.set_occasions(grid.occasions, grid.period_s, grid.lead_s)
         self.set_harq(radio.bler, radio.max_retx, radio.harq_s)
 
     def set_harq(self, bler: float, max_retx: int, harq_s: float) -> None:
         self.bler, self.max_retx, self.harq_s = bler, max_retx, harq_s
         self.retransmissions += [0] * max(0, max_retx + 2 - len(self.retransmissions))
+
+    def _lead(self) -> float:
+        return 0.0 if self.access == "sr" else self.lead_s
 
     def _occasion(self, cursor: tuple[int, int]) -> tuple[float, float, int]:
         n, k = cursor
@@ -681,30 +737,86 @@ class Slots(Stage):
 
     def _first_at_or_after(self, t: float) -> tuple[int, int]:
         """The first occasion that starts at or after `t` (never one already used)."""
-        n = max(0, math.floor((t - self.epoch_s) / self.period_s))
+        t = max(t, self.epoch_s)
+        n = math.floor((t - self.epoch_s) / self.period_s)
         cursor = (n, 0)
         while self._occasion(cursor)[0] < t - 1e-12:
             cursor = self._step(cursor)
         return max(cursor, self._cursor)
 
+    def _sr_window(self, t: float) -> tuple[float, float]:
+        """The first SR window that starts at or after `t`."""
+        n = math.floor((t - self.epoch_s) / self.period_s)
+        while True:
+            base = self.epoch_s + n * self.period_s
+            for start, end in self.sr_windows:
+                if base + start >= t - 1e-12:
+                    return base + start, base + end
+            n += 1
+
+    def _unannounced_since(self) -> float | None:
+        """When the oldest byte no BSR has announced arrived (None: all announced)."""
+        if self._arrived <= self._announced:
+            return None
+        since = None
+        for arrival, _, upto in reversed(self._queue):  # the unannounced are the newest
+            if upto <= self._announced:
+                break
+            since = arrival
+        return since  # (None: what was not announced has left with a first grant)
+
+    def _grant(self, start: float) -> int:
+        """Bytes the gNB grants this UE in the occasion that starts at `start` ("sr")."""
+        if self.access != "sr":
+            return 1 << 62
+        if self._reports:
+            ready = [r for r in self._reports if r[0] <= start + 1e-12]
+            if ready:
+                self._granted = max(self._granted, *(upto for _, upto in ready))
+                self._reports = [r for r in self._reports if r[0] > start + 1e-12]
+        grant = max(0, self._granted - self._sent)
+        if self._first_grant is not None and self._first_grant <= start + 1e-12:
+            grant = max(grant, self.first_grant_bytes)
+            self._first_grant = None
+        return grant
+
+    def _request(self, before: float) -> None:
+        """Send the scheduling request that falls before the occasion starting at `before`."""
+        if self.access != "sr" or self._first_grant is not None:
+            return
+        since = self._unannounced_since()
+        if since is None:
+            return
+        sr_start, sr_end = self._sr_window(max(since, self._sr_floor))
+        if sr_start < before - 1e-12:
+            self.scheduling_requests += 1
+            self._first_grant = self._occasion(
+                self._first_at_or_after(sr_end + self.grant_delay_s)
+            )[0]
+
     def _advance(self, now: float) -> None:
         q = self._queue
+        sr = self.access == "sr"
         while q and self.occasions:
             start, end, budget = self._occasion(self._cursor)
+            self._request(start)
             if end > now:
                 return
-            if q[0][0] + self.lead_s > start + 1e-12:
+            if not sr and q[0][0] + self.lead_s > start + 1e-12:
                 # The head was not there in time for this occasion: on to its first one.
                 self._cursor = self._first_at_or_after(q[0][0] + self.lead_s)
                 continue
+            self._used_until = start + 1e-9
             budget -= self._reserved.pop(self._cursor, 0)  # what retransmissions took
-            if budget <= 0:
+            budget = min(budget, self._grant(start)) if sr else budget
+            if budget <= 0 or q[0][0] > start + 1e-12:
                 self._cursor = self._step(self._cursor)
                 continue
             free = budget
             completing: list[tuple[bytes, float, bool]] = []
             partial = False
-            while q and budget > 0 and q[0][0] + self.lead_s <= start + 1e-12:
+            lead = self._lead()
+            while q and budget > 0 and q[0][0] + lead <= start + 1e-12:
                 if self._head_left <= budget:
                     budget -= self._head_left
                     packet = q.popleft()[1]
@@ -718,6 +830,8 @@ class Slots(Stage):
                     partial = True
             self._cursor = self._step(self._cursor)
             ok_at = self._deliver_block(end, free - budget)
+            if sr:
+                self._report(start, end, free - budget, ok_at)
             for packet, floor, lost in completing:
                 if lost or ok_at is None:
                     self.counters.drop("harq", len(packet), wire_packets(packet))
@@ -730,6 +844,23 @@ class Slots(Stage):
                     self._head_lost = True
                 else:
                     self._head_floor = max(self._head_floor, ok_at)
+
+    def _report(self, start: float, end: float, sent: int, ok_at: float | None) -> None:
+        """The BSR of the PUSCH at `start`: what had arrived by then, decoded at `ok_at`."""
+        self._sent += sent
+        upto = self._sent
+        for arrival, _, cumulative in reversed(self._queue):  # the newest arrived last
+            if arrival <= start + 1e-12:
+                upto = max(upto, cumulative)
+                break
+        if ok_at is None:
+            # Lost with its block: what it announced stays unannounced, and the UE asks
+            # again once it could have noticed.
+            self._sr_floor = end
+            return
+        if upto > self._announced:
+            self._announced = upto
+        self._reports.append((ok_at + self.grant_delay_s, upto))
 
     def _free(self, cursor: tuple[int, int]) -> int:
         return self.occasions[cursor[1]].capacity_bytes - self._reserved.get(cursor, 0)
@@ -771,8 +902,9 @@ class Slots(Stage):
         self._queued_packets += n
         if not self._queue:
             self._head_left = len(packet)
-            self._cursor = self._first_at_or_after(now + self.lead_s)
-        self._queue.append((now, packet))
+            self._cursor = self._first_at_or_after(now + self._lead())
+        self._arrived += len(packet)
+        self._queue.append((now, packet, self._arrived))
 
     def pop_ready(self, now: float) -> list[bytes]:
         self._advance(now)

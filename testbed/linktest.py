@@ -28,6 +28,7 @@ The measurement functions (`udp_send`, `udp_receive`, `tcp_send`, `tcp_receive`,
 from __future__ import annotations
 
 import contextlib
+import math
 import multiprocessing as mp
 import os
 import socket
@@ -56,11 +57,15 @@ DELAY_TOL_S = 0.0005
 #: A radio direction's delay distribution may be this far from the oracle (Wasserstein-1);
 #: the relay's timer lateness and the receiving stack add ~0.1-0.3 ms here.
 RADIO_TOL_S = 0.0005
-#: Spacing of a radio direction's delay probes, in TDD periods: not a whole number, so their
-#: phases cover the period, and more than one retransmission's delay on a 5 ms pattern, so a
-#: probe held up by HARQ seldom holds up the next (PDCP's in-order delivery, which the oracle
-#: leaves out).
+#: Spacing of a radio direction's delay probes, in grid periods, beyond the oracle's 99th
+#: percentile: not a whole number, so their phases cover the period, and more than one
+#: retransmission's delay on a 5 ms pattern, so a probe held up by HARQ seldom holds up the
+#: next (PDCP's in-order delivery), and each finds the UE idle (no grant of the last probe's
+#: to share), as the oracle assumes.
 RADIO_PROBE_PERIODS = 2.1373
+#: The delay probes' UDP payload, and the IP packet the radio carries.
+PROBE_PAYLOAD = 64
+PROBE_PACKET = PROBE_PAYLOAD + 28
 RATE_TOL = 0.05
 LOSS_TOL = 0.005
 LOSS_PACKETS = 10_000
@@ -419,14 +424,20 @@ class LinkTest:
         tail = profile.delay_s + 4 * profile.jitter_s + 0.3
 
         def owd_ms(count: int, rate_pps: float) -> list[float]:
-            got = udp_stream(src.netns, dst.netns, addr, count, 64, rate_pps * 64 * 8, tail)
+            bps = rate_pps * PROBE_PAYLOAD * 8
+            got = udp_stream(src.netns, dst.netns, addr, count, PROBE_PAYLOAD, bps, tail)
             return [(r - s) * 1000 for r, s, _, _ in got]
 
         # Baseline: the same probe with this direction neutral for a moment. A radio's probes
         # are sparse, and a host that idles between packets wakes later (~0.2 ms more here at
         # 10 ms than at 2 ms): its baseline is taken at the same spacing.
         radio = profile.radio
-        base_pps = 500.0 if radio is None else 1 / (RADIO_PROBE_PERIODS * radio.pattern().period_s)
+        oracle = radio.oracle(direction, size_bytes=PROBE_PACKET) if radio is not None else None
+        base_pps = 500.0
+        if radio is not None and oracle is not None:
+            period = radio.grid(direction).period_s
+            periods = math.ceil(oracle.quantile(0.99) / period) + RADIO_PROBE_PERIODS
+            base_pps = 1 / (periods * period)
         with neutral(self.control, link.name, direction):
             base = owd_ms(100 if self.quick else 300, base_pps)
         # Sparse datagrams (5 ms apart): a link that keeps order must not hold one back
@@ -436,10 +447,10 @@ class LinkTest:
         jitter_ms = profile.jitter_s * 1000
         low, per_sd, high = (100, 8.4, 600) if self.quick else (300, 12.5, 1500)
         count = int(min(high, max(low, (per_sd * jitter_ms) ** 2)))
-        oracle = radio.oracle(direction) if radio is not None else None
-        # A radio's probes, 2.1373 TDD periods apart, land at phases spread evenly over the
-        # period (every 5 ms on a 5 ms pattern would see one phase: the aliasing of srsRAN's
-        # ping sawtooth), which is what the oracle's uniform arrivals assume.
+        # A radio's probes, a whole number and 0.1373 of its periods apart, land at phases
+        # spread evenly over the period (every 5 ms on a 5 ms pattern would see one phase:
+        # the aliasing of srsRAN's ping sawtooth), which is what the oracle's uniform
+        # arrivals assume.
         owd = owd_ms(count, 200 if radio is None else base_pps)
         if base:
             result.baseline_ms = statistics.median(base)

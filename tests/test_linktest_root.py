@@ -106,8 +106,8 @@ def test_a_radio_link_is_measured_against_its_oracle(
         monkeypatch.setattr(
             Radio,
             "oracle",
-            lambda self, d, fixed_s=0.0: oracle(
-                dataclasses.replace(self, k2_slots=self.k2_slots + 4), d, fixed_s
+            lambda self, d, fixed_s=0.0, size_bytes=100: oracle(
+                dataclasses.replace(self, k2_slots=self.k2_slots + 4), d, fixed_s, size_bytes
             ),
         )
         down = test.direction(link, "downlink")

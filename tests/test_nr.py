@@ -7,6 +7,7 @@ stage's delays against the closed-form oracle with a Kolmogorov-Smirnov test (sc
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import random
 
@@ -133,6 +134,15 @@ def poisson_probes(n: int, mean_gap_s: float, size: int, seed: int = 1) -> list:
     return out
 
 
+def sparse_probes(n: int, size: int, seed: int = 1) -> list:
+    """One probe in each 40 ms, at a uniform time in its first 20 ms: each finds the UE idle,
+    and the phases are uniform over any period dividing 20 ms, as the oracle assumes."""
+    rng = random.Random(seed)
+    return [
+        (i * 0.04 + rng.uniform(0, 0.02), i.to_bytes(4, "big") + bytes(size - 4)) for i in range(n)
+    ]
+
+
 def test_uplink_leaves_only_at_the_end_of_uplink_windows_and_matches_the_oracle() -> None:
     carrier = Carrier()
     lead = 2 * SLOT  # K2 = 2 slots (OAI's min_rxtxtime)
@@ -223,8 +233,8 @@ def test_a_profile_with_a_radio_gates_its_pipeline_and_round_trips_as_json() -> 
     profile = LinkProfile(radio=radio, delay_s=0.001)
     assert LinkProfile.from_dict(json.loads(json.dumps(profile.to_dict()))) == profile
     pipeline = Pipeline.from_profile(profile)
-    got = run(pipeline, poisson_probes(600, 0.011, 200, seed=4))  # type: ignore[arg-type]
-    oracle = radio.oracle("uplink", fixed_s=0.001)
+    got = run(pipeline, sparse_probes(600, 200, seed=4))  # type: ignore[arg-type]
+    oracle = radio.oracle("uplink", fixed_s=0.001, size_bytes=200)
     delays = [left - arrived for arrived, left, _ in got]
     assert stats.kstest(delays, np.vectorize(oracle.cdf)).pvalue > 0.05
     # In place: a worse MCS keeps the grid and shrinks the blocks; no radio makes it a wire.
@@ -272,7 +282,8 @@ def harq_stage(bler: float, max_retx: int = 4) -> tuple[Slots, object]:
     from netem.profile import LinkProfile
     from netem.stages import Pipeline
 
-    radio = Radio(bler=bler, max_retx=max_retx)
+    # A gNB that sees the buffer: each probe is one block, and HARQ alone decides its delay.
+    radio = Radio(bler=bler, max_retx=max_retx, ul_access="ideal")
     pipeline = Pipeline.from_profile(LinkProfile(radio=radio), seed=9)
     slots = pipeline.stage("slots")
     assert isinstance(slots, Slots)
@@ -317,3 +328,140 @@ def test_packets_leave_in_order_and_retransmissions_take_their_occasions() -> No
     carried = sum(len(p) for _, t, p in got if times[0] < t <= times[-1])
     rate = carried * 8 / (times[-1] - times[0])
     assert rate == pytest.approx(0.8 * radio.rate_bps("uplink"), rel=0.06)  # type: ignore[attr-defined]
+
+
+# -- uplink access: scheduling request and grants, configured grant --------------------------
+
+
+def radio_stage(**fields: object) -> tuple[Slots, object]:
+    from netem.nr import Radio
+    from netem.profile import LinkProfile
+    from netem.stages import Pipeline
+
+    radio = Radio(**fields)  # type: ignore[arg-type]
+    pipeline = Pipeline.from_profile(LinkProfile(radio=radio), seed=5)
+    slots = pipeline.stage("slots")
+    assert isinstance(slots, Slots)
+    return slots, radio
+
+
+def test_an_idle_ue_asks_with_a_scheduling_request_and_its_delay_is_the_closed_forms() -> None:
+    # OAI's pattern: SR in the special slot every 10 slots, a 72-byte first grant one period
+    # later, then the rest of a 92-byte probe in the grant its buffer status report brings.
+    slots, radio = radio_stage()
+    got = run(slots, sparse_probes(1000, 92, seed=21))
+    assert len(got) == 1000 and slots.scheduling_requests == 1000  # each probe asks
+    delays = sorted(left - arrived for arrived, left, _ in got)
+    oracle = radio.oracle("uplink", size_bytes=92)  # type: ignore[attr-defined]
+    assert abs(delays[0] - oracle.minimum) <= SLOT
+    assert abs(delays[len(delays) // 2] - oracle.quantile(0.5)) <= SLOT
+    assert abs(delays[-1] - oracle.maximum) <= SLOT
+    assert stats.kstest(delays, np.vectorize(oracle.cdf)).pvalue > 0.05
+    # Two rounds (SR, then BSR) of a period each: far above the buffer-aware gNB's delay.
+    ideal = dataclasses.replace(radio, ul_access="ideal").oracle("uplink")  # type: ignore[type-var]
+    assert oracle.quantile(0.5) > ideal.quantile(0.5) + 2 * 0.005 - SLOT
+    # A probe that fits the first grant needs one round fewer.
+    small = radio.oracle("uplink", size_bytes=60)  # type: ignore[attr-defined]
+    assert small.quantile(0.5) == pytest.approx(oracle.quantile(0.5) - 0.005, abs=SLOT)
+
+
+def test_a_longer_sr_period_moves_the_median_as_the_formula_says() -> None:
+    medians, oracles = {}, {}
+    for period in (10, 40):
+        slots, radio = radio_stage(sr_period_slots=period, sr_offset=7)
+        got = run(slots, sparse_probes(800, 60, seed=22))
+        medians[period] = sorted(t - a for a, t, _ in got)[len(got) // 2]
+        oracles[period] = radio.oracle("uplink", size_bytes=60).quantile(0.5)  # type: ignore[attr-defined]
+    # Waiting for an SR every 20 ms instead of every 5 ms adds half the difference.
+    assert oracles[40] - oracles[10] == pytest.approx(0.0075, abs=SLOT)
+    assert medians[40] - medians[10] == pytest.approx(oracles[40] - oracles[10], abs=SLOT)
+
+
+def test_a_configured_grant_delays_uniformly_over_its_period() -> None:
+    for period in (10, 20):
+        slots, radio = radio_stage(ul_access="configured", cg_period_slots=period, cg_offset=8)
+        got = run(slots, sparse_probes(800, 100, seed=23))
+        assert slots.scheduling_requests == 0
+        delays = [t - a for a, t, _ in got]
+        # Wait for the next grant (uniform over the period), then its slot.
+        uniform = stats.uniform(loc=SLOT, scale=period * SLOT)
+        assert stats.kstest(delays, uniform.cdf).pvalue > 0.05
+        oracle = radio.oracle("uplink")  # type: ignore[attr-defined]
+        assert oracle.mean() == pytest.approx(SLOT + period * SLOT / 2, rel=1e-9)
+
+
+def test_harq_on_the_first_grant_delays_the_buffer_status_report_as_the_oracle_says() -> None:
+    slots, radio = radio_stage(bler=0.1)
+    got = run(slots, sparse_probes(3000, 92, seed=24))
+    delays = [t - a for a, t, _ in got]
+    oracle = radio.oracle("uplink", size_bytes=92)  # type: ignore[attr-defined]
+    assert stats.kstest(delays, np.vectorize(oracle.cdf)).pvalue > 0.01
+    assert sum(slots.retransmissions[1:]) > 0.07 * slots.blocks
+
+
+def test_a_200_kb_message_after_a_scheduling_request_completes_as_the_closed_form_says() -> None:
+    slots, radio = radio_stage(mcs=10)
+    oracle = radio.oracle("uplink", size_bytes=200_000)  # type: ignore[attr-defined]
+    rng = random.Random(25)
+    took = []
+    for k in range(12):
+        t0 = 1.0 * k + rng.uniform(0, 0.005)
+        got = run(slots, [(t0, bytes(1460)) for _ in range(137)])  # 200 020 bytes at once
+        assert len(got) == 137
+        took.append(got[-1][1] - t0)
+    period = 0.005
+    assert all(oracle.minimum - period <= d <= oracle.maximum + period for d in took)
+    assert sum(took) / len(took) == pytest.approx(oracle.mean(), abs=period)
+
+
+def test_a_saturating_ue_that_asks_still_gets_the_sum_of_its_transport_blocks() -> None:
+    slots, radio = radio_stage(n_prb=51, mcs=16)
+    got = run(slots, [(0.0, bytes(1500)) for _ in range(3000)])
+    first, last = got[0][1], got[-1][1]
+    carried = sum(len(p) for _, t, p in got if first < t <= last)
+    want = radio.rate_bps("uplink")  # type: ignore[attr-defined]
+    assert carried * 8 / (last - first) == pytest.approx(want, rel=0.02)
+
+
+@pytest.mark.parametrize(
+    ("fields", "message"),
+    [
+        ({"sr_offset": 2}, r"falls in slot 2 \(D\) of DDDDDDDSUU, which has no uplink"),
+        ({"sr_period_slots": 3}, "sr_period must be one of"),
+        ({"sr_offset": 12}, r"sr_offset must be a slot of the SR period 0\.\.9"),
+        ({"ul_access": "configured", "cg_offset": 1}, r"falls in slot 1 \(D\)"),
+        ({"ul_access": "configured", "cg_period_slots": 3}, "cg_period must be one of"),
+        ({"ul_access": "grantless"}, "ul_access must be one of sr, configured, ideal"),
+        ({"sr_grant_bytes": 0}, "sr_grant must be 1..100000 bytes"),
+    ],
+)
+def test_uplink_access_fields_out_of_range_are_refused(fields: dict, message: str) -> None:
+    from netem.nr import Radio
+
+    with pytest.raises(NrError, match=message):
+        Radio(**fields).check()
+
+
+def test_uplink_access_changes_in_place_and_keeps_what_waits() -> None:
+    from netem.nr import Radio
+    from netem.profile import LinkProfile
+    from netem.stages import Pipeline
+
+    profile = LinkProfile(radio=Radio())
+    pipeline = Pipeline.from_profile(profile)
+    out: list[bytes] = []
+    t, seq = 0.0, 0
+    # Each change comes while packets wait: an SR every 20 ms, a configured grant, the
+    # buffer-aware gNB, SR again.
+    for radio in (Radio(sr_period_slots=40), Radio(ul_access="configured"),
+                  Radio(ul_access="ideal"), Radio()):  # fmt: skip
+        for _ in range(30):  # a 30 kB burst: several periods of uplink
+            pipeline.push(seq.to_bytes(4, "big") + bytes(996), t)
+            seq += 1
+        t += 0.004
+        out += pipeline.pop_ready(t)
+        assert pipeline.queued() > 0
+        pipeline.apply(profile.replace(radio=radio))
+    out += pipeline.pop_ready(t + 1.0)
+    assert pipeline.queued() == 0
+    assert [int.from_bytes(p[:4], "big") for p in out] == list(range(seq))

@@ -378,15 +378,9 @@ def test_udp_gso_datagrams_cross_whole_or_split_for_loss(pair) -> None:
 # -- an NR radio on the link ------------------------------------------------------------------
 
 
-def test_a_radio_uplink_sends_in_uplink_slots_with_the_oracles_delays(pair) -> None:
-    import random
-
-    from netem.nr import Radio
-
-    radio = Radio(k2_slots=2)  # OAI's band-78 pattern, DDDDDDDSUU
-    period = radio.pattern().period_s
-    ends = [o.end_s for o in radio.occasions("uplink")]
-    rng = random.Random(7)
+def _radio_probes(pair, radio, times: list[float], size: int = 92) -> list[tuple[float, float]]:
+    """(sent, received) monotonic times of UDP datagrams sent at `times` (s from now) up a
+    link whose uplink is `radio`; 8 bytes of the payload are the send time."""
     got: list[tuple[float, float]] = []
     with link_for(pair, uplink=LinkProfile(radio=radio)):
         receiver = udp_socket(pair[1], (ADDR_B, PORT))
@@ -404,14 +398,32 @@ def test_a_radio_uplink_sends_in_uplink_slots_with_the_oracles_delays(pair) -> N
 
         thread = threading.Thread(target=receive, daemon=True)
         thread.start()
-        for _ in range(800):
-            time.sleep(rng.expovariate(1 / 0.004))
-            sender.sendto(struct.pack("!d", time.monotonic()) + bytes(92), (ADDR_B, PORT))
+        start = time.monotonic()
+        for t in times:
+            time.sleep(max(0.0, start + t - time.monotonic()))
+            sender.sendto(struct.pack("!d", time.monotonic()) + bytes(size - 8), (ADDR_B, PORT))
         time.sleep(0.2)
         done.set()
         thread.join(2)
         sender.close()
         receiver.close()
+    return got
+
+
+def test_a_radio_uplink_sends_in_uplink_slots_with_the_oracles_delays(pair) -> None:
+    import random
+
+    from netem.nr import Radio
+
+    # OAI's band-78 pattern, DDDDDDDSUU, with a gNB that sees the buffer (no SR round).
+    radio = Radio(k2_slots=2, ul_access="ideal")
+    period = radio.pattern().period_s
+    ends = [o.end_s for o in radio.occasions("uplink")]
+    rng = random.Random(7)
+    times = [0.0]
+    for _ in range(799):
+        times.append(times[-1] + rng.expovariate(1 / 0.004))
+    got = _radio_probes(pair, radio, times, size=100)
     assert len(got) >= 790
 
     # Every datagram arrives just after the end of an uplink window (the relay's exit, then
@@ -430,3 +442,25 @@ def test_a_radio_uplink_sends_in_uplink_slots_with_the_oracles_delays(pair) -> N
     # (0.5 ms) more or less of grant lead would be off by more than the tolerance.
     assert statistics.median(shift) == pytest.approx(0.0, abs=0.0005)
     assert statistics.fmean(abs(x) for x in shift) < 0.0006  # Wasserstein-1 distance
+
+
+def test_a_radio_uplink_that_asks_for_grants_has_the_oracles_delays(pair) -> None:
+    import random
+
+    from netem.nr import Radio
+
+    radio = Radio()  # OAI: an SR in the special slot, a 72-byte first grant, then the rest
+    rng = random.Random(8)
+    # One probe per 30 ms (each finds the UE idle), at a uniform phase of the 5 ms period.
+    times = [i * 0.03 + rng.uniform(0, 0.005) for i in range(200)]
+    got = _radio_probes(pair, radio, times, size=100)
+    assert len(got) >= 198
+    oracle = radio.oracle("uplink", size_bytes=100 + 28)  # the datagram's IP packet
+    delays = sorted(r - s for s, r in got)
+    n = len(delays)
+    shift = [delays[i] - oracle.quantile((i + 0.5) / n) for i in range(n)]
+    # Two rounds of a period (SR, then the buffer status report) put the median near 13 ms;
+    # the path without the radio adds 0.1-0.3 ms here.
+    assert statistics.median(shift) == pytest.approx(0.0, abs=0.0005)
+    assert statistics.fmean(abs(x) for x in shift) < 0.0006  # Wasserstein-1 distance
+    assert oracle.quantile(0.5) > 0.01

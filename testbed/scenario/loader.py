@@ -215,6 +215,13 @@ def _radio(value: object, section: Section, ctx: Context | None) -> Radio | bool
         ("bler", "bler"),
         ("max_retx", "max_retx"),
         ("harq_slots", "harq_slots"),
+        ("access", "ul_access"),
+        ("sr_period", "sr_period_slots"),
+        ("sr_offset", "sr_offset"),
+        ("sr_grant", "sr_grant_bytes"),
+        ("grant_slots", "grant_slots"),
+        ("cg_period", "cg_period_slots"),
+        ("cg_offset", "cg_offset"),
     ):
         if key in v:
             changes[attr] = v[key]

@@ -14,7 +14,7 @@ from __future__ import annotations
 
 from typing import Any
 
-from netem.nr import RADIO_PROFILES
+from netem.nr import RADIO_PROFILES, UL_ACCESS
 from netem.profile import JITTER_DISTRIBUTIONS, GilbertElliott, LinkProfile
 from testbed.scenario import model
 from testbed.scenario.kinds import (
@@ -135,8 +135,53 @@ RADIO = Obj(
         Field(
             "k2",
             Int(0, 32, noun="a number of slots"),
-            "Slots a packet must be there before the slot that carries it (K2 and processing;"
-            " 0: a configured grant in every slot).",
+            "K2: slots from a grant's DCI to the PUSCH it grants (for the downlink and an"
+            " `ideal` uplink: how long before its slot a packet must be there).",
+            attr=None,
+        ),
+        Field(
+            "access",
+            Enum(UL_ACCESS),
+            "How the uplink gets grants: sr (a scheduling request, then grants from buffer"
+            " status reports), configured (a configured grant, no request) or ideal (a gNB"
+            " that sees the UE's buffer at once: a bound).",
+            attr=None,
+        ),
+        Field(
+            "sr_period",
+            Int(1, 640, noun="a number of slots"),
+            "Slots between SR occasions (TS 38.331: 1, 2, 4, 5, 8, 10, 16, 20, 40 ... 640).",
+            attr=None,
+        ),
+        Field(
+            "sr_offset",
+            Int(0, 639, noun="a slot"),
+            "The slot of the SR period that has the SR; it must have uplink symbols.",
+            attr=None,
+        ),
+        Field(
+            "sr_grant",
+            Int(1, 100_000, noun="a number of bytes"),
+            "Bytes of the first grant after an SR (small: a buffer status report and a little"
+            " data).",
+            attr=None,
+        ),
+        Field(
+            "grant_slots",
+            Int(0, 32, noun="a number of slots"),
+            "gNB processing from a decoded SR or buffer status report to its grant's DCI.",
+            attr=None,
+        ),
+        Field(
+            "cg_period",
+            Int(1, 640, noun="a number of slots"),
+            "Slots between configured-grant occasions (access: configured).",
+            attr=None,
+        ),
+        Field(
+            "cg_offset",
+            Int(0, 639, noun="a slot"),
+            "The slot of the configured-grant period that carries it.",
             attr=None,
         ),
     ],
