@@ -28,8 +28,17 @@ Control: a unix stream socket; one JSON object per line in, one JSON reply per l
     {"op": "outage", "seconds": 2.0, "direction": "both"}
     {"op": "trace", "direction": "uplink", "path": "x.csv"|null, "format": "csv", "loop": true}
     {"op": "counters"}                          -> {"ok": true, "uplink": {...}, "downlink": ...}
+    {"op": "attach", "link": "av2-gnb1", "netns_a": ..., "dev_a": ..., "netns_b": ...,
+     "dev_b": ..., "mtu": 1500, "uplink": {...}, "downlink": {...}, "seed": "...",
+     "cell": "gnb1"}                                            -> {"ok": true}
+    {"op": "detach", "link": "av2-gnb1"}
 Errors come back as {"ok": false, "error": "..."}; the relay keeps running. `set` changes only
 the fields given (the others keep their value) and applies in place: queued packets stay.
+
+One relay can carry several links (`attach`; each its own two TUN ends and pipelines; every
+request but `ping` and `attach` names its `link`, the first one by default). Links that name
+the same `cell` (`--cell` for the first) share that cell's NR slots (`netem.cell.Cell`), per
+direction: the air links of one gNB.
 
 On start it prints one line `{"event": "ready", ...}` to stdout once both TUNs are up and the
 control socket listens. SIGTERM or SIGINT -> clean exit (the TUN devices vanish with it).
@@ -51,10 +60,11 @@ from collections import deque
 from collections.abc import Callable
 from typing import Any
 
+from netem.cell import SCHEDULERS, Cell, CellError
 from netem.errors import NetemError
 from netem.gso import VNET_LEN, Frame
 from netem.profile import PROFILE_FIELDS, LinkProfile, check_profile
-from netem.stages import Pipeline
+from netem.stages import Pipeline, Slots
 from netem.traces import TRACE_FORMATS, load_trace
 from netem.tun import MAX_MTU, TunConfig, TunError, open_tun_in
 
@@ -140,8 +150,20 @@ class WakeTimer:
         self.early_s = min(max(early, EARLY_MIN_S), EARLY_MAX_S)
 
 
+class Port:
+    """One link of a relay: its two TUN fds and its uplink (A -> B) and downlink pipelines."""
+
+    def __init__(
+        self, name: str, fd_a: int, fd_b: int, uplink: Pipeline, downlink: Pipeline
+    ) -> None:
+        self.name = name
+        self.fd_a, self.fd_b = fd_a, fd_b
+        self.pipelines = {"uplink": uplink, "downlink": downlink}
+        self.cell: str | None = None
+
+
 class Relay:
-    """Moves packets between two TUN fds through an uplink and a downlink `Pipeline`."""
+    """Moves packets between TUN fds through an uplink and a downlink `Pipeline` per link."""
 
     def __init__(
         self,
@@ -153,9 +175,15 @@ class Relay:
         mtu: int = 1500,
         clock: Callable[[], float] = time.monotonic,
         offload: bool = False,
+        name: str = "link",
+        cell: str | None = None,
+        scheduler: str = "rr",
     ) -> None:
-        self.fd_a, self.fd_b = fd_a, fd_b
-        self.pipelines = {"uplink": uplink, "downlink": downlink}
+        self.ports: dict[str, Port] = {}
+        self.first = name
+        self.mtu = mtu
+        self.cells: dict[tuple[str, str], Cell] = {}  # (cell, direction) -> its shared slots
+        self.scheduler = scheduler
         self.clock = clock
         self.offload = offload
         # A super-packet is at most an IP packet's 64 kB behind its virtio-net header.
@@ -180,12 +208,106 @@ class Relay:
         self._wake_r, self._wake_w = socket.socketpair()
         self._wake_r.setblocking(False)
         self._wake_w.setblocking(False)
-        self._handlers[fd_a] = ("tun", "uplink")
-        self._handlers[fd_b] = ("tun", "downlink")
         self._handlers[self._wake_r.fileno()] = ("wake", None)
+        self._add_port(Port(name, fd_a, fd_b, uplink, downlink), cell)
         self._fds = list(self._handlers)  # what select() watches, rebuilt when it changes
         if control_path is not None:
             self._listen(control_path)
+
+    @property
+    def pipelines(self) -> dict[str, Pipeline]:
+        """The first link's pipelines (a relay of one link has no other)."""
+        return self.ports[self.first].pipelines
+
+    def _add_port(self, port: Port, cell: str | None) -> None:
+        if port.name in self.ports:
+            raise ControlError(f"this relay already carries a link named {port.name!r}")
+        if cell is not None:
+            for d, pipeline in port.pipelines.items():
+                stage = pipeline.stage("slots")
+                assert isinstance(stage, Slots)
+                shared = self.cells.setdefault((cell, d), Cell(self.scheduler))
+                try:
+                    shared.join(stage)
+                except CellError as exc:
+                    for joined in self.cells.values():
+                        joined.leave(pipeline.stage("slots"))  # type: ignore[arg-type]
+                    raise ControlError(f"link {port.name} cannot join cell {cell}: {exc}") from None
+            port.cell = cell
+        self.ports[port.name] = port
+        self._handlers[port.fd_a] = ("tun", port.pipelines["uplink"])
+        self._handlers[port.fd_b] = ("tun", port.pipelines["downlink"])
+        self._fds = list(self._handlers)
+        self._outputs = self._output_list()
+
+    def _remove_port(self, name: str) -> Port:
+        port = self._port({"link": name})
+        if name == self.first:
+            raise ControlError(f"{name} is this relay's first link: stop the relay instead")
+        for d, pipeline in port.pipelines.items():
+            if port.cell is not None:
+                self.cells[port.cell, d].leave(pipeline.stage("slots"))  # type: ignore[arg-type]
+        for fd in (port.fd_a, port.fd_b):
+            self._handlers.pop(fd, None)
+        self._fds = list(self._handlers)
+        del self.ports[name]
+        self._outputs = self._output_list()
+        return port
+
+    def _output_list(self) -> list[tuple[Pipeline, int]]:
+        """Each pipeline with the TUN fd it writes to."""
+        out = []
+        for port in self.ports.values():
+            out += [(port.pipelines["uplink"], port.fd_b), (port.pipelines["downlink"], port.fd_a)]
+        return out
+
+    def _port(self, request: dict[str, Any]) -> Port:
+        name = request.get("link", self.first)
+        if name not in self.ports:
+            raise ControlError(
+                f"no link {name!r} in this relay (it carries {', '.join(self.ports)})"
+            )
+        return self.ports[name]
+
+    def _attach(self, request: dict[str, Any]) -> None:
+        name = request.get("link")
+        if not isinstance(name, str) or not name:
+            raise ControlError("attach needs `link`: the link's name")
+        if name in self.ports:
+            raise ControlError(f"this relay already carries a link named {name!r}")
+        try:
+            mtu = int(request.get("mtu", self.mtu))
+            ends = [
+                (
+                    str(request[f"netns_{e}"]),
+                    TunConfig(
+                        str(request[f"dev_{e}"]), mtu, request.get(f"addr_{e}"), self.offload
+                    ),
+                )
+                for e in "ab"
+            ]
+            profiles = {d: LinkProfile.from_dict(dict(request.get(d) or {})) for d in DIRECTIONS}
+        except KeyError as exc:
+            raise ControlError(f"attach needs {exc.args[0]!r}") from None
+        for profile in profiles.values():
+            check_profile(profile)
+        seed = str(request.get("seed", name))
+        uplink = Pipeline.from_profile(profiles["uplink"], f"{seed}:uplink", "uplink")
+        downlink = Pipeline.from_profile(profiles["downlink"], f"{seed}:downlink", "downlink")
+        fds: list[int] = []
+        try:
+            for netns, config in ends:
+                fds.append(open_tun_in(netns, config))
+            cell = request.get("cell")
+            self._add_port(Port(name, fds[0], fds[1], uplink, downlink), cell)
+        except (TunError, OSError) as exc:
+            for fd in fds:
+                os.close(fd)
+            raise ControlError(f"attach {name}: {exc}") from None
+        except ControlError:
+            for fd in fds:
+                os.close(fd)
+            raise
 
     # -- control ----------------------------------------------------------------------------
 
@@ -274,7 +396,16 @@ class Relay:
         if op == "ping":
             return {"pid": os.getpid()}
         if op == "counters":
-            return self.counters()
+            return self.counters(self._port(request))
+        if op == "attach":
+            self._attach(request)
+            return {}
+        if op == "detach":
+            port = self._remove_port(str(request.get("link")))
+            for fd in (port.fd_a, port.fd_b):
+                os.close(fd)
+            return {}
+        port = self._port(request)
         if op == "set":
             changes = request.get("profile")
             if not isinstance(changes, dict):
@@ -287,12 +418,12 @@ class Relay:
             targets = self._directions(request)
             new = {}
             for d in targets:
-                merged = {**self.pipelines[d].profile.to_dict(), **changes}
+                merged = {**port.pipelines[d].profile.to_dict(), **changes}
                 profile = LinkProfile.from_dict(merged)
                 check_profile(profile)
                 new[d] = profile
             for d, profile in new.items():  # all validated first: both or neither change
-                self.pipelines[d].apply(profile)
+                port.pipelines[d].apply(profile)
             return {"profiles": {d: p.to_dict() for d, p in new.items()}}
         if op == "outage":
             seconds = request.get("seconds")
@@ -300,7 +431,7 @@ class Relay:
                 raise ControlError(f"outage needs `seconds` >= 0, got {seconds!r}")
             now = self.clock()
             for d in self._directions(request, default="both"):
-                self.pipelines[d].outage(now, float(seconds))
+                port.pipelines[d].outage(now, float(seconds))
             return {}
         if op == "trace":
             targets = self._directions(request)
@@ -311,11 +442,14 @@ class Relay:
             trace = None if path is None else load_trace(str(path), fmt)
             now = self.clock()
             for d in targets:
-                self.pipelines[d].play_trace(trace, now, loop=bool(request.get("loop", False)))
+                port.pipelines[d].play_trace(trace, now, loop=bool(request.get("loop", False)))
             return {"mean_rate_bps": None if trace is None else trace.mean_rate_bps()}
-        raise ControlError(f"unknown op {op!r}; allowed: ping, set, outage, trace, counters")
+        raise ControlError(
+            f"unknown op {op!r}; allowed: ping, set, outage, trace, counters, attach, detach"
+        )
 
-    def counters(self) -> dict[str, Any]:
+    def counters(self, port: Port | None = None) -> dict[str, Any]:
+        port = port if port is not None else self.ports[self.first]
         times = os.times()
         late = sorted(self.lateness)
         lateness = {
@@ -323,8 +457,9 @@ class Relay:
             for q in (50, 90, 99)
         }
         return {
-            "uplink": self.pipelines["uplink"].snapshot(),
-            "downlink": self.pipelines["downlink"].snapshot(),
+            "uplink": port.pipelines["uplink"].snapshot(),
+            "downlink": port.pipelines["downlink"].snapshot(),
+            "cell": port.cell,
             "relay": {
                 **self.stats,
                 "offload": self.offload,
@@ -354,8 +489,7 @@ class Relay:
 
     def _deliver(self, now: float) -> None:
         offload = self.offload
-        for direction, fd in (("uplink", self.fd_b), ("downlink", self.fd_a)):
-            pipeline = self.pipelines[direction]
+        for pipeline, fd in self._outputs:
             handoff, exit_ = pipeline.deadlines()
             if (exit_ is None or exit_ > now) and (handoff is None or handoff > now):
                 continue  # nothing of this direction is due: leave its stages alone
@@ -376,7 +510,7 @@ class Relay:
         """(earliest hand-off or exit, earliest exit) over both directions."""
         soft: float | None = None
         hard: float | None = None
-        for pipeline in self.pipelines.values():
+        for pipeline, _ in self._outputs:
             due, exit_ = pipeline.deadlines()
             if due is not None and (soft is None or due < soft):
                 soft = due
@@ -407,7 +541,7 @@ class Relay:
             for fd in ready:
                 kind, arg = handlers.get(fd, ("gone", None))
                 if kind == "tun":
-                    self._read(fd, self.pipelines[arg])
+                    self._read(fd, arg)
                 elif kind == "listen":
                     self._accept()
                 elif kind == "conn":
@@ -421,6 +555,13 @@ class Relay:
             self._deliver(clock() + timer.ahead_s)
 
     def close(self) -> None:
+        """Close the control socket and the TUN ends of attached links (the first link's
+        fds are its opener's)."""
+        for name in [n for n in self.ports if n != self.first]:
+            port = self._remove_port(name)
+            for fd in (port.fd_a, port.fd_b):
+                with contextlib.suppress(OSError):
+                    os.close(fd)
         for conn in list(self._conns):
             self._drop_conn(conn)
         if self._listener is not None:
@@ -458,6 +599,13 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--addr-a", help="address of end A, e.g. 10.0.0.1/30")
     p.add_argument("--addr-b", help="address of end B, e.g. 10.0.0.2/30")
     p.add_argument("--mtu", type=int, default=1500, help=f"MTU of both ends (68..{MAX_MTU})")
+    p.add_argument("--name", default="link", help="the first link's name (in control requests)")
+    p.add_argument(
+        "--cell", help="share NR slots with the links attached to the same cell (a gNB's name)"
+    )
+    p.add_argument(
+        "--scheduler", choices=SCHEDULERS, default="rr", help="how a cell shares its slots"
+    )
     p.add_argument("--control", help="path of the control unix socket")
     p.add_argument("--uplink", type=_profile_arg, default=LinkProfile(), help="A->B profile JSON")
     p.add_argument("--downlink", type=_profile_arg, default=LinkProfile(), help="B->A profile")
@@ -509,7 +657,16 @@ def main(argv: list[str] | None = None) -> int:
         uplink = Pipeline.from_profile(args.uplink, f"{args.seed}:uplink", "uplink")
         downlink = Pipeline.from_profile(args.downlink, f"{args.seed}:downlink", "downlink")
         relay = Relay(
-            fds[0], fds[1], uplink, downlink, args.control, mtu=args.mtu, offload=args.offload
+            fds[0],
+            fds[1],
+            uplink,
+            downlink,
+            args.control,
+            mtu=args.mtu,
+            offload=args.offload,
+            name=args.name,
+            cell=args.cell,
+            scheduler=args.scheduler,
         )
     except (TunError, OSError, ValueError) as exc:
         print(f"relay: error: {exc}", file=sys.stderr)

@@ -34,12 +34,15 @@ import random
 from collections import deque
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, field
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from netem.gso import Frame, split
 from netem.nr import Direction, Occasion
 from netem.profile import LinkProfile, check_profile
 from netem.traces import OPPORTUNITY_BYTES, Trace
+
+if TYPE_CHECKING:
+    from netem.cell import Cell
 
 #: A super-packet is split before a link on which it would be on the wire longer than this:
 #: its first segment would otherwise wait for its last. TCP sizes its bursts to ~1 ms of its
@@ -59,6 +62,11 @@ _PARETO_SD = math.sqrt(_PARETO_SHAPE / ((_PARETO_SHAPE - 1.0) ** 2 * (_PARETO_SH
 def wire_packets(packet: Any) -> int:
     """How many packets `packet` is on the wire (a super-packet is several)."""
     return packet.segments if type(packet) is Frame else 1
+
+
+def _ns(t: float) -> int:
+    """A time as whole nanoseconds: the key of an occasion, whichever grid computed it."""
+    return round(t * 1e9)
 
 
 def jitter_sd(profile: LinkProfile) -> float:
@@ -631,6 +639,7 @@ class Slots(Stage):
         self.direction = direction  # whose windows a radio profile gives this stage
         self.occasions: list[Occasion] = []
         self.period_s = period_s
+        self.tdd_period_s = period_s  # the TDD pattern's (the grid may span several)
         self.lead_s = lead_s
         self.epoch_s = epoch_s
         # (arrival, packet, bytes that had arrived up to and with it)
@@ -643,7 +652,7 @@ class Slots(Stage):
         self.bler, self.max_retx, self.harq_s = 0.0, 0, 0.0
         self._rng = random.Random(f"{seed}:{self.name}")
         # Bytes of occasions that retransmissions have taken, by occasion.
-        self._reserved: dict[tuple[int, int], int] = {}
+        self._reserved: dict[int, int] = {}  # occasion start (ns) -> bytes
         self._head_floor = 0.0  # a retransmitted block that held some of the head's bytes
         self._head_lost = False
         self._last_exit = -math.inf
@@ -657,13 +666,15 @@ class Slots(Stage):
         self.grant_delay_s = 0.0
         self.first_grant_bytes = 0
         self._arrived = 0  # bytes that entered the buffer
-        self._sent = 0  # bytes that left it in a PUSCH
+        self._sent = 0  # bytes that left it in a transport block
         self._announced = 0  # bytes a BSR announced (decoded or on its way)
         self._granted = 0  # bytes the gNB has granted so far (announced and decoded)
         self._reports: list[tuple[float, int]] = []  # (grantable from, bytes announced)
         self._first_grant: float | None = None  # start of the occasion an SR was granted
         self._sr_floor = -math.inf  # no SR before this (a lost BSR is noticed after it)
         self.scheduling_requests = 0
+        #: The cell whose occasions this UE shares with others (`netem.cell.Cell`), if any.
+        self.cell: Cell | None = None
         if occasions:
             self.set_occasions(occasions, period_s, lead_s)
 
@@ -693,9 +704,7 @@ class Slots(Stage):
         """How packets get occasions: "ideal" (after `lead_s`) or "sr" (see the class)."""
         if access == "sr" and self.access != "sr":
             # What waits now is announced: the gNB grants it from its next occasion on.
-            waiting = self._head_left + sum(len(p) for _, p, _ in list(self._queue)[1:])
             self._announced = self._granted = self._arrived
-            self._sent = self._arrived - (waiting if self._queue else 0)
             self._reports.clear()
             self._first_grant = None
         self.access = access
@@ -714,6 +723,7 @@ class Slots(Stage):
             self.set_access("ideal")
             return
         grid = radio.grid(self.direction)
+        self.tdd_period_s = radio.pattern().period_s
         self.set_access(grid.access, grid.sr_windows, grid.grant_delay_s, grid.first_grant_bytes)
         self.set_occasions(grid.occasions, grid.period_s, grid.lead_s)
         self.set_harq(radio.bler, radio.max_retx, radio.harq_s)
@@ -795,59 +805,86 @@ class Slots(Stage):
             )[0]
 
     def _advance(self, now: float) -> None:
+        if self.cell is not None:
+            self.cell.advance(now)  # every UE of the cell, occasion by occasion
+            return
         q = self._queue
-        sr = self.access == "sr"
         while q and self.occasions:
-            start, end, budget = self._occasion(self._cursor)
+            start, end, capacity = self._occasion(self._cursor)
             self._request(start)
             if end > now:
                 return
-            if not sr and q[0][0] + self.lead_s > start + 1e-12:
+            if self.access != "sr" and q[0][0] + self.lead_s > start + 1e-12:
                 # The head was not there in time for this occasion: on to its first one.
                 self._cursor = self._first_at_or_after(q[0][0] + self.lead_s)
                 continue
-            self._used_until = start + 1e-9
-            budget -= self._reserved.pop(self._cursor, 0)  # what retransmissions took
-            budget = min(budget, self._grant(start)) if sr else budget
-            if budget <= 0 or q[0][0] > start + 1e-12:
-                self._cursor = self._step(self._cursor)
-                continue
-            free = budget
-            completing: list[tuple[bytes, float, bool]] = []
-            partial = False
-            lead = self._lead()
-            while q and budget > 0 and q[0][0] + lead <= start + 1e-12:
-                if self._head_left <= budget:
-                    budget -= self._head_left
-                    packet = q.popleft()[1]
-                    self._queued_packets -= wire_packets(packet)
-                    completing.append((packet, self._head_floor, self._head_lost))
-                    self._head_floor, self._head_lost = 0.0, False
-                    self._head_left = len(q[0][1]) if q else 0
-                else:
-                    self._head_left -= budget
-                    budget = 0
-                    partial = True
             self._cursor = self._step(self._cursor)
-            ok_at = self._deliver_block(end, free - budget)
-            if sr:
-                self._report(start, end, free - budget, ok_at)
-            for packet, floor, lost in completing:
-                if lost or ok_at is None:
-                    self.counters.drop("harq", len(packet), wire_packets(packet))
-                    continue
-                leave = max(ok_at, floor, self._last_exit)  # in order, as PDCP delivers
-                self._last_exit = leave
-                self._left.append((leave, packet))
-            if partial:
-                if ok_at is None:
-                    self._head_lost = True
-                else:
-                    self._head_floor = max(self._head_floor, ok_at)
+            room = capacity - self._reserved.pop(_ns(start), 0)  # what retransmissions took
+            self._serve(start, end, min(room, self._demand(start)))
 
-    def _report(self, start: float, end: float, sent: int, ok_at: float | None) -> None:
-        """The BSR of the PUSCH at `start`: what had arrived by then, decoded at `ok_at`."""
+    def _demand(self, start: float) -> int:
+        """Bytes this UE would send in the occasion starting at `start`, room permitting.
+
+        Call once per occasion, in order (it takes the grants the gNB made for it).
+        """
+        q = self._queue
+        if not q:
+            return 0
+        if self.access == "sr":
+            grant = self._grant(start)
+            if grant <= 0:
+                return 0
+            ready = start
+        else:
+            grant, ready = 1 << 62, start - self.lead_s
+        upto = self._sent
+        for arrival, _, cumulative in reversed(q):  # the newest arrived last
+            if arrival <= ready + 1e-12:
+                upto = cumulative
+                break
+        return min(grant, upto - self._sent)
+
+    def _serve(self, start: float, end: float, budget: int) -> None:
+        """Send `budget` bytes of the buffer (in order) in the occasion `start`..`end`."""
+        self._used_until = start + 1e-9
+        q = self._queue
+        if budget <= 0 or not q:
+            return
+        free = budget
+        completing: list[tuple[bytes, float, bool]] = []
+        partial = False
+        while q and budget > 0:
+            if self._head_left <= budget:
+                budget -= self._head_left
+                packet = q.popleft()[1]
+                self._queued_packets -= wire_packets(packet)
+                completing.append((packet, self._head_floor, self._head_lost))
+                self._head_floor, self._head_lost = 0.0, False
+                self._head_left = len(q[0][1]) if q else 0
+            else:
+                self._head_left -= budget
+                budget = 0
+                partial = True
+        sent = free - budget
+        ok_at = self._deliver_block(end, sent)
         self._sent += sent
+        if self.access == "sr":
+            self._report(start, end, ok_at)
+        for packet, floor, lost in completing:
+            if lost or ok_at is None:
+                self.counters.drop("harq", len(packet), wire_packets(packet))
+                continue
+            leave = max(ok_at, floor, self._last_exit)  # in order, as PDCP delivers
+            self._last_exit = leave
+            self._left.append((leave, packet))
+        if partial:
+            if ok_at is None:
+                self._head_lost = True
+            else:
+                self._head_floor = max(self._head_floor, ok_at)
+
+    def _report(self, start: float, end: float, ok_at: float | None) -> None:
+        """The BSR of the PUSCH at `start`: what had arrived by then, decoded at `ok_at`."""
         upto = self._sent
         for arrival, _, cumulative in reversed(self._queue):  # the newest arrived last
             if arrival <= start + 1e-12:
@@ -863,7 +900,8 @@ class Slots(Stage):
         self._reports.append((ok_at + self.grant_delay_s, upto))
 
     def _free(self, cursor: tuple[int, int]) -> int:
-        return self.occasions[cursor[1]].capacity_bytes - self._reserved.get(cursor, 0)
+        start, _, capacity = self._occasion(cursor)
+        return capacity - self._reserved.get(_ns(start), 0)
 
     def _deliver_block(self, end: float, size: int) -> float | None:
         """When the block of `size` bytes sent in the occasion ending at `end` is decoded
@@ -879,7 +917,8 @@ class Slots(Stage):
                 cursor = self._first_at_or_after(t + self.harq_s)
                 while self._free(cursor) < size:
                     cursor = self._step(cursor)
-                self._reserved[cursor] = self._reserved.get(cursor, 0) + size
+                key = _ns(self._occasion(cursor)[0])
+                self._reserved[key] = self._reserved.get(key, 0) + size
                 t = self._occasion(cursor)[1]
             if self._rng.random() >= self.bler:
                 self.retransmissions[attempt] += 1
@@ -914,6 +953,8 @@ class Slots(Stage):
         if self._left:
             return self._left[0][0]
         if self._queue:
+            if self.cell is not None:
+                return self.cell.next_end()
             return self._occasion(self._cursor)[1]
         return None
 

@@ -7,7 +7,13 @@
         link.counters()["uplink"]["total"]["packets_out"]
 
 The link owns the relay (`python -m netem.relay`): it starts it, waits for its ready line,
-talks to it over the control socket and stops it on `close()`. `alive()` is false as soon as
+talks to it over the control socket and stops it on `close()`. A link made with `host=`
+another link has no process of its own: it is attached to the host's relay (two more TUN
+ends, its own pipelines) and detached on `close()`; links of one `cell` share its NR slots:
+
+    with UserspaceLink(..., cell="gnb1") as first:
+        with UserspaceLink(..., name="av2-gnb1", cell="gnb1", host=first) as second:
+            ... `alive()` is false as soon as
 the relay has exited; `watch()` runs a thread that calls back (within `interval_s`) when it
 dies, and `check()` raises `RelayError` with the relay's last words.
 """
@@ -63,6 +69,9 @@ class UserspaceLink:
     `nice` raises the relay's priority (-10 by default: on a 2-core host busy with the
     workload, a relay that waits for a CPU adds milliseconds of delay the profile never asked
     for; it takes no more CPU for it). Use 0 when not running as root.
+    `name` is the link's name in its relay; `cell` the NR cell whose slots it shares with the
+    relay's other links of that cell (`netem.cell`, `scheduler` "rr" or "pf"); `host` a
+    started link whose relay carries this one too.
     """
 
     def __init__(
@@ -84,6 +93,10 @@ class UserspaceLink:
         nice: int = -10,
         python: str = sys.executable,
         offload: bool = True,
+        name: str = "link",
+        cell: str | None = None,
+        scheduler: str = "rr",
+        host: UserspaceLink | None = None,
     ) -> None:
         self.a = RelayEnd(netns_a, dev_a, addr_a)
         self.b = RelayEnd(netns_b, dev_b, addr_b)
@@ -99,6 +112,11 @@ class UserspaceLink:
         self.nice = nice
         self.python = python
         self.offload = offload
+        self.name = name
+        self.cell = cell
+        self.scheduler = scheduler
+        self.host = host
+        self._attached = False
         # Without a log_dir the relay's log (and control socket) go to a temp folder of ours,
         # removed on close; with one, the caller owns the folder and its lifetime.
         self._log_dir = None if log_dir is None else str(log_dir)
@@ -114,11 +132,13 @@ class UserspaceLink:
 
     @property
     def pid(self) -> int | None:
+        if self.host is not None:
+            return self.host.pid if self._attached else None
         return None if self._proc is None else self._proc.pid
 
     @property
     def control_path(self) -> str | None:
-        return self._control_path
+        return self.host.control_path if self.host is not None else self._control_path
 
     def command(self) -> list[str]:
         """The relay's command line."""
@@ -155,10 +175,43 @@ class UserspaceLink:
             cmd.append("--die-with-parent")
         if not self.offload:
             cmd.append("--no-offload")
+        if self.name != "link":
+            cmd += ["--name", self.name]
+        if self.cell is not None:
+            cmd += ["--cell", self.cell, "--scheduler", self.scheduler]
         return cmd
 
+    def _attach(self) -> UserspaceLink:
+        assert self.host is not None
+        if self._attached:
+            raise RelayError(f"link {self.name} is already attached")
+        self.host.request(
+            {
+                "op": "attach",
+                "link": self.name,
+                "netns_a": self.a.netns,
+                "dev_a": self.a.dev,
+                "netns_b": self.b.netns,
+                "dev_b": self.b.dev,
+                "addr_a": self.a.address,
+                "addr_b": self.b.address,
+                "mtu": self.mtu,
+                "uplink": self.profiles["uplink"].to_dict(),
+                "downlink": self.profiles["downlink"].to_dict(),
+                "seed": str(self.seed),
+                "cell": self.cell,
+            },
+            timeout_s=10.0,
+        )
+        self._attached = True
+        return self
+
     def start(self, timeout_s: float = 10.0) -> UserspaceLink:
-        """Start the relay and wait until both TUN ends are up; raise `RelayError` if not."""
+        """Start the relay and wait until both TUN ends are up; raise `RelayError` if not.
+
+        A link with a `host` is attached to the host's relay instead."""
+        if self.host is not None:
+            return self._attach()
         if self._proc is not None:
             raise RelayError("this link's relay is already started")
         if self._log_dir is None:
@@ -220,12 +273,24 @@ class UserspaceLink:
         except OSError:
             return ""
 
+    @property
+    def closing(self) -> bool:
+        """Being closed (or its host is): a relay that goes now has not died."""
+        return self._closing or (self.host is not None and self.host.closing)
+
     def alive(self) -> bool:
         """True while the relay process runs."""
+        if self.host is not None:
+            return self._attached and self.host.alive()
         return self._proc is not None and self._proc.poll() is None
 
     def check(self) -> None:
         """Raise `RelayError` if the relay is not running (it died or was never started)."""
+        if self.host is not None:
+            if not self._attached:
+                raise RelayError(f"link {self.name} was never attached to its host's relay")
+            self.host.check()
+            return
         if self._proc is None:
             raise RelayError(f"relay for {self.describe()} was never started")
         code = self._proc.poll()
@@ -244,11 +309,11 @@ class UserspaceLink:
         """
 
         def run() -> None:
-            while not self._closing:
+            while not self.closing:
                 try:
                     self.check()
                 except RelayError as exc:
-                    if self._closing:
+                    if self.closing:
                         return
                     if on_death is None:
                         print(f"error: {exc}", file=sys.stderr, flush=True)
@@ -262,8 +327,16 @@ class UserspaceLink:
         return self._watcher
 
     def close(self, timeout_s: float = 3.0) -> None:
-        """Stop the relay (SIGTERM, then SIGKILL) and remove its files; safe to repeat."""
+        """Stop the relay (SIGTERM, then SIGKILL) and remove its files; safe to repeat.
+
+        An attached link is detached from its host's relay, which keeps running."""
         self._closing = True
+        if self.host is not None:
+            if self._attached and self.host.alive():
+                with contextlib.suppress(RelayError):
+                    self.host.request({"op": "detach", "link": self.name})
+            self._attached = False
+            return
         proc, self._proc = self._proc, None
         if proc is not None:
             if proc.poll() is None:
@@ -280,7 +353,7 @@ class UserspaceLink:
             self._tmpdir = None
 
     def __enter__(self) -> UserspaceLink:
-        if self._proc is None:
+        if self._proc is None and not self._attached:
             self.start()
         return self
 
@@ -291,6 +364,9 @@ class UserspaceLink:
 
     def request(self, message: dict[str, Any], timeout_s: float = 2.0) -> dict[str, Any]:
         """Send one control request and return the reply; raise `RelayError` on failure."""
+        if self.host is not None:
+            self.check()
+            return self.host.request({**message, "link": self.name}, timeout_s)
         self.check()
         assert self._control_path is not None
         with self._lock:

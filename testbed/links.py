@@ -211,6 +211,10 @@ class TunRelayEnds:
     twice). Each relay's pid is recorded in the run state right after it starts (`down` and
     `clean` stop it; `clean` also finds relays by the namespaces on their command line, for a
     crash between start and record). `relays` maps link names to their `UserspaceLink`.
+
+    The air links of one gNB whose profiles have an NR radio share one relay, attached to the
+    first of them, and its slots (`netem.cell`): a cell serves all its UEs, by the cell's
+    `scheduler`.
     """
 
     name = "userspace"
@@ -220,9 +224,14 @@ class TunRelayEnds:
         self.die_with_parent = die_with_parent
         self.seed = seed
         self.relays: dict[str, UserspaceLink] = {}
+        self.cell_hosts: dict[str, UserspaceLink] = {}  # gNB -> the relay its cell lives in
 
     def _relay(
-        self, ends: EndNames, control: str | None = None, log_dir: Path | None = None
+        self,
+        ends: EndNames,
+        control: str | None = None,
+        log_dir: Path | None = None,
+        **cell: Any,
     ) -> UserspaceLink:
         # ends are named after the peers: the lower node's interface is the upper's name
         spec = self.specs.get(f"{ends.upper_ifname}-{ends.lower_ifname}")
@@ -239,7 +248,23 @@ class TunRelayEnds:
             control_path=control,
             log_dir=log_dir,
             die_with_parent=self.die_with_parent,
+            **cell,
         )
+
+    def _cell_of(self, link: Link, net: Net) -> dict[str, Any]:
+        """How `link` joins its gNB's cell: nothing (no radio), as the cell's host, or
+        attached to the host's relay."""
+        spec = self.specs.get(link.name)
+        if link.kind != "air" or spec is None:
+            return {}
+        if spec.uplink.radio is None and spec.downlink.radio is None:
+            return {}
+        gnb = link.upper.name
+        cells = {c.gnb: c for c in net.scenario.topology.cells}
+        scheduler = cells[gnb].scheduler if gnb in cells else "rr"
+        host = self.cell_hosts.get(gnb)
+        joined: dict[str, Any] = {"name": link.name, "cell": gnb, "scheduler": scheduler}
+        return joined if host is None else {**joined, "host": host}
 
     def commands(self, ends: EndNames) -> list[str]:
         relay = self._relay(ends, control="<state dir>/<run id>/<n>.sock")
@@ -252,12 +277,15 @@ class TunRelayEnds:
         control = folder / f"{n}.sock"  # short: unix socket paths are <108 B
         logs = folder / f"{n}.log.d"  # the relay's log lives with the run, not in /tmp
         logs.mkdir(exist_ok=True)
-        relay = self._relay(link.ends, control=str(control), log_dir=logs)
+        cell = self._cell_of(link, net)
+        relay = self._relay(link.ends, control=str(control), log_dir=logs, **cell)
         try:
             relay.start()
         except RelayError as err:
             raise TestbedError(f"link {link.name}: {err}") from None
         self.relays[link.name] = relay
+        if cell and "host" not in cell:
+            self.cell_hosts[cell["cell"]] = relay
         net.record_pid(relay.pid or 0, f"relay {link.name}")
         _write_relay_file(folder, self.relays)
 
@@ -553,7 +581,7 @@ class UserspaceController(_Base):
     def close(self) -> None:
         super().close()
         if self.net.mode == "run":
-            for relay in self.relays.values():
+            for relay in reversed(self.relays.values()):  # a cell's attached links first
                 relay.close()
 
 

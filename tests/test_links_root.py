@@ -206,3 +206,37 @@ def test_tc_backend_applies_netem_delay(state_dir: Path, tmp_path: Path) -> None
         assert net.control is not None
         net.control.outage("av1-gnb1", 0.3)
         assert _rtt_ms(net, count=1) == float("inf")
+
+
+def test_the_air_links_of_one_gnb_with_a_radio_share_one_relay_and_its_cell(
+    state_dir: Path, tmp_path: Path
+) -> None:
+    path = tmp_path / "cell.yaml"
+    path.write_text(
+        "name: t\nseed: 3\nduration: 10s\n"
+        "topology:\n  cells:\n    - {gnb: gnb1, core: core1, scheduler: pf}\n"
+        "    - {gnb: gnb2, core: core2}\n  vehicles:\n"
+        "    - {name: av1, gnb: gnb1}\n    - {name: av2, gnb: gnb1}\n"
+        "    - {name: av3, gnb: gnb2}\n"
+        "links:\n  air:\n    uplink: {radio: oai-tdd-30k}\n    downlink: {radio: oai-tdd-30k}\n"
+    )
+    scenario = load(path)
+    with build(scenario, mode="run") as net:
+        control = net.control
+        assert isinstance(control, links.UserspaceController)
+        relays = control.relays
+        # One process per cell: av1's and av2's air links in gnb1's, av3's alone.
+        assert relays["av1-gnb1"].pid == relays["av2-gnb1"].pid
+        assert relays["av3-gnb2"].pid != relays["av1-gnb1"].pid
+        assert relays["gnb1-core1"].pid not in {relays["av1-gnb1"].pid, relays["av3-gnb2"].pid}
+        assert "--scheduler" in relays["av1-gnb1"].command()
+        assert control.counters("av2-gnb1")["cell"] == "gnb1"  # type: ignore[index]
+        assert control.counters("gnb1-core1")["cell"] is None  # type: ignore[index]
+        # Both UEs reach their gNB through the shared relay, and a live change reaches the
+        # attached link (not the host's).
+        assert _rtt_ms(net) > 1.0  # over the radio: slots, not a wire
+        control.set("av2-gnb1", "uplink", {"radio": {"mcs": 5}})
+        assert control.profile("av2-gnb1", "uplink").radio.mcs == 5  # type: ignore[union-attr]
+        assert control.profile("av1-gnb1", "uplink").radio.mcs == 20  # type: ignore[union-attr]
+        pids = links.relay_pids(net.state.namespaces)
+    assert pids and links.relay_pids(net.state.namespaces) == []

@@ -6,6 +6,7 @@ relay is stopped by its `UserspaceLink` context manager, also when a test fails.
 
 from __future__ import annotations
 
+import contextlib
 import os
 import secrets
 import signal
@@ -380,7 +381,8 @@ def test_udp_gso_datagrams_cross_whole_or_split_for_loss(pair) -> None:
 
 def _radio_probes(pair, radio, times: list[float], size: int = 92) -> list[tuple[float, float]]:
     """(sent, received) monotonic times of UDP datagrams sent at `times` (s from now) up a
-    link whose uplink is `radio`; 8 bytes of the payload are the send time."""
+    link whose uplink is `radio` (None: a plain link); 8 bytes of the payload are the send
+    time."""
     got: list[tuple[float, float]] = []
     with link_for(pair, uplink=LinkProfile(radio=radio)):
         receiver = udp_socket(pair[1], (ADDR_B, PORT))
@@ -455,12 +457,105 @@ def test_a_radio_uplink_that_asks_for_grants_has_the_oracles_delays(pair) -> Non
     times = [i * 0.03 + rng.uniform(0, 0.005) for i in range(200)]
     got = _radio_probes(pair, radio, times, size=100)
     assert len(got) >= 198
+    # The path without the radio at the same spacing (a host idle for 30 ms wakes later).
+    base = statistics.median(r - s for s, r in _radio_probes(pair, None, times[:60], size=100))
     oracle = radio.oracle("uplink", size_bytes=100 + 28)  # the datagram's IP packet
-    delays = sorted(r - s for s, r in got)
+    delays = sorted(r - s - base for s, r in got)
     n = len(delays)
     shift = [delays[i] - oracle.quantile((i + 0.5) / n) for i in range(n)]
-    # Two rounds of a period (SR, then the buffer status report) put the median near 13 ms;
-    # the path without the radio adds 0.1-0.3 ms here.
+    # Two rounds of a period (SR, then the buffer status report) put the median near 13 ms.
     assert statistics.median(shift) == pytest.approx(0.0, abs=0.0005)
     assert statistics.fmean(abs(x) for x in shift) < 0.0006  # Wasserstein-1 distance
     assert oracle.quantile(0.5) > 0.01
+
+
+# -- a shared NR cell ---------------------------------------------------------------------------
+
+
+@pytest.fixture
+def cell_namespaces() -> Iterator[tuple[str, str, str]]:
+    from pyroute2 import netns
+
+    tag = secrets.token_hex(4)
+    names = (f"elq-{tag}-u1", f"elq-{tag}-u2", f"elq-{tag}-g")
+    try:
+        for name in names:
+            netns.create(name)
+        yield names
+    finally:
+        for name in names:
+            if name in netns.listnetns():
+                netns.remove(name)
+
+
+def _flood(
+    ns: str, dst: tuple[str, int], seconds: float, bps: float, stop: threading.Event
+) -> None:
+    sock = udp_socket(ns)
+    gap, payload = 1400 * 8 / bps, bytes(1400)
+    t = time.monotonic()
+    end = t + seconds
+    try:
+        while not stop.is_set() and t < end:
+            with contextlib.suppress(OSError):
+                sock.sendto(payload, dst)
+            t += gap
+            time.sleep(max(0.0, t - time.monotonic()))
+    finally:
+        sock.close()
+
+
+def test_two_ues_of_one_cell_share_its_uplink_slots(cell_namespaces) -> None:
+    from netem.nr import Radio
+
+    ue1, ue2, gnb = cell_namespaces
+    radio = Radio(ul_access="ideal")  # a saturated UE always has a grant
+    profile = LinkProfile(radio=radio)
+    first = UserspaceLink(ue1, gnb, dev_a="ul0", dev_b="ul1", addr_a="10.213.1.1/30",
+                          addr_b="10.213.1.2/30", uplink=profile, cell="gnb1")  # fmt: skip
+    with first:
+        second = UserspaceLink(ue2, gnb, dev_a="ul0", dev_b="ul2", addr_a="10.213.2.1/30",
+                               addr_b="10.213.2.2/30", uplink=profile, cell="gnb1",
+                               name="ue2", host=first)  # fmt: skip
+        with second:
+            assert second.pid == first.pid  # one relay process for the cell
+            sinks = [udp_socket(gnb, ("10.213.1.2", PORT)), udp_socket(gnb, ("10.213.2.2", PORT))]
+            got = [0, 0]
+            stop = threading.Event()
+
+            def sink(i: int) -> None:
+                sinks[i].settimeout(0.2)
+                while not stop.is_set():
+                    try:
+                        data = sinks[i].recv(2048)
+                    except TimeoutError:
+                        continue
+                    if measuring.is_set():
+                        got[i] += len(data) + 28
+
+            measuring = threading.Event()
+            threads = [threading.Thread(target=sink, args=(i,), daemon=True) for i in (0, 1)]
+            threads += [
+                threading.Thread(target=_flood, args=(ns, dst, 5.0, 30e6, stop), daemon=True)
+                for ns, dst in ((ue1, ("10.213.1.2", PORT)), (ue2, ("10.213.2.2", PORT)))
+            ]
+            for t in threads:
+                t.start()
+            time.sleep(1.5)  # both queues full
+            measuring.set()
+            t0 = time.monotonic()
+            time.sleep(3.0)
+            measuring.clear()
+            seconds = time.monotonic() - t0
+            stop.set()
+            for t in threads:
+                t.join(5)
+            for sock in sinks:
+                sock.close()
+            counters = second.counters()
+            assert counters["cell"] == "gnb1"
+    rates = [8 * g / seconds for g in got]
+    cell = radio.goodput_bps("uplink")
+    assert sum(rates) == pytest.approx(cell, rel=0.05), rates
+    for r in rates:
+        assert 0.4 <= r / sum(rates) <= 0.6, rates

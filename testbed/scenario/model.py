@@ -40,6 +40,8 @@ class Cell:
     gnb: str
     core: str
     core_cpu: float | None = None  # CPU cores of the edge server; None = unlimited
+    #: How the gNB shares its air links' NR slots among its UEs (`netem.cell.SCHEDULERS`).
+    scheduler: str = "rr"
 
 
 @dataclass(frozen=True)

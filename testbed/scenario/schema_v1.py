@@ -14,6 +14,7 @@ from __future__ import annotations
 
 from typing import Any
 
+from netem.cell import SCHEDULERS
 from netem.nr import RADIO_PROFILES, UL_ACCESS
 from netem.profile import JITTER_DISTRIBUTIONS, GilbertElliott, LinkProfile
 from testbed.scenario import model
@@ -324,6 +325,12 @@ CELL = Obj(
             "core", node_name("a core name"), "Name of the core/edge-server node.", required=True
         ),
         Field("core_cpu", CPU, "CPU cores for the edge server (null: unlimited)."),
+        Field(
+            "scheduler",
+            Enum(SCHEDULERS),
+            "How the gNB shares the NR slots of its air links' radios among its UEs: rr (equal"
+            " shares of each slot's PRBs) or pf (proportional fair in time).",
+        ),
     ],
     model=model.Cell,
 )

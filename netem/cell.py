@@ -1,0 +1,180 @@
+"""A shared NR cell: the UEs attached to one gNB take turns in the same slots.
+
+Each UE's direction is a `netem.stages.Slots` stage with its own buffer, grants and HARQ; a
+`Cell` joins those of one gNB and direction and serves them occasion by occasion, in time
+order, whichever of them the relay happens to advance. In each occasion the cell:
+
+1. lets every UE send the scheduling request that falls before it, and takes what each has
+   reserved for HARQ retransmissions off the top (a retransmission goes first, as a gNB
+   schedules it);
+2. asks each UE what it would send (its demand: what arrived in time and, with a scheduling
+   request, what it was granted);
+3. splits the rest of the occasion's PRBs among the UEs that have data, by `scheduler`:
+   - `rr`: equal shares, a share a UE does not need going to the others (water filling);
+   - `pf`: proportional fair in time, the UE with the best ratio of what it could send now
+     to what it has been getting (an average over ~100 occasions) takes what it needs, then
+     the next (what OpenAirInterface's and srsRAN's default schedulers do).
+4. Each UE sends its share of the PRBs at its own MCS.
+
+PRBs are shared as fractions of the occasion and a UE's bytes are that fraction of its full
+transport block (TS 38.214's TBS is close to linear in PRBs at a fixed MCS). All UEs of a
+cell must have the same TDD pattern and numerology: one gNB, one slot grid.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    from netem.stages import Slots
+
+SCHEDULERS = ("rr", "pf")
+#: Occasions the proportional-fair average spans (its forgetting factor is 1/this).
+PF_WINDOW = 100
+
+
+class CellError(ValueError):
+    """A UE that cannot join this cell (another slot grid), or an unknown scheduler."""
+
+
+class Cell:
+    """One gNB's slots for one direction, shared by the UEs' `Slots` stages that join it."""
+
+    def __init__(self, scheduler: str = "rr") -> None:
+        if scheduler not in SCHEDULERS:
+            raise CellError(f"scheduler must be one of {', '.join(SCHEDULERS)}, got {scheduler!r}")
+        self.scheduler = scheduler
+        self.members: list[Slots] = []
+        self._average: dict[int, float] = {}  # PF: bytes per occasion each UE has been getting
+        self.occasions_served = 0
+
+    def join(self, stage: Slots) -> None:
+        """Attach a UE's stage; from now on the cell decides what it sends."""
+        if stage in self.members:
+            return
+        if self.members and stage.occasions and self.members[0].occasions:
+            first = self.members[0]
+            if not math.isclose(first.tdd_period_s, stage.tdd_period_s):
+                raise CellError(
+                    "a UE with another TDD period cannot share this cell's slots "
+                    f"({stage.tdd_period_s * 1000:g} ms, the cell's "
+                    f"{first.tdd_period_s * 1000:g} ms)"
+                )
+        self.members.append(stage)
+        self._average[id(stage)] = 1.0
+        stage.cell = self
+
+    def leave(self, stage: Slots) -> None:
+        if stage in self.members:
+            self.members.remove(stage)
+            self._average.pop(id(stage), None)
+            stage.cell = None
+
+    def _next(self) -> tuple[float, float] | None:
+        """(start, end) of the earliest occasion a UE with data has not been served in."""
+        best: tuple[float, float] | None = None
+        for m in self.members:
+            if m._queue and m.occasions:
+                start, end, _ = m._occasion(m._cursor)
+                if best is None or start < best[0]:
+                    best = (start, end)
+        return best
+
+    def next_end(self) -> float | None:
+        """When the occasion now being filled ends (a UE with data wakes then)."""
+        upcoming = self._next()
+        return None if upcoming is None else upcoming[1]
+
+    def advance(self, now: float) -> None:
+        """Serve every occasion that has ended by `now`, for every UE of the cell."""
+        while True:
+            upcoming = self._next()
+            if upcoming is None:
+                return
+            start, end = upcoming
+            for m in self.members:
+                m._request(start)
+            if end > now:
+                return
+            self._serve(start, end)
+
+    def _serve(self, start: float, end: float) -> None:
+        from netem.stages import _ns
+
+        key = _ns(start)
+        taken = 0.0  # the share of the PRBs retransmissions use
+        wants: list[tuple[Slots, int, float]] = []  # (UE, full block, share it would fill)
+        for m in self.members:
+            if not m.occasions:
+                continue
+            cursor = m._cursor if m._queue else None
+            here = cursor is not None and _ns(m._occasion(cursor)[0]) == key
+            capacity = _capacity_at(m, start)
+            reserved = m._reserved.pop(key, 0)
+            if capacity and reserved:
+                taken += reserved / capacity
+            if here:
+                assert cursor is not None
+                m._cursor = m._step(cursor)
+                demand = m._demand(start)
+                if demand > 0 and capacity:
+                    wants.append((m, capacity, demand / capacity))
+                else:
+                    m._serve(start, end, 0)
+        free = max(0.0, 1.0 - taken)
+        shares = self._split(wants, free)
+        for (m, capacity, _), share in zip(wants, shares, strict=True):
+            m._serve(start, end, int(share * capacity + 1e-9))
+        if self.scheduler == "pf":
+            served = {
+                id(m): share * capacity
+                for (m, capacity, _), share in zip(wants, shares, strict=True)
+            }
+            for m in self.members:
+                average = self._average.get(id(m), 1.0)
+                got = served.get(id(m), 0.0)
+                self._average[id(m)] = average + (got - average) / PF_WINDOW
+        self.occasions_served += 1
+
+    def _split(self, wants: list[tuple[Slots, int, float]], free: float) -> list[float]:
+        """The share of the occasion each UE that wants some gets."""
+        if not wants:
+            return []
+        if self.scheduler == "pf":
+            order = sorted(
+                range(len(wants)),
+                key=lambda i: -wants[i][1] / max(self._average.get(id(wants[i][0]), 1.0), 1e-9),
+            )
+            shares = [0.0] * len(wants)
+            left = free
+            for i in order:
+                shares[i] = min(wants[i][2], left)
+                left -= shares[i]
+            return shares
+        # Water filling: equal shares; what a UE does not need goes to the others.
+        shares = [0.0] * len(wants)
+        open_ = set(range(len(wants)))
+        left = free
+        while open_ and left > 1e-12:
+            each = left / len(open_)
+            done = {i for i in open_ if wants[i][2] - shares[i] <= each}
+            if not done:
+                for i in open_:
+                    shares[i] += each
+                break
+            for i in done:
+                left -= wants[i][2] - shares[i]
+                shares[i] = wants[i][2]
+            open_ -= done
+        return shares
+
+
+def _capacity_at(stage: Slots, start: float) -> int:
+    """The full transport block (bytes) of `stage`'s UE in the occasion starting at `start`
+    (0 where its grid has no occasion then, e.g. a configured grant's other slots)."""
+    phase = (start - stage.epoch_s) % stage.period_s
+    for o in stage.occasions:
+        if abs(o.start_s - phase) < 1e-9 or abs(o.start_s - phase - stage.period_s) < 1e-9:
+            return o.capacity_bytes
+    return 0
