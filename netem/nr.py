@@ -516,6 +516,15 @@ class Radio:
     #: Configured grant: every `cg_period_slots` slots, in slot `cg_offset` of that period.
     cg_period_slots: int = 10
     cg_offset: int = 8
+    #: RLC mode (TS 38.322): "am" sends a block's packets again after a residual HARQ loss,
+    #: once the receiver's status report says so (`rlc_status_s` later); "um" loses them.
+    #: OAI and srsRAN run their default bearers in AM.
+    rlc: str = "am"
+    #: From a residual loss to the packets being back in the sender's buffer: t-Reassembly
+    #: and the status report, "tens of ms" (an assumption: 20 ms).
+    rlc_status_s: float = 0.02
+    #: PDCP in-order delivery (TS 38.323): a packet waits for those before it.
+    in_order: bool = True
 
     @property
     def harq_s(self) -> float:
@@ -621,6 +630,10 @@ class Radio:
             raise NrError(f"max_retx must be 0..16, got {self.max_retx}")
         if not 0 <= self.harq_slots <= 32:
             raise NrError(f"harq_slots must be 0..32, got {self.harq_slots}")
+        if self.rlc not in ("am", "um"):
+            raise NrError(f"rlc must be am or um, got {self.rlc!r}")
+        if not 0.0 <= self.rlc_status_s <= 1.0:
+            raise NrError(f"rlc_status must be 0 to 1 s, got {self.rlc_status_s}")
         if self.ul_access not in UL_ACCESS:
             allowed = ", ".join(UL_ACCESS)
             raise NrError(f"ul_access must be one of {allowed}, got {self.ul_access!r}")

@@ -28,6 +28,7 @@ reconfigures the same stages in place, so queued packets stay queued.
 
 from __future__ import annotations
 
+import bisect
 import heapq
 import math
 import random
@@ -619,9 +620,11 @@ class Slots(Stage):
     HARQ: each transport block fails with probability `bler` and is sent again in the first
     occasion that starts `harq_s` after the failed one ended and has the block's bytes free
     (they are taken from its new data), at most `max_retx` times; a block that still fails is
-    lost with every packet that had bytes in it (a residual loss; its BSR is lost too, and
-    what it announced is asked for again). Packets leave in order, as PDCP delivers them: one
-    held back by a retransmission holds back those behind it.
+    a residual loss (its BSR is lost too, and what it announced is asked for again). With
+    RLC-AM (`rlc_am`, TS 38.322) every packet that had bytes in it comes back into the buffer
+    `rlc_status_s` later (the receiver's status report) and is sent again; with RLC-UM it is
+    lost. Packets leave in order (`in_order`), as PDCP delivers them: one held back by a
+    retransmission, or by RLC, holds back those behind it; without, each leaves when decoded.
     """
 
     name = "slots"
@@ -654,7 +657,7 @@ class Slots(Stage):
         # Bytes of occasions that retransmissions have taken, by occasion.
         self._reserved: dict[int, int] = {}  # occasion start (ns) -> bytes
         self._head_floor = 0.0  # a retransmitted block that held some of the head's bytes
-        self._head_lost = False
+        self._head_lost: float | None = None  # when a block with some of the head was lost
         self._last_exit = -math.inf
         self._used_until = -math.inf  # just after the start of the last occasion visited
         self.blocks = 0
@@ -675,6 +678,17 @@ class Slots(Stage):
         self.scheduling_requests = 0
         #: The cell whose occasions this UE shares with others (`netem.cell.Cell`), if any.
         self.cell: Cell | None = None
+        # RLC and PDCP.
+        self.rlc_am, self.rlc_status_s, self.in_order = False, 0.0, True
+        self._recovering: list[tuple[float, bytes]] = []  # (back in the buffer at, packet)
+        # PDCP: each packet's place in the order it came (by id), and those decoded before
+        # an earlier one (None: one that was lost, which nothing waits for).
+        self._order: dict[int, int] = {}
+        self._came = 0
+        self._next = 0  # the place of the next packet to deliver in order
+        self._reorder: dict[int, tuple[float, bytes] | None] = {}
+        self._failed_at = 0.0  # when the last block that failed every try was given up
+        self.recovered = 0  # packets RLC-AM sent again
         if occasions:
             self.set_occasions(occasions, period_s, lead_s)
 
@@ -724,6 +738,8 @@ class Slots(Stage):
             return
         grid = radio.grid(self.direction)
         self.tdd_period_s = radio.pattern().period_s
+        self.rlc_am, self.rlc_status_s = radio.rlc == "am", radio.rlc_status_s
+        self.in_order = radio.in_order
         self.set_access(grid.access, grid.sr_windows, grid.grant_delay_s, grid.first_grant_bytes)
         self.set_occasions(grid.occasions, grid.period_s, grid.lead_s)
         self.set_harq(radio.bler, radio.max_retx, radio.harq_s)
@@ -805,6 +821,8 @@ class Slots(Stage):
             )[0]
 
     def _advance(self, now: float) -> None:
+        if self._recovering:
+            self._readmit(now)
         if self.cell is not None:
             self.cell.advance(now)  # every UE of the cell, occasion by occasion
             return
@@ -859,7 +877,7 @@ class Slots(Stage):
                 packet = q.popleft()[1]
                 self._queued_packets -= wire_packets(packet)
                 completing.append((packet, self._head_floor, self._head_lost))
-                self._head_floor, self._head_lost = 0.0, False
+                self._head_floor, self._head_lost = 0.0, None
                 self._head_left = len(q[0][1]) if q else 0
             else:
                 self._head_left -= budget
@@ -870,18 +888,57 @@ class Slots(Stage):
         self._sent += sent
         if self.access == "sr":
             self._report(start, end, ok_at)
-        for packet, floor, lost in completing:
-            if lost or ok_at is None:
-                self.counters.drop("harq", len(packet), wire_packets(packet))
+        for packet, floor, lost_at in completing:
+            if lost_at is not None or ok_at is None:
+                given_up = self._failed_at if lost_at is None else lost_at
+                if self.rlc_am:
+                    self._recover(packet, given_up + self.rlc_status_s)
+                else:
+                    self.counters.drop("harq", len(packet), wire_packets(packet))
+                    self._decoded(0.0, None, id(packet))
                 continue
-            leave = max(ok_at, floor, self._last_exit)  # in order, as PDCP delivers
-            self._last_exit = leave
-            self._left.append((leave, packet))
+            self._decoded(max(ok_at, floor), packet, id(packet))
         if partial:
             if ok_at is None:
-                self._head_lost = True
+                if self._head_lost is None:
+                    self._head_lost = self._failed_at
             else:
                 self._head_floor = max(self._head_floor, ok_at)
+
+    def _decoded(self, at: float, packet: bytes | None, key: int) -> None:
+        """`packet` is whole at the receiver at `at` (None: it was lost): PDCP delivers it,
+        in order of arrival or, without `in_order`, at once."""
+        place = self._order.pop(key, None)
+        if not self.in_order or place is None:
+            if packet is not None:
+                bisect.insort(self._left, (at, packet), key=lambda e: e[0])
+            return
+        self._reorder[place] = None if packet is None else (at, packet)
+        while self._next in self._reorder:
+            ready = self._reorder.pop(self._next)
+            self._next += 1
+            if ready is not None:
+                t = max(ready[0], self._last_exit)
+                self._last_exit = t
+                self._left.append((t, ready[1]))
+
+    def _recover(self, packet: bytes, at: float) -> None:
+        """RLC-AM: `packet` was lost in a block; it is back in the buffer at `at`."""
+        self.recovered += 1
+        bisect.insort(self._recovering, (at, packet), key=lambda e: e[0])
+
+    def _readmit(self, now: float) -> None:
+        """Put what RLC sends again back into the buffer once its status report came."""
+        while self._recovering and self._recovering[0][0] <= now:
+            at, packet = self._recovering.pop(0)
+            if self._queue:
+                at = max(at, self._queue[-1][0])  # (the buffer stays in arrival order)
+            else:
+                self._head_left = len(packet)
+                self._cursor = self._first_at_or_after(at + self._lead())
+            self._queued_packets += wire_packets(packet)
+            self._arrived += len(packet)
+            self._queue.append((at, packet, self._arrived))
 
     def _report(self, start: float, end: float, ok_at: float | None) -> None:
         """The BSR of the PUSCH at `start`: what had arrived by then, decoded at `ok_at`."""
@@ -924,6 +981,7 @@ class Slots(Stage):
                 self.retransmissions[attempt] += 1
                 return t
         self.retransmissions[self.max_retx + 1] += 1
+        self._failed_at = t
         return None
 
     def push(self, packet: bytes, now: float) -> None:
@@ -944,6 +1002,8 @@ class Slots(Stage):
             self._cursor = self._first_at_or_after(now + self._lead())
         self._arrived += len(packet)
         self._queue.append((now, packet, self._arrived))
+        self._order[id(packet)] = self._came
+        self._came += 1
 
     def pop_ready(self, now: float) -> list[bytes]:
         self._advance(now)
@@ -956,10 +1016,12 @@ class Slots(Stage):
             if self.cell is not None:
                 return self.cell.next_end()
             return self._occasion(self._cursor)[1]
+        if self._recovering:
+            return self._recovering[0][0]
         return None
 
     def queued(self) -> int:
-        return len(self._queue) + len(self._left)
+        return len(self._queue) + len(self._left) + len(self._recovering) + len(self._reorder)
 
 
 class Delay(Stage):

@@ -277,13 +277,13 @@ def test_a_downlink_pipeline_sends_in_the_downlink_windows() -> None:
 # -- HARQ -------------------------------------------------------------------------------------
 
 
-def harq_stage(bler: float, max_retx: int = 4) -> tuple[Slots, object]:
+def harq_stage(bler: float, max_retx: int = 4, rlc: str = "am") -> tuple[Slots, object]:
     from netem.nr import Radio
     from netem.profile import LinkProfile
     from netem.stages import Pipeline
 
     # A gNB that sees the buffer: each probe is one block, and HARQ alone decides its delay.
-    radio = Radio(bler=bler, max_retx=max_retx, ul_access="ideal")
+    radio = Radio(bler=bler, max_retx=max_retx, ul_access="ideal", rlc=rlc)
     pipeline = Pipeline.from_profile(LinkProfile(radio=radio), seed=9)
     slots = pipeline.stage("slots")
     assert isinstance(slots, Slots)
@@ -308,7 +308,7 @@ def test_harq_retransmits_a_tenth_of_the_blocks_one_after_another() -> None:
 
 
 def test_a_block_that_fails_every_try_is_lost_with_its_packets() -> None:
-    slots, _ = harq_stage(0.3, max_retx=1)
+    slots, _ = harq_stage(0.3, max_retx=1, rlc="um")
     n = 5_000
     got = run(slots, poisson_probes(n, 0.011, 100, seed=12))
     lost = slots.counters.dropped_packets.get("harq", 0)
@@ -465,3 +465,35 @@ def test_uplink_access_changes_in_place_and_keeps_what_waits() -> None:
     out += pipeline.pop_ready(t + 1.0)
     assert pipeline.queued() == 0
     assert [int.from_bytes(p[:4], "big") for p in out] == list(range(seq))
+
+
+# -- RLC and PDCP -----------------------------------------------------------------------------
+
+
+def test_rlc_am_sends_what_harq_gave_up_on_again_so_nothing_is_lost_and_order_is_kept() -> None:
+    slots, radio = harq_stage(0.3, max_retx=1)  # rlc: am (the default)
+    n = 5_000
+    got = run(slots, poisson_probes(n, 0.011, 100, seed=12))
+    assert slots.counters.dropped == 0 and len(got) == n
+    seqs = [int.from_bytes(p[:4], "big") for _, _, p in got]
+    assert seqs == list(range(n))
+    p, blocks = 0.3**2, slots.blocks  # the share of the blocks HARQ gives up on
+    gave_up = slots.retransmissions[-1]
+    assert abs(gave_up - blocks * p) <= 3 * math.sqrt(blocks * p * (1 - p))
+    assert slots.recovered >= gave_up  # each of their packets was sent again
+    # A recovered packet waits for the status report (20 ms) on top of its two tries.
+    delays = sorted(t - a for a, t, _ in got)
+    late = [d for d in delays if d >= radio.rlc_status_s]  # type: ignore[attr-defined]
+    assert len(late) >= 0.9 * slots.recovered
+
+
+def test_without_in_order_delivery_a_packet_leaves_when_it_is_decoded() -> None:
+    ordered, _ = harq_stage(0.2)
+    loose, _ = radio_stage(bler=0.2, ul_access="ideal", in_order=False)
+    probes = poisson_probes(3000, 0.0015, 100, seed=13)  # close enough that HARQ overtakes
+    got = {k: run(s, probes) for k, s in (("ordered", ordered), ("loose", loose))}
+    seqs = {k: [int.from_bytes(p[:4], "big") for _, _, p in v] for k, v in got.items()}
+    assert seqs["ordered"] == sorted(seqs["ordered"])
+    assert seqs["loose"] != sorted(seqs["loose"]) and sorted(seqs["loose"]) == list(range(3000))
+    mean = {k: sum(t - a for a, t, _ in v) / len(v) for k, v in got.items()}
+    assert mean["loose"] < mean["ordered"]  # nobody waits for a retransmission but its own

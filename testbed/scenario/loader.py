@@ -222,6 +222,9 @@ def _radio(value: object, section: Section, ctx: Context | None) -> Radio | bool
         ("grant_slots", "grant_slots"),
         ("cg_period", "cg_period_slots"),
         ("cg_offset", "cg_offset"),
+        ("rlc", "rlc"),
+        ("rlc_status", "rlc_status_s"),
+        ("in_order", "in_order"),
     ):
         if key in v:
             changes[attr] = v[key]

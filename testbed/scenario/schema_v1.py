@@ -185,6 +185,27 @@ RADIO = Obj(
             "The slot of the configured-grant period that carries it.",
             attr=None,
         ),
+        Field(
+            "rlc",
+            Enum(("am", "um")),
+            "RLC mode: am sends the packets of a block HARQ gave up on again (after"
+            " `rlc_status`), um loses them.",
+            attr=None,
+        ),
+        Field(
+            "rlc_status",
+            Duration(1.0, noun="a delay"),
+            "From a block HARQ gave up on to its packets being sent again (RLC-AM's status"
+            " report).",
+            attr=None,
+        ),
+        Field(
+            "in_order",
+            Bool(),
+            "PDCP in-order delivery: a packet waits for those before it (false: each leaves"
+            " when decoded).",
+            attr=None,
+        ),
     ],
     fill_defaults=False,
     ref="radio",
