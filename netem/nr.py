@@ -525,6 +525,9 @@ class Radio:
     rlc_status_s: float = 0.02
     #: PDCP in-order delivery (TS 38.323): a packet waits for those before it.
     in_order: bool = True
+    #: The buffer for this UE and direction, in bytes (drop-tail beyond it; None: only the
+    #: link's packet limit). The gNB's RLC buffer per bearer, e.g. srsRAN's 5QI queue size.
+    buffer_bytes: int | None = None
 
     @property
     def harq_s(self) -> float:
@@ -630,6 +633,8 @@ class Radio:
             raise NrError(f"max_retx must be 0..16, got {self.max_retx}")
         if not 0 <= self.harq_slots <= 32:
             raise NrError(f"harq_slots must be 0..32, got {self.harq_slots}")
+        if self.buffer_bytes is not None and not 1500 <= self.buffer_bytes <= 1 << 30:
+            raise NrError(f"buffer_bytes must be 1500 to 2^30 bytes, got {self.buffer_bytes}")
         if self.rlc not in ("am", "um"):
             raise NrError(f"rlc must be am or um, got {self.rlc!r}")
         if not 0.0 <= self.rlc_status_s <= 1.0:

@@ -602,8 +602,8 @@ class Slots(Stage):
     that carry data, with their capacity in bytes; the pattern repeats every `period_s` from
     `epoch_s`. Packets are served in order; one larger than an occasion continues in the next
     ones, and a packet leaves at the end of the occasion that carried its last byte, as a
-    transport block is decoded at the end of its slot. The gNB's buffer for the direction is
-    drop-tail at the profile's `queue_packets`.
+    transport block is decoded at the end of its slot. The buffer for the UE and direction
+    is drop-tail at the profile's `queue_packets` and at the radio's `buffer_bytes`.
 
     Grants (`access`):
     - "ideal" (the downlink, where the gNB holds the data, and a configured grant, whose
@@ -651,6 +651,7 @@ class Slots(Stage):
         self._left: deque[tuple[float, bytes]] = deque()
         self._cursor = (0, 0)  # (period, index) of the next occasion not yet used
         self.queue_packets: int | None = None  # drop-tail limit of the gNB's buffer
+        self.buffer_bytes: int | None = None  # the same in bytes (the radio's `buffer_bytes`)
         self._queued_packets = 0
         self.bler, self.max_retx, self.harq_s = 0.0, 0, 0.0
         self._rng = random.Random(f"{seed}:{self.name}")
@@ -737,6 +738,7 @@ class Slots(Stage):
             self.set_access("ideal")
             return
         grid = radio.grid(self.direction)
+        self.buffer_bytes = radio.buffer_bytes
         self.tdd_period_s = radio.pattern().period_s
         self.rlc_am, self.rlc_status_s = radio.rlc == "am", radio.rlc_status_s
         self.in_order = radio.in_order
@@ -994,6 +996,12 @@ class Slots(Stage):
         self._advance(now)
         n = wire_packets(packet)
         if self.queue_packets is not None and self._queued_packets + n > self.queue_packets:
+            c.drop("queue_full", len(packet), n)
+            return
+        if (
+            self.buffer_bytes is not None
+            and self._arrived - self._sent + len(packet) > self.buffer_bytes
+        ):
             c.drop("queue_full", len(packet), n)
             return
         self._queued_packets += n

@@ -497,3 +497,11 @@ def test_without_in_order_delivery_a_packet_leaves_when_it_is_decoded() -> None:
     assert seqs["loose"] != sorted(seqs["loose"]) and sorted(seqs["loose"]) == list(range(3000))
     mean = {k: sum(t - a for a, t, _ in v) / len(v) for k, v in got.items()}
     assert mean["loose"] < mean["ordered"]  # nobody waits for a retransmission but its own
+
+
+def test_the_buffer_of_a_ue_is_drop_tail_in_bytes() -> None:
+    slots, _ = radio_stage(buffer_bytes=20_000)
+    got = run(slots, [(0.0, i.to_bytes(4, "big") + bytes(996)) for i in range(50)])
+    # 20 of the 50 kB fit; the rest is dropped on arrival, the oldest kept.
+    assert [int.from_bytes(p[:4], "big") for _, _, p in got] == list(range(20))
+    assert slots.counters.dropped_packets == {"queue_full": 30}

@@ -225,6 +225,7 @@ def _radio(value: object, section: Section, ctx: Context | None) -> Radio | bool
         ("rlc", "rlc"),
         ("rlc_status", "rlc_status_s"),
         ("in_order", "in_order"),
+        ("buffer", "buffer_bytes"),
     ):
         if key in v:
             changes[attr] = v[key]

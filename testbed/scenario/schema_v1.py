@@ -200,6 +200,12 @@ RADIO = Obj(
             attr=None,
         ),
         Field(
+            "buffer",
+            Int(1500, 1 << 30, noun="a number of bytes"),
+            "Bytes this UE's buffer holds in this direction (drop-tail beyond).",
+            attr=None,
+        ),
+        Field(
             "in_order",
             Bool(),
             "PDCP in-order delivery: a packet waits for those before it (false: each leaves"
