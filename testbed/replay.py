@@ -31,11 +31,16 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
+from netem.nr import Direction, Radio
 from netem.profile import LinkProfile
 from netem.traces import Trace, load_trace
 from nodes.edgeloc.compare import compare_splits
 from nodes.edgeloc.gate import GateSettings
 from nodes.edgeloc.latency import (
+    PACKET_OVERHEAD,
+    PACKET_PAYLOAD,
     ComputeProfile,
     Exchange,
     LatencyModel,
@@ -207,6 +212,7 @@ class _PathPlan:
                 jitter_distribution=p.jitter_distribution,
                 loss=p.expected_loss,
                 up=up,
+                air=None if p.radio is None else RadioHop(p.radio, direction),  # type: ignore[arg-type]
             )
 
         v, c = self.vehicle.name, self.cell.core
@@ -229,6 +235,40 @@ class _PathPlan:
             ups.append(up)
             downs.append(dn)
         return PathSchedule(tuple(times), tuple(ups)), PathSchedule(tuple(times), tuple(downs))
+
+
+@dataclass(frozen=True)
+class RadioHop:
+    """The air hop of a replayed path through `netem`'s slot model, on a virtual clock.
+
+    Each message meets an idle UE (a fresh `Slots` stage: its SR wait, grants, HARQ and RLC
+    as a real run's relay plays them), sent as the packets a ROS 2 node would send; a replay
+    asks ~10 times a second, so requests seldom queue behind each other.
+    """
+
+    radio: Radio
+    direction: Direction
+
+    @property
+    def rate_bps(self) -> float:
+        return self.radio.goodput_bps(self.direction)
+
+    def deliver(self, start_s: float, nbytes: int, rng: np.random.Generator) -> float:
+        from netem.profile import LinkProfile
+        from netem.stages import Slots
+
+        stage = Slots(direction=self.direction, seed=int(rng.integers(1 << 31)))
+        stage.configure(LinkProfile(radio=self.radio, queue_packets=None))
+        left = nbytes
+        while left > 0:  # the message's packets, all there at once
+            size = min(left, PACKET_PAYLOAD + PACKET_OVERHEAD)
+            stage.push(bytes(size), start_s)
+            left -= size
+        done = start_s
+        while (due := stage.next_due()) is not None:
+            if stage.pop_ready(due):
+                done = due
+        return done
 
 
 def _trace_steps(ev: TraceEvent, trace: Trace, horizon: float) -> list[float]:

@@ -15,7 +15,9 @@ at time `t` with split `k` and `n` activation bytes. The answer is a `RequestTim
 The nouns:
 
 - `PathState`: one direction of the vehicle↔edge path at one instant, every hop folded into one:
-  bottleneck rate, summed delay, root-sum-square jitter, combined loss, and whether it is up.
+  bottleneck rate, summed delay, root-sum-square jitter, combined loss, and whether it is up;
+  and an `AirHop` where the air link is a slot-timed radio (the caller supplies it: the testbed
+  builds it from `netem`'s slot model, which this package does not import).
 - `PathSchedule`: that state as a step function of time (the scenario's timeline: shape, set,
   outage and trace events each start a new step).
 - `ComputeProfile`: seconds of one core per head and per tail call on the measuring machine
@@ -60,7 +62,7 @@ import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import Literal
+from typing import Literal, Protocol
 
 import numpy as np
 
@@ -86,9 +88,24 @@ def packets_of(payload: int) -> int:
     return max(1, math.ceil(payload / PACKET_PAYLOAD))
 
 
+class AirHop(Protocol):
+    """A radio hop: when a message of `nbytes` on the wire, there at `start_s`, has been
+    carried (its last transport block decoded), slots, grants and HARQ included."""
+
+    def deliver(self, start_s: float, nbytes: int, rng: np.random.Generator) -> float: ...
+
+    @property
+    def rate_bps(self) -> float:
+        """What the hop carries saturated (bit/s)."""
+        ...
+
+
 @dataclass(frozen=True)
 class PathState:
-    """One direction of the path at an instant. `rate_bps=inf` means no rate limit."""
+    """One direction of the path at an instant. `rate_bps=inf` means no rate limit.
+
+    `air`: the path's radio hop, if it has one; its time comes before the rest of the path's
+    (serialisation at `rate_bps`, `delay_s`, jitter)."""
 
     rate_bps: float = math.inf
     delay_s: float = 0.0
@@ -96,6 +113,7 @@ class PathState:
     jitter_distribution: str = "normal"
     loss: float = 0.0
     up: bool = True
+    air: AirHop | None = None
 
     def __post_init__(self) -> None:
         if not (self.rate_bps > 0):
@@ -112,6 +130,11 @@ class PathState:
         if not 0.0 <= self.loss <= 1.0:
             raise ValueError(f"path loss must be a fraction in [0, 1], got {self.loss!r}")
 
+    @property
+    def bottleneck_bps(self) -> float:
+        """The slowest rate on the path, its radio included."""
+        return self.rate_bps if self.air is None else min(self.rate_bps, self.air.rate_bps)
+
     @classmethod
     def fold(cls, hops: Sequence[PathState]) -> PathState:
         """The hops in series: the slowest rate, summed delays, jitter in quadrature,
@@ -119,6 +142,7 @@ class PathState:
         if not hops:
             return cls()
         jit = [h for h in hops if h.jitter_s > 0]
+        airs = [h.air for h in hops if h.air is not None]
         return cls(
             rate_bps=min(h.rate_bps for h in hops),
             delay_s=sum(h.delay_s for h in hops),
@@ -126,6 +150,7 @@ class PathState:
             jitter_distribution=jit[0].jitter_distribution if jit else "normal",
             loss=1.0 - math.prod(1.0 - h.loss for h in hops),
             up=all(h.up for h in hops),
+            air=airs[0] if airs else None,
         )
 
     def draw_jitter(self, rng: np.random.Generator) -> float:
@@ -439,7 +464,9 @@ class LatencyModel:
         self, path: PathSchedule, start: float, payload: int, rng: np.random.Generator
     ) -> tuple[float, bool]:
         """(seconds from `start` to delivery, lost) for one message on one direction."""
-        done, outage = path.transmit(start, 8.0 * wire_bytes(payload))
+        air = path.at(start).air
+        begin = start if air is None else air.deliver(start, wire_bytes(payload), rng)
+        done, outage = path.transmit(begin, 8.0 * wire_bytes(payload))
         if done == math.inf:
             return math.inf, True
         state = path.at(done)

@@ -223,7 +223,7 @@ class ReplayResult:
                 {
                     "start_s": a,
                     "end_s": b,
-                    "uplink_rate_bps": self.latency.uplink.at(a).rate_bps,
+                    "uplink_rate_bps": self.latency.uplink.at(a).bottleneck_bps,
                     "plays": len(plays),
                     "share": {k: counts[k] / max(len(plays), 1) for k in self.config.splits},
                     "chosen": counts.most_common(1)[0][0] if plays else None,
@@ -468,7 +468,7 @@ class Replay:
             request_bytes=timing.request_bytes,
             lost=timing.lost,
             cost=cost,
-            uplink_rate_bps=self.latency.uplink.at(start).rate_bps,
+            uplink_rate_bps=self.latency.uplink.at(start).bottleneck_bps,
             weight=None,
             gated_edgeloc=False,
             gated_kalman=False,

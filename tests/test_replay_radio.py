@@ -1,0 +1,46 @@
+"""The replay on a 5G NR air link: its radio hop is the relay's slot model on a virtual clock."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from netem.nr import Radio
+from testbed.replay import RadioHop, latency_model
+from testbed.scenario import load
+
+SCENARIOS = Path(__file__).resolve().parents[1] / "scenarios"
+
+
+def test_the_radio_hop_of_an_idle_ue_is_the_oracles_delay() -> None:
+    radio = Radio(bler=0.1)
+    hop = RadioHop(radio, "uplink")
+    rng = np.random.default_rng(3)
+    starts = rng.uniform(0.0, 100.0, 3000)
+    delays = [hop.deliver(float(t), 92, rng) - t for t in starts]
+    oracle = radio.oracle("uplink", size_bytes=92)
+    assert np.mean(delays) == pytest.approx(oracle.mean(), abs=0.0003)
+    assert np.median(delays) == pytest.approx(oracle.quantile(0.5), abs=0.0005)
+    assert hop.rate_bps == pytest.approx(radio.goodput_bps("uplink"))
+
+
+def test_the_nr_cell_replay_pays_the_scheduling_request_and_the_cell_edge() -> None:
+    model = latency_model(load(SCENARIOS / "nr_cell.yaml"))
+    rng = np.random.default_rng(4)
+
+    def mean_ms(split: str, t0: float, payload: int) -> float:
+        ts = [model.timing(split, t0 + 0.1 * i, payload, rng).latency_s for i in range(40)]
+        return 1000 * float(np.mean(ts))
+
+    # Each uplink message of an idle UE waits for an SR and a grant: two TDD periods at least.
+    assert mean_ms("vehicle", 1.0, 38) > 30
+    # At the cell edge (MCS 5 on 51 PRBs, ~2.6 Mbit/s) a camera frame takes far longer than
+    # with the good cell's blocks, while the pose-sized request barely changes.
+    assert mean_ms("image", 31.0, 36_900) > mean_ms("image", 1.0, 36_900) + 80
+    assert mean_ms("vehicle", 31.0, 38) == pytest.approx(mean_ms("vehicle", 1.0, 38), abs=5)
+    # The phase rate a report prints is the radio's, not the backhaul's 1 Gbit/s.
+    assert model.uplink.at(31.0).bottleneck_bps == pytest.approx(
+        Radio(mcs=5, n_prb=51, bler=0.1).goodput_bps("uplink")
+    )
