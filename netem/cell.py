@@ -24,10 +24,8 @@ cell must have the same TDD pattern and numerology: one gNB, one slot grid.
 from __future__ import annotations
 
 import math
-from typing import TYPE_CHECKING
 
-if TYPE_CHECKING:
-    from netem.stages import Slots
+from netem.stages import Slots, _ns
 
 SCHEDULERS = ("rr", "pf")
 #: Occasions the proportional-fair average spans (its forgetting factor is 1/this).
@@ -100,8 +98,6 @@ class Cell:
             self._serve(start, end)
 
     def _serve(self, start: float, end: float) -> None:
-        from netem.stages import _ns
-
         key = _ns(start)
         taken = 0.0  # the share of the PRBs retransmissions use
         wants: list[tuple[Slots, int, float]] = []  # (UE, full block, share it would fill)

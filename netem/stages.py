@@ -35,15 +35,12 @@ import random
 from collections import deque
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Any
+from typing import Any, Protocol
 
 from netem.gso import Frame, split
 from netem.nr import Direction, Occasion
 from netem.profile import LinkProfile, check_profile
 from netem.traces import OPPORTUNITY_BYTES, Trace
-
-if TYPE_CHECKING:
-    from netem.cell import Cell
 
 #: A super-packet is split before a link on which it would be on the wire longer than this:
 #: its first segment would otherwise wait for its last. TCP sizes its bursts to ~1 ms of its
@@ -68,6 +65,14 @@ def wire_packets(packet: Any) -> int:
 def _ns(t: float) -> int:
     """A time as whole nanoseconds: the key of an occasion, whichever grid computed it."""
     return round(t * 1e9)
+
+
+class SharedSlots(Protocol):
+    """What a `Slots` stage needs of the cell it shares (`netem.cell.Cell`)."""
+
+    def advance(self, now: float) -> None: ...
+
+    def next_end(self) -> float | None: ...
 
 
 def jitter_sd(profile: LinkProfile) -> float:
@@ -678,7 +683,7 @@ class Slots(Stage):
         self._sr_floor = -math.inf  # no SR before this (a lost BSR is noticed after it)
         self.scheduling_requests = 0
         #: The cell whose occasions this UE shares with others (`netem.cell.Cell`), if any.
-        self.cell: Cell | None = None
+        self.cell: SharedSlots | None = None
         # RLC and PDCP.
         self.rlc_am, self.rlc_status_s, self.in_order = False, 0.0, True
         self._recovering: list[tuple[float, bytes]] = []  # (back in the buffer at, packet)
