@@ -70,6 +70,8 @@ from netem.tun import MAX_MTU, TunConfig, TunError, open_tun_in
 
 #: Packets read from one TUN per wake-up before the loop looks at deadlines again.
 READ_BATCH = 64
+#: How overdue a departure may get before a batch of reads stops for it.
+READ_SLACK_S = 0.0001
 #: Bounds of the early wake-up, which tracks the measured timer oversleep. The loop polls
 #: (spins) only for a packet due within the early wake-up, so never for more than the maximum.
 EARLY_MIN_S, EARLY_MAX_S = 0.00002, 0.0003
@@ -199,6 +201,7 @@ class Relay:
             "writes": 0,
         }
         self._running = True
+        self._hard: float | None = None  # the next departure, as the loop last planned
         # select(2) directly: µs timeouts (epoll's are whole ms) and the least work per call
         # on a handful of fds. fd -> (kind, argument).
         self._handlers: dict[int, tuple[str, Any]] = {}
@@ -479,13 +482,20 @@ class Relay:
         clock, push, size = self.clock, pipeline.push, self.read_size
         offload = self.offload
         stats = self.stats
+        # A batch stops once a departure is READ_SLACK_S overdue: a busy link's reads must not
+        # make another packet leave late (the rest is read right after the departure), and a
+        # little slack keeps a saturated link's batches long.
+        due = self._hard + READ_SLACK_S if self._hard is not None else float("inf")
         for _ in range(READ_BATCH):
             try:
                 packet = os.read(fd, size)
             except BlockingIOError:
                 return
             stats["reads"] += 1
-            push(Frame(packet) if offload else packet, clock())
+            now = clock()
+            push(Frame(packet) if offload else packet, now)
+            if now >= due:
+                return
 
     def _deliver(self, now: float) -> None:
         offload = self.offload
@@ -530,7 +540,8 @@ class Relay:
         stats = self.stats
         while self._running:
             now = clock()
-            timeout = timer.timeout(*self._deadlines(), now)
+            soft, self._hard = self._deadlines()
+            timeout = timer.timeout(soft, self._hard, now)
             try:
                 ready = select.select(self._fds, [], [], timeout)[0]
             except InterruptedError:  # pragma: no cover - PEP 475 retries; kept for safety

@@ -1306,9 +1306,17 @@ class Pipeline(Stage):
         """When the next packet leaves the pipeline, as far as known now.
 
         `next_due` also counts hand-offs between stages; those are exact even if handled
-        late, so a caller may wake for them lazily and precisely only for `next_exit`.
+        late, so a caller may wake for them lazily and precisely only for `next_exit`. A
+        hand-off that no later stage holds a packet past (a radio's slot end on a link
+        without delay) is a departure too: waking late for it would send late.
         """
-        return self.stages[-1].next_due()
+        best = self.stages[-1].next_due()
+        for stage, hold in self._handoffs:
+            if hold <= 0.0:
+                due = stage.next_due()
+                if due is not None and (best is None or due < best):
+                    best = due
+        return best
 
     def queued(self) -> int:
         return sum(s.queued() for s in self.stages)

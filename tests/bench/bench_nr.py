@@ -131,7 +131,7 @@ class Bench:
                             span = arrived[-1][0] - arrived[0][0]
                             carried = sum(x[3] for x in arrived) * 8 / span if span else None
                     late = link.counters()["relay"]["exit_lateness_s"]
-                p50, p99 = late["p50"], late["p99"]
+                p50, p99 = late["p50"] or float("nan"), late["p99"] or float("nan")
                 mark = self.judge(f"departure p99 at {load_bps / 1e6:g} Mbit/s", p99 <= goal)
                 extra = "" if carried is None else f"; {carried / 1e6:.1f} Mbit/s carried"
                 print(
