@@ -529,6 +529,14 @@ class Radio:
     #: link's packet limit). The gNB's RLC buffer per bearer, e.g. srsRAN's 5QI queue size.
     buffer_bytes: int | None = None
 
+    def __str__(self) -> str:
+        """A line a log can carry: the grid, the carrier and how the uplink is granted."""
+        return (
+            f"NR {self.slots} mu{self.numerology} {self.n_prb} PRB MCS {self.mcs}"
+            f"{f' x{self.layers}' if self.layers > 1 else ''}, uplink {self.ul_access}, "
+            f"BLER {self.bler:g}, RLC {self.rlc}"
+        )
+
     @property
     def harq_s(self) -> float:
         return self.harq_slots * slot_s(self.numerology)

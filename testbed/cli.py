@@ -379,16 +379,48 @@ def replay(
             "(K + 2 more replays).",
         ),
     ] = True,
+    against: Annotated[
+        Path | None,
+        typer.Option(
+            "--against",
+            help="A run folder of `testbed run` of this scenario: print, per split, its "
+            "measured request latency beside the model's for the same requests, and do "
+            "nothing else.",
+        ),
+    ] = None,
 ) -> None:
     """Replay the scenario's EdgeLoc workload in one process (no network, faster than real
     time): VO, DNN, Kalman and EdgeLoc errors beside the paper's, the learner per bandwidth
     phase, and EdgeLoc with every fixed split and the oracle on the same drive; writes
     runs/<id>/summary.json and TUM trajectories.
 
-    Example: testbed replay scenarios/default.yaml
+    Examples: testbed replay scenarios/default.yaml;
+    testbed replay scenarios/nr_cell.yaml --against runs/e91fff
     """
-    from testbed.replay import replay_scenario
+    from testbed.replay import latency_against_run, replay_scenario
     from testbed.scenario import load
+
+    if against is not None:
+        try:
+            rows = latency_against_run(load(file), against)
+        except KNOWN_ERRORS as err:
+            raise _fail(err) from None
+        con.table(
+            ["split", "requests", "measured ms", "model ms", "measured / model"],
+            [
+                [
+                    a.split,
+                    str(a.requests),
+                    f"{a.measured_s * 1000:.1f}",
+                    f"{a.model_s * 1000:.1f}",
+                    f"{a.ratio:.2f}",
+                ]
+                for a in rows
+            ],
+        )
+        worst = max((abs(a.ratio - 1) for a in rows), default=0.0)
+        con.plain(f"largest disagreement: {worst * 100:.0f}% (the model's requests are the run's)")
+        return
 
     try:
         done = replay_scenario(load(file), runs_dir, compare=compare)

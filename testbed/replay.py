@@ -412,3 +412,61 @@ __all__ = [
     "replay_config",
     "replay_scenario",
 ]
+
+
+@dataclass(frozen=True)
+class SplitAgreement:
+    """One split of a real run: its measured latency against the model's for the same requests."""
+
+    split: str
+    requests: int
+    measured_s: float  # mean over the run's answered requests of this split
+    model_s: float  # mean of the model's latency for requests sent at the same run times
+
+    @property
+    def ratio(self) -> float:
+        return self.measured_s / self.model_s if self.model_s > 0 else math.inf
+
+
+def latency_against_run(
+    scenario: Scenario, run_folder: Path, seed: int = 0
+) -> list[SplitAgreement]:
+    """How the replay's latency model agrees with a real run of `scenario`, split by split.
+
+    Each answered request of the run's first vehicle is played again through the model at
+    the same run time with its split's mean payload (as the run measured it); the means per
+    split are compared. Raises `BadInput` when the folder is not a recorded run.
+    """
+    from reports.mcapread import read_run
+    from reports.splits import measured_requests
+
+    folder = Path(run_folder)
+    mcap, summary_file = folder / names.RUN_MCAP, folder / names.SUMMARY_FILE
+    if not mcap.is_file() or not summary_file.is_file():
+        raise BadInput(f"{folder}: not a run folder with {names.RUN_MCAP} and its summary")
+    import json
+
+    summary = json.loads(summary_file.read_text())
+    payloads = {
+        split: int(v.get("mean_payload_bytes") or 0)
+        for split, v in summary.get("latency", {}).get("per_split", {}).items()
+    }
+    data = read_run(mcap)
+    vd = next((v for v in data.vehicles.values() if v.inference), None)
+    if vd is None:
+        raise BadInput(f"{folder}: the run recorded no inference request")
+    model = latency_model(scenario, vehicle=vd.name)
+    rng = np.random.default_rng(seed)
+    sums: dict[str, list[float]] = {}
+    for r in measured_requests(vd, data.t0, model.timeout_s):
+        if r.lost or r.split not in payloads:
+            continue
+        modelled = model.timing(r.split, r.t_s, payloads[r.split], rng).latency_s
+        sums.setdefault(r.split, []).extend((r.latency_s, modelled))
+    out = []
+    for split, values in sums.items():
+        measured, modelled = values[0::2], values[1::2]
+        out.append(
+            SplitAgreement(split, len(measured), float(np.mean(measured)), float(np.mean(modelled)))
+        )
+    return out

@@ -44,3 +44,22 @@ def test_the_nr_cell_replay_pays_the_scheduling_request_and_the_cell_edge() -> N
     assert model.uplink.at(31.0).bottleneck_bps == pytest.approx(
         Radio(mcs=5, n_prb=51, bler=0.1).goodput_bps("uplink")
     )
+
+
+def test_a_real_runs_latencies_are_set_beside_the_models_for_the_same_requests(
+    tmp_path: Path,
+) -> None:
+    from reports.build import build_report
+    from testbed.replay import latency_against_run
+    from tests.test_report_splits import run_with_splits, write
+
+    folder = write(tmp_path, run_with_splits())
+    build_report(folder, formats=("json",), plots=False, splits=False)  # its summary.json
+    rows = {a.split: a for a in latency_against_run(load(SCENARIOS / "nr_cell.yaml"), folder)}
+    assert set(rows) == {"image", "conv3"}  # the splits the run played (lost ones left out)
+    # The synthetic run answered image in 40 then 150 ms, and conv3 in 80 ms.
+    assert 0.04 <= rows["image"].measured_s <= 0.15
+    assert rows["conv3"].measured_s == pytest.approx(0.08, abs=1e-5)
+    for a in rows.values():
+        assert a.model_s > 0.03  # the radio's SR and grant rounds, in the model too
+        assert a.ratio == pytest.approx(a.measured_s / a.model_s)
