@@ -29,12 +29,13 @@ ADDR_A, ADDR_B = "10.213.0.1", "10.213.0.2"
 PORT = 9000
 
 
-@pytest.fixture
-def pair() -> Iterator[tuple[str, str]]:
+@contextlib.contextmanager
+def namespaces(*ends: str) -> Iterator[tuple[str, ...]]:
+    """Fresh namespaces `elq-<hex>-<end>`, removed afterwards even when the test fails."""
     from pyroute2 import netns
 
     tag = secrets.token_hex(4)
-    names = (f"elq-{tag}-a", f"elq-{tag}-b")
+    names = tuple(f"elq-{tag}-{end}" for end in ends)
     try:
         for name in names:
             netns.create(name)
@@ -43,6 +44,12 @@ def pair() -> Iterator[tuple[str, str]]:
         for name in names:
             if name in netns.listnetns():
                 netns.remove(name)
+
+
+@pytest.fixture
+def pair() -> Iterator[tuple[str, ...]]:
+    with namespaces("a", "b") as names:
+        yield names
 
 
 def link_for(pair: tuple[str, str], **kwargs) -> UserspaceLink:
@@ -473,19 +480,9 @@ def test_a_radio_uplink_that_asks_for_grants_has_the_oracles_delays(pair) -> Non
 
 
 @pytest.fixture
-def cell_namespaces() -> Iterator[tuple[str, str, str]]:
-    from pyroute2 import netns
-
-    tag = secrets.token_hex(4)
-    names = (f"elq-{tag}-u1", f"elq-{tag}-u2", f"elq-{tag}-g")
-    try:
-        for name in names:
-            netns.create(name)
+def cell_namespaces() -> Iterator[tuple[str, ...]]:
+    with namespaces("u1", "u2", "g") as names:
         yield names
-    finally:
-        for name in names:
-            if name in netns.listnetns():
-                netns.remove(name)
 
 
 def _flood(
