@@ -755,6 +755,16 @@ class Slots(Stage):
         self.bler, self.max_retx, self.harq_s = bler, max_retx, harq_s
         self.retransmissions += [0] * max(0, max_retx + 2 - len(self.retransmissions))
 
+    def radio_counters(self) -> dict[str, Any]:
+        """What the air interface did: blocks, their HARQ tries, SRs and RLC resends."""
+        return {
+            "blocks": self.blocks,
+            # blocks by the retransmissions they needed; the last entry: given up on
+            "retransmissions": list(self.retransmissions),
+            "scheduling_requests": self.scheduling_requests,
+            "rlc_recovered": self.recovered,
+        }
+
     def _lead(self) -> float:
         return 0.0 if self.access == "sr" else self.lead_s
 
@@ -1328,9 +1338,13 @@ class Pipeline(Stage):
             for key in ("dropped_packets", "dropped_bytes"):
                 for reason, n in getattr(s.counters, key).items():
                     total[key][reason] = total[key].get(reason, 0) + n
-        return {
+        out = {
             "total": total,
             "queued": self.queued(),
             "stages": {s.name: s.counters.to_dict() for s in self.stages},
             "profile": self.profile.to_dict(),
         }
+        for s in self.stages:
+            if isinstance(s, Slots) and s.occasions:
+                out["radio"] = s.radio_counters()
+        return out

@@ -505,3 +505,17 @@ def test_the_buffer_of_a_ue_is_drop_tail_in_bytes() -> None:
     # 20 of the 50 kB fit; the rest is dropped on arrival, the oldest kept.
     assert [int.from_bytes(p[:4], "big") for _, _, p in got] == list(range(20))
     assert slots.counters.dropped_packets == {"queue_full": 30}
+
+
+def test_a_radio_pipelines_counters_say_what_the_air_interface_did() -> None:
+    from netem.nr import Radio
+    from netem.profile import LinkProfile
+    from netem.stages import Pipeline
+
+    pipeline = Pipeline.from_profile(LinkProfile(radio=Radio(bler=0.1)), seed=3)
+    got = run(pipeline, sparse_probes(400, 92, seed=31))  # type: ignore[arg-type]
+    radio = pipeline.snapshot()["radio"]
+    assert len(got) == 400 and radio["scheduling_requests"] == 400
+    assert radio["blocks"] == sum(radio["retransmissions"]) >= 800  # 72 B, then the rest
+    assert 0.05 < sum(radio["retransmissions"][1:]) / radio["blocks"] < 0.15
+    assert "radio" not in Pipeline.from_profile(LinkProfile()).snapshot()
