@@ -45,7 +45,6 @@ class Cell:
         self.scheduler = scheduler
         self.members: list[Slots] = []
         self._average: dict[int, float] = {}  # PF: bytes per occasion each UE has been getting
-        self.occasions_served = 0
 
     def join(self, stage: Slots) -> None:
         """Attach a UE's stage; from now on the cell decides what it sends."""
@@ -105,9 +104,11 @@ class Cell:
             if not m.occasions:
                 continue
             cursor = m._cursor if m._queue else None
-            here = cursor is not None and _ns(m._occasion(cursor)[0]) == key
-            capacity = _capacity_at(m, start)
+            occasion = None if cursor is None else m._occasion(cursor)
+            here = occasion is not None and _ns(occasion[0]) == key
             reserved = m._reserved.pop(key, 0)
+            # (a UE not served here may still hold a retransmission in it)
+            capacity = occasion[2] if here else _capacity_at(m, start) if reserved else 0
             if capacity and reserved:
                 taken += reserved / capacity
             if here:
@@ -131,7 +132,6 @@ class Cell:
                 average = self._average.get(id(m), 1.0)
                 got = served.get(id(m), 0.0)
                 self._average[id(m)] = average + (got - average) / PF_WINDOW
-        self.occasions_served += 1
 
     def _split(self, wants: list[tuple[Slots, int, float]], free: float) -> list[float]:
         """The share of the occasion each UE that wants some gets."""

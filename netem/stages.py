@@ -810,8 +810,6 @@ class Slots(Stage):
 
     def _grant(self, start: float) -> int:
         """Bytes the gNB grants this UE in the occasion that starts at `start` ("sr")."""
-        if self.access != "sr":
-            return 1 << 62
         if self._reports:
             ready = [r for r in self._reports if r[0] <= start + 1e-12]
             if ready:
@@ -865,19 +863,17 @@ class Slots(Stage):
         q = self._queue
         if not q:
             return 0
-        if self.access == "sr":
-            grant = self._grant(start)
-            if grant <= 0:
-                return 0
-            ready = start
-        else:
-            grant, ready = 1 << 62, start - self.lead_s
-        upto = self._sent
-        for arrival, _, cumulative in reversed(q):  # the newest arrived last
-            if arrival <= ready + 1e-12:
-                upto = cumulative
-                break
-        return min(grant, upto - self._sent)
+        if self.access != "sr":
+            return self._arrived_by(start - self.lead_s) - self._sent
+        grant = self._grant(start)
+        return 0 if grant <= 0 else min(grant, self._arrived_by(start) - self._sent)
+
+    def _arrived_by(self, t: float) -> int:
+        """Bytes that had entered the buffer by `t` (those already sent included)."""
+        for arrival, _, cumulative in reversed(self._queue):  # the newest arrived last
+            if arrival <= t + 1e-12:
+                return cumulative
+        return self._sent
 
     def _serve(self, start: float, end: float, budget: int) -> None:
         """Send `budget` bytes of the buffer (in order) in the occasion `start`..`end`."""
@@ -959,11 +955,7 @@ class Slots(Stage):
 
     def _report(self, start: float, end: float, ok_at: float | None) -> None:
         """The BSR of the PUSCH at `start`: what had arrived by then, decoded at `ok_at`."""
-        upto = self._sent
-        for arrival, _, cumulative in reversed(self._queue):  # the newest arrived last
-            if arrival <= start + 1e-12:
-                upto = max(upto, cumulative)
-                break
+        upto = max(self._sent, self._arrived_by(start))
         if ok_at is None:
             # Lost with its block: what it announced stays unannounced, and the UE asks
             # again once it could have noticed.

@@ -432,9 +432,10 @@ class LinkTest:
         # are sparse, and a host that idles between packets wakes later (~0.2 ms more here at
         # 10 ms than at 2 ms): its baseline is taken at the same spacing.
         radio = profile.radio
-        oracle = radio.oracle(direction, size_bytes=PROBE_PACKET) if radio is not None else None
+        oracle = None
         base_pps = 500.0
-        if radio is not None and oracle is not None:
+        if radio is not None:
+            oracle = radio.oracle(direction, size_bytes=PROBE_PACKET)
             period = radio.grid(direction).period_s
             periods = math.ceil(oracle.quantile(0.99) / period) + RADIO_PROBE_PERIODS
             base_pps = 1 / (periods * period)

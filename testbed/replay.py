@@ -24,6 +24,7 @@ How the scenario becomes a latency model (for the first vehicle, or `vehicle=`):
 
 from __future__ import annotations
 
+import json
 import math
 import secrets
 import shutil
@@ -444,8 +445,6 @@ def latency_against_run(
     mcap, summary_file = folder / names.RUN_MCAP, folder / names.SUMMARY_FILE
     if not mcap.is_file() or not summary_file.is_file():
         raise BadInput(f"{folder}: not a run folder with {names.RUN_MCAP} and its summary")
-    import json
-
     summary = json.loads(summary_file.read_text())
     payloads = {
         split: int(v.get("mean_payload_bytes") or 0)

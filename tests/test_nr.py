@@ -277,17 +277,22 @@ def test_a_downlink_pipeline_sends_in_the_downlink_windows() -> None:
 # -- HARQ -------------------------------------------------------------------------------------
 
 
-def harq_stage(bler: float, max_retx: int = 4, rlc: str = "am") -> tuple[Slots, object]:
+def radio_stage(seed: int = 5, **fields: object) -> tuple[Slots, object]:
+    """The `Slots` stage of a pipeline whose radio has `fields`, and that radio."""
     from netem.nr import Radio
     from netem.profile import LinkProfile
     from netem.stages import Pipeline
 
-    # A gNB that sees the buffer: each probe is one block, and HARQ alone decides its delay.
-    radio = Radio(bler=bler, max_retx=max_retx, ul_access="ideal", rlc=rlc)
-    pipeline = Pipeline.from_profile(LinkProfile(radio=radio), seed=9)
+    radio = Radio(**fields)  # type: ignore[arg-type]
+    pipeline = Pipeline.from_profile(LinkProfile(radio=radio), seed=seed)
     slots = pipeline.stage("slots")
     assert isinstance(slots, Slots)
     return slots, radio
+
+
+def harq_stage(bler: float, max_retx: int = 4, rlc: str = "am") -> tuple[Slots, object]:
+    # A gNB that sees the buffer: each probe is one block, and HARQ alone decides its delay.
+    return radio_stage(9, bler=bler, max_retx=max_retx, ul_access="ideal", rlc=rlc)
 
 
 def test_harq_retransmits_a_tenth_of_the_blocks_one_after_another() -> None:
@@ -331,18 +336,6 @@ def test_packets_leave_in_order_and_retransmissions_take_their_occasions() -> No
 
 
 # -- uplink access: scheduling request and grants, configured grant --------------------------
-
-
-def radio_stage(**fields: object) -> tuple[Slots, object]:
-    from netem.nr import Radio
-    from netem.profile import LinkProfile
-    from netem.stages import Pipeline
-
-    radio = Radio(**fields)  # type: ignore[arg-type]
-    pipeline = Pipeline.from_profile(LinkProfile(radio=radio), seed=5)
-    slots = pipeline.stage("slots")
-    assert isinstance(slots, Slots)
-    return slots, radio
 
 
 def test_an_idle_ue_asks_with_a_scheduling_request_and_its_delay_is_the_closed_forms() -> None:

@@ -10,7 +10,7 @@
   (`oai-tdd-30k`: SR and grants, HARQ at 10% BLER, RLC-AM).
 - `cell`: the most one cell carries, with 1 UE and with 8 UEs in one relay (saturating TCP
   from each), on a radio whose blocks carry more than the relay can (273 PRBs, 4 layers,
-  MCS 27, every slot downlink-free), so the relay, not the model, is the limit. Goal:
+  MCS 27, nine uplink slots in ten), so the relay, not the model, is the limit. Goal:
   >= 300 Mbit/s per cell on one core.
 
 Namespaces are `elq-<hex>-*`, removed at the end. The host has 2 cores that other work may
