@@ -589,7 +589,12 @@ def link_test(
     First it says which link rates this host's relay cannot carry (as `validate --host`; in
     the JSON as `capacity`). Exits 1 when a figure is out of tolerance (delay 0.5 ms over the
     measured baseline, rate 5% of configured x payload fraction, loss 0.5 percentage points).
-    Example: testbed link-test scenarios/smoke.yaml --quick
+
+    A radio direction is also measured against its closed-form oracle: one-way delay CDFs
+    side by side, their Wasserstein-1 and KS distances, HARQ retransmission shares against
+    the BLER (4 sigma) and what each slot carried while saturated. Its W1 tolerance is this
+    host's (its timer floor, measured and printed) plus what the number of probes allows by
+    chance. Example: testbed link-test scenarios/smoke.yaml --quick
     """
     from testbed.capacity import check_scenario
     from testbed.linktest import link_test as measure

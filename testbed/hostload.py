@@ -1,17 +1,28 @@
-"""What the host's CPUs did while something was measured, from /proc/stat.
+"""What the host's CPUs did while something was measured, from /proc/stat, and how late its
+timed wake-ups are.
 
     before = CpuSample.read()
     ...  # measure
     load = cpu_load_between(before, CpuSample.read())
     load.text()  # "CPU busy 87%, steal 6% over 14.2 s"
+    timer_floor().text()  # "timed wake-ups late by 0.061 ms median, 0.143 ms p99 (300)"
 
 A link that misses its rate on a busy host is the host's doing as often as the link's: the
 relays and the measuring endpoints wait for a CPU. The link self-test (`testbed/linktest.py`)
 and the tests' rate measurements (`tests/machine.py`) report this figure beside their own.
+
+A slot-timed link cannot send more precisely than its relay wakes up: the timer floor is the
+lateness of `select` timeouts like the relay's (1 ns timer slack), the part of a radio's
+delay error that is the host's and not the model's.
 """
 
 from __future__ import annotations
 
+import contextlib
+import ctypes
+import random
+import select
+import statistics
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -83,3 +94,55 @@ def cpu_load_between(before: CpuSample, after: CpuSample) -> CpuLoad:
         return CpuLoad(0.0, 0.0, max(0.0, after.at - before.at))
     free = delta["idle"] + delta["iowait"]
     return CpuLoad(1.0 - free / total, delta["steal"] / total, max(0.0, after.at - before.at))
+
+
+#: prctl(2) option: the timer slack the relay sets too (netem/relay.py).
+PR_SET_TIMERSLACK = 29
+
+
+@dataclass(frozen=True)
+class TimerFloor:
+    """How late `count` timed wake-ups came, in seconds (median, 99th percentile, worst)."""
+
+    p50_s: float
+    p99_s: float
+    max_s: float
+    count: int
+
+    def text(self) -> str:
+        return (
+            f"timed wake-ups late by {self.p50_s * 1000:.3f} ms median, "
+            f"{self.p99_s * 1000:.3f} ms p99 ({self.count})"
+        )
+
+    def to_dict(self) -> dict[str, Any]:
+        return {
+            "p50_ms": self.p50_s * 1000,
+            "p99_ms": self.p99_s * 1000,
+            "max_ms": self.max_s * 1000,
+            "count": self.count,
+        }
+
+
+def lateness_floor(late_s: list[float]) -> TimerFloor:
+    """The figures of a list of lateness samples (seconds)."""
+    ordered = sorted(late_s)
+    p99 = ordered[min(len(ordered) - 1, round(0.99 * (len(ordered) - 1)))]
+    return TimerFloor(statistics.median(ordered), p99, ordered[-1], len(ordered))
+
+
+def timer_floor(count: int = 300, seed: int = 1) -> TimerFloor:
+    """Sleep `count` times in `select` for 0.1-2 ms each (random, so the ticks of a coarse
+    clock show) with the relay's 1 ns timer slack, and measure how late each wake-up came.
+    Changes this process's timer slack: run it in a process of its own."""
+    # not Linux: the default slack is what gets measured
+    with contextlib.suppress(OSError, AttributeError):
+        ctypes.CDLL(None, use_errno=True).prctl(PR_SET_TIMERSLACK, 1, 0, 0, 0)
+    rng = random.Random(seed)
+    late = []
+    for _ in range(count):
+        asked = rng.uniform(0.0001, 0.002)
+        t0 = time.monotonic()
+        select.select([], [], [], asked)
+        late.append(max(0.0, time.monotonic() - t0 - asked))
+    return lateness_floor(late)

@@ -38,25 +38,43 @@ import time
 from dataclasses import asdict, dataclass, field
 from typing import TYPE_CHECKING, Any, Protocol
 
+import numpy as np
+
 from netem.netns import netns_path
 from netem.profile import LinkProfile
 from nodes.recording import linktable
 from testbed.connectivity import echo_rtts
 from testbed.errors import TestbedError
-from testbed.hostload import CpuLoad, CpuSample, cpu_load_between
+from testbed.hostload import CpuLoad, CpuSample, TimerFloor, cpu_load_between, timer_floor
 from testbed.links import DIRECTIONS, Direction, LinkController, neutral
 from testbed.namespaces import inside
 
 if TYPE_CHECKING:
+    from netem.nr import DelayOracle, Grid, Radio
     from testbed.topology import Link, Net, Node
 
 STAMP = struct.Struct("!dI")  # send time (monotonic), sequence number
 CTX = mp.get_context("fork")
 PORT = 9100
 DELAY_TOL_S = 0.0005
-#: A radio direction's delay distribution may be this far from the oracle (Wasserstein-1);
-#: the relay's timer lateness and the receiving stack add ~0.1-0.3 ms here.
-RADIO_TOL_S = 0.0005
+#: A radio direction's delay distribution may be this far from the oracle (Wasserstein-1),
+#: the sum of two parts (W1 obeys the triangle inequality). The host's: the relay's timer
+#: lateness and the receiving stack add ~0.1-0.3 ms here, so RADIO_TOL_S, or RADIO_TOL_MARGIN_S
+#: over the 99th percentile of this host's timed wake-ups where those are later (measured at
+#: the start of the test, `hostload.timer_floor`, and printed). The probes': a finite sample
+#: of the oracle itself is this far from it, by chance; its 99th percentile over
+#: SAMPLING_DRAWS draws of as many probes (`sampling_chance`: 0.76 ms for 100 probes of OAI's
+#: uplink, whose 10% HARQ tail is 5 ms away, 0.24 ms for 1000).
+RADIO_TOL_S = 0.0003
+RADIO_TOL_MARGIN_S = 0.00025
+SAMPLING_DRAWS = 400
+#: Probabilities at which a radio direction's measured and closed-form CDFs are kept.
+CDF_QUANTILES = tuple(k / 100 for k in range(1, 100))
+#: A measured HARQ share may be this many binomial standard deviations from the BLER (4:
+#: a false alarm once in ~16,000 directions).
+HARQ_SIGMAS = 4.0
+#: Below this many transport blocks the HARQ shares are printed but not judged.
+HARQ_MIN_BLOCKS = 200
 #: Spacing of a radio direction's delay probes, in grid periods, beyond the oracle's 99th
 #: percentile: not a whole number, so their phases cover the period, and more than one
 #: retransmission's delay on a 5 ms pattern, so a probe held up by HARQ seldom holds up the
@@ -273,6 +291,8 @@ class DirectionResult:
     loss_packets: int = 0
     tcp_mbit: float | None = None
     udp_mbit: float | None = None
+    #: A radio direction's figures (`oracle_comparison`, `harq_shares`, `slot_goodput`).
+    radio: dict[str, Any] | None = None
     verdicts: list[Verdict] = field(default_factory=list)
 
     @property
@@ -304,6 +324,8 @@ class LinkTestReport:
     #: The links' rates against the host's data plane beforehand (`CapacityCheck.to_dict`;
     #: None: not checked).
     capacity: dict[str, Any] | None = None
+    #: How late this host's timed wake-ups were (measured when a link has a radio).
+    timer: TimerFloor | None = None
 
     @property
     def ok(self) -> bool:
@@ -317,6 +339,7 @@ class LinkTestReport:
             "seconds": self.seconds,
             "host_cpu": None if self.host_cpu is None else self.host_cpu.to_dict(),
             "capacity": self.capacity,
+            "timer_floor": None if self.timer is None else self.timer.to_dict(),
             "tolerances": {
                 "delay_ms": DELAY_TOL_S * 1000,
                 "rate_fraction": RATE_TOL,
@@ -334,7 +357,8 @@ class LinkTestReport:
 
     def text(self) -> str:
         """The table (`nodes.recording.linktable`, the columns the report prints too)."""
-        lines = [linktable.text(self.to_dict())]
+        data = self.to_dict()
+        lines = [linktable.text(data), *linktable.radio_lines(data)]
         if self.host_cpu is not None:
             lines.append(f"host during the test: {self.host_cpu.text()}")
         return "\n".join(lines)
@@ -381,6 +405,13 @@ class LinkTest:
         self.control: LinkController = net.control
         self.quick = quick
         self.progress = progress or (lambda _line: None)
+        self.timer: TimerFloor | None = None  # measured before the first radio direction
+
+    def host_tolerance_s(self, netns: str) -> float:
+        """The host's part of a radio direction's W1 tolerance (see RADIO_TOL_S)."""
+        if self.timer is None:
+            self.timer = in_namespace(netns, timer_floor).result()
+        return max(RADIO_TOL_S, RADIO_TOL_MARGIN_S + self.timer.p99_s)
 
     def run(self) -> LinkTestReport:
         t0 = time.monotonic()
@@ -393,7 +424,9 @@ class LinkTest:
         cpu1 = _cpu_sample()
         load = cpu_load_between(cpu0, cpu1) if cpu0 is not None and cpu1 is not None else None
         backend = self.net.backend_text()
-        return LinkTestReport(backend, self.quick, results, time.monotonic() - t0, load)
+        report = LinkTestReport(backend, self.quick, results, time.monotonic() - t0, load)
+        report.timer = self.timer
+        return report
 
     def _check_alive(self) -> None:
         failure = self.control.failure()
@@ -459,42 +492,87 @@ class LinkTest:
             result.owd_median_ms = statistics.median(owd)
             result.owd_p99_ms = percentile(owd, 0.99)
             result.jitter_sd_ms = statistics.stdev(owd)
+        chance: Chance | None = None
         if oracle is not None and len(owd) >= 2 and result.baseline_ms is not None:
-            # Distance of the measured delay distribution from the closed form (Wasserstein-1:
-            # the mean gap between their quantiles), net of the delay and the path without it.
-            net = sorted(x - profile.delay_s * 1000 - result.baseline_ms for x in owd)
-            n = len(net)
-            w1 = statistics.fmean(
-                abs(x - oracle.quantile((i + 0.5) / n) * 1000) for i, x in enumerate(net)
+            # The measured delay distribution beside the closed form, net of the wired delay
+            # and of the path without the link.
+            net = [x - profile.delay_s * 1000 - result.baseline_ms for x in owd]
+            host_ms = self.host_tolerance_s(src.netns) * 1000
+            chance = sampling_chance(oracle, len(net))
+            sampling_ms = chance.w1_s * 1000
+            tol_ms = host_ms + sampling_ms
+            result.radio = oracle_comparison(net, oracle)
+            result.radio.update(
+                tolerance_ms=tol_ms, host_tolerance_ms=host_ms, sampling_tolerance_ms=sampling_ms
             )
+            w1 = result.radio["w1_ms"]
             result.verdicts.append(
-                Verdict(
-                    "radio W1 ms",
-                    w1,
-                    0.0,
-                    f"<= {RADIO_TOL_S * 1000:g} ms from the oracle",
-                    w1 <= RADIO_TOL_S * 1000,
-                )
+                Verdict("radio W1 ms", w1, 0.0, f"<= {tol_ms:.3g} ms from the oracle", w1 <= tol_ms)
             )
         if result.owd_median_ms is not None and result.baseline_ms is not None:
             want = profile.delay_s * 1000 + result.baseline_ms
+            tol_ms = DELAY_TOL_S * 1000
             if oracle is not None:
+                # A radio's delays spread over its period and HARQ tail, so the median of a
+                # few probes is off the oracle's by chance too.
                 want += oracle.quantile(0.5) * 1000
+                if chance is not None:
+                    tol_ms += chance.median_s * 1000
             result.verdicts.append(
                 Verdict(
                     "delay ms",
                     result.owd_median_ms,
                     want,
-                    f"±{DELAY_TOL_S * 1000:g} ms",
-                    abs(result.owd_median_ms - want) <= DELAY_TOL_S * 1000,
+                    f"±{tol_ms:.3g} ms",
+                    abs(result.owd_median_ms - want) <= tol_ms,
                 )
             )
         else:
             result.verdicts.append(Verdict("delay ms", float("nan"), 0.0, "no echo", False))
         capped = _radio_capped(profile, direction)
+        before = self._radio_counters(link.name, direction) if radio else None
         self.loss(result, capped, src, dst, addr, tail)
+        saturated = self._radio_counters(link.name, direction) if radio else None
         self.rate(result, capped, src, dst, addr)
+        if radio is not None and before is not None and saturated is not None:
+            after = self._radio_counters(link.name, direction)
+            if after is not None:
+                self._radio_air(result, radio, direction, before, saturated, after)
         return result
+
+    def _radio_counters(self, link: str, direction: Direction) -> dict[str, Any] | None:
+        """The radio counters of one direction and its bytes delivered (None: no relay)."""
+        counters = self.control.counters(link)
+        if not counters or "radio" not in counters.get(direction, {}):
+            return None
+        snap = counters[direction]
+        return {**snap["radio"], "bytes_out": snap["total"]["bytes_out"]}
+
+    def _radio_air(
+        self,
+        result: DirectionResult,
+        radio: Radio,
+        direction: Direction,
+        before: dict[str, Any],
+        saturated: dict[str, Any],
+        after: dict[str, Any],
+    ) -> None:
+        """HARQ shares over the whole test of this direction, and what a slot carried while
+        the rate test saturated it."""
+        harq = harq_shares(before, after, radio.bler, radio.max_retx)
+        slots = slot_goodput(saturated, after, radio.grid(direction), radio.bler)
+        result.radio = {**(result.radio or {}), "harq": harq, "slots": slots}
+        if harq["blocks"] >= HARQ_MIN_BLOCKS:
+            failed, bound = harq["first_failed"], harq["bound"]
+            result.verdicts.append(
+                Verdict(
+                    "HARQ retx %",
+                    failed * 100,
+                    radio.bler * 100,
+                    f"±{bound * 100:.2g} pp ({HARQ_SIGMAS:g} sigma, {harq['blocks']} blocks)",
+                    abs(failed - radio.bler) <= bound,
+                )
+            )
 
     def loss(
         self,
@@ -550,6 +628,105 @@ class LinkTest:
                 udp = 0.0
             result.udp_mbit = udp / 1e6
             result.verdicts.append(_rate_verdict("udp Mbit/s", udp, want))
+
+
+def oracle_comparison(net_ms: list[float], oracle: DelayOracle) -> dict[str, Any]:
+    """Measured one-way delays (ms, net of everything but the radio) against the closed form:
+    both CDFs at `CDF_QUANTILES`, the Wasserstein-1 distance (the mean gap between their
+    quantile functions) and the Kolmogorov-Smirnov statistic (the largest gap between the
+    CDFs)."""
+    ordered = sorted(net_ms)
+    n = len(ordered)
+    w1 = statistics.fmean(
+        abs(x - oracle.quantile((i + 0.5) / n) * 1000) for i, x in enumerate(ordered)
+    )
+    ks = 0.0
+    for i, x in enumerate(ordered):
+        f = oracle.cdf(x / 1000)
+        ks = max(ks, (i + 1) / n - f, f - i / n)
+    return {
+        "samples": n,
+        "w1_ms": w1,
+        "ks": ks,
+        "quantiles": list(CDF_QUANTILES),
+        "measured_ms": [percentile(ordered, q) for q in CDF_QUANTILES],
+        "oracle_ms": [oracle.quantile(q) * 1000 for q in CDF_QUANTILES],
+    }
+
+
+@dataclass(frozen=True)
+class Chance:
+    """How far `n` delays drawn from an oracle fall from it by chance (seconds): the 99th
+    percentile over SAMPLING_DRAWS draws of their Wasserstein-1 distance from it, and of
+    their median's distance from its median."""
+
+    w1_s: float
+    median_s: float
+
+
+def sampling_chance(oracle: DelayOracle, n: int, q: float = 0.99, seed: int = 0) -> Chance:
+    """`Chance` of `n` probes of `oracle`. W1 is the area between the CDFs, integrated on a
+    fine grid; the oracle's pieces are uniform, so a draw picks a piece by its mass and a
+    point in it."""
+    pieces = np.array([p for p in oracle.pieces if p[2] > 0 and p[1] > p[0]])
+    low, high, weight = pieces[:, 0], pieces[:, 1], pieces[:, 2]
+    mass = (high - low) * weight
+    mass /= mass.sum()
+    xs = np.linspace(low.min(), high.max(), 4001)
+    cdf = (np.clip(xs[:, None] - low, 0.0, high - low) * weight).sum(axis=1)
+    cdf /= cdf[-1]
+    median = oracle.quantile(0.5)
+    rng = np.random.default_rng(seed)
+    distances, medians = [], []
+    for _ in range(SAMPLING_DRAWS):
+        k = rng.choice(len(mass), size=n, p=mass)
+        drawn = np.sort(low[k] + rng.random(n) * (high[k] - low[k]))
+        empirical = np.searchsorted(drawn, xs, side="right") / n
+        distances.append(np.abs(empirical - cdf).sum() * (xs[1] - xs[0]))
+        medians.append(abs(float(np.median(drawn)) - median))
+    return Chance(float(np.quantile(distances, q)), float(np.quantile(medians, q)))
+
+
+def harq_shares(
+    before: dict[str, Any], after: dict[str, Any], bler: float, max_retx: int
+) -> dict[str, Any]:
+    """Transport blocks by the HARQ retransmissions they needed between two reads of a radio's
+    counters (the last share: given up on), beside the shares a first-transmission BLER
+    implies (retry k: bler^k (1 - bler)); `bound` is HARQ_SIGMAS binomial deviations of the
+    share of blocks whose first transmission failed."""
+    tries = [
+        a - (before["retransmissions"][k] if k < len(before["retransmissions"]) else 0)
+        for k, a in enumerate(after["retransmissions"])
+    ]
+    blocks = sum(tries)
+    expected = [bler**k * (1 - bler) for k in range(max_retx + 1)] + [bler ** (max_retx + 1)]
+    shares = [t / blocks if blocks else 0.0 for t in tries]
+    return {
+        "blocks": blocks,
+        "shares": shares,
+        "expected": expected[: len(shares)],
+        "first_failed": 1 - shares[0] if blocks else 0.0,
+        "bound": HARQ_SIGMAS * math.sqrt(bler * (1 - bler) / max(blocks, 1)) + 1 / max(blocks, 1),
+    }
+
+
+def slot_goodput(
+    before: dict[str, Any], after: dict[str, Any], grid: Grid, bler: float
+) -> dict[str, Any]:
+    """What a slot carried while the rate test saturated the direction: bytes delivered per
+    transport block of new data, beside the mean transport block size of the direction's
+    occasions and the share of it left when a share `bler` of every occasion goes to
+    retransmissions of earlier blocks."""
+    blocks = after["blocks"] - before["blocks"]
+    delivered = after["bytes_out"] - before["bytes_out"]
+    capacity = statistics.fmean(o.capacity_bytes for o in grid.occasions)
+    return {
+        "blocks": blocks,
+        "bytes_per_block": delivered / blocks if blocks else None,
+        "block_bytes": capacity,
+        "expected_bytes_per_block": capacity * (1 - bler),
+        "occasions_per_s": len(grid.occasions) / grid.period_s,
+    }
 
 
 def _radio_capped(profile: LinkProfile, direction: Direction) -> LinkProfile:

@@ -116,5 +116,15 @@ def test_a_radio_link_is_measured_against_its_oracle(
     assert up.ok, up.verdicts
     # The TCP rate is judged against the radio's transport blocks, ~24 Mbit/s for OAI's uplink.
     assert 20 < verdicts["tcp Mbit/s"].expected < 30
+    # The CDFs, the distances, HARQ shares and per-slot goodput are kept for the report.
+    assert up.radio is not None
+    assert up.radio["samples"] >= 50 and 0 <= up.radio["ks"] <= 1
+    assert len(up.radio["measured_ms"]) == len(up.radio["oracle_ms"]) == 99
+    assert up.radio["harq"]["blocks"] > 0 and abs(sum(up.radio["harq"]["shares"]) - 1) < 1e-9
+    slots = up.radio["slots"]
+    assert slots["blocks"] > 0 and slots["bytes_per_block"] > 0
+    # A saturated slot carries close to a transport block less the share HARQ takes.
+    assert 0.6 < slots["bytes_per_block"] / slots["expected_bytes_per_block"] < 1.25, slots
+    assert test.timer is not None and test.timer.count > 0
     late = {v.what: v for v in down.verdicts}["radio W1 ms"]
     assert not late.ok and late.measured > 1.5  # four 0.5 ms slots off the oracle
