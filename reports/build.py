@@ -628,11 +628,72 @@ def _links(s: dict[str, Any], plots: dict[str, Plot | None]) -> Section:
                 caption=f"link self-test ({verdict}; backend {lt.get('backend', '-')})",
             )
         )
+        radio = _radio_table(lt)
+        if radio is not None:
+            sec.add(radio)
+            if plots.get("radio_cdfs"):
+                sec.add(Image(plots["radio_cdfs"]))  # type: ignore[arg-type]
     elif str(ls.get("linktest_ran")).lower() == "false":
         sec.add(Para("The link self-test did not run (the scenario's report.link_test is off)."))
     else:
         sec.add(_not_recorded("the link self-test", "no linktest.json attachment"))
     return sec
+
+
+def _radio_table(lt: dict[str, Any]) -> Table | None:
+    """The self-test's radio directions against their oracle (`nodes.recording.linktable`
+    holds the figures' text, as `testbed link-test` prints it)."""
+    directions = linktable.radio_directions(lt)
+    if not directions:
+        return None
+    rows = []
+    for link, direction, radio in directions:
+        points = {round(q * 100): (m, o) for q, m, o in linktable.cdf_points(radio)}
+        cells = [
+            f"{points[k][0]:.2f} / {points[k][1]:.2f}" if k in points else "-"
+            for k in (10, 50, 90, 99)
+        ]
+        harq, slots = radio.get("harq"), radio.get("slots")
+        rows.append(
+            [
+                link,
+                direction,
+                str(radio.get("samples", "-")),
+                _f(radio.get("w1_ms")),
+                _f(radio.get("ks")),
+                f"{_f(radio.get('tolerance_ms'))} ({_f(radio.get('host_tolerance_ms'))} host "
+                f"+ {_f(radio.get('sampling_tolerance_ms'))} chance)",
+                *cells,
+                linktable.harq_text(harq) if isinstance(harq, dict) else "-",
+                linktable.slots_text(slots) if isinstance(slots, dict) else "-",
+            ]
+        )
+    floor = lt.get("timer_floor")
+    timer = (
+        f"; this host's timer floor: p50 {_f(floor.get('p50_ms'))} ms, p99 "
+        f"{_f(floor.get('p99_ms'))} ms over {floor.get('count', '-')} timed wake-ups"
+        if isinstance(floor, dict)
+        else ""
+    )
+    return Table(
+        [
+            "link",
+            "dir",
+            "probes",
+            "W1 ms",
+            "KS",
+            "tolerance ms",
+            "p10 ms meas / oracle",
+            "p50",
+            "p90",
+            "p99",
+            "HARQ shares measured (expected %)",
+            "per slot at saturation",
+        ],
+        rows,
+        caption="radio directions against the closed-form oracle (one-way delay of sparse "
+        f"probes, net of the wired delay and the path without the link){timer}",
+    )
 
 
 def _nodes(s: dict[str, Any]) -> Section:

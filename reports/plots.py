@@ -18,6 +18,7 @@ import numpy as np
 from matplotlib.figure import Figure
 from matplotlib.ticker import FuncFormatter, LogLocator, NullFormatter
 
+from nodes.recording import linktable
 from reports.mcapread import RunData, VehicleData
 from reports.summary import FrameErrors, fused_method, split_order
 
@@ -519,6 +520,45 @@ def split_error_latency(summary: dict[str, Any], out: Path) -> Plot | None:
     )
 
 
+def radio_cdfs(summary: dict[str, Any], out: Path) -> Plot | None:
+    """Per radio direction of the link self-test: the measured one-way delay CDF beside the
+    closed-form oracle's (the quantiles linktest.json keeps)."""
+    lt = (summary.get("links") or {}).get("linktest") or {}
+    shown = [
+        r
+        for r in linktable.radio_directions(lt)
+        if r[2].get("measured_ms") and r[2].get("quantiles")
+    ][:MAX_VEHICLE_FIGURES]
+    if not shown:
+        return None
+    cols = min(len(shown), 2)
+    rows = -(-len(shown) // cols)
+    fig = Figure(figsize=(5.5 * cols, 3.6 * rows))
+    for i, (link, direction, radio) in enumerate(shown):
+        ax = fig.add_subplot(rows, cols, i + 1)
+        qs = radio["quantiles"]
+        ax.plot(radio["measured_ms"], qs, color="#2ca02c", lw=1.6, label="measured")
+        ax.plot(radio["oracle_ms"], qs, color="black", lw=1.2, ls="--", label="oracle")
+        ax.set_title(
+            f"{link} {direction}: W1 {radio.get('w1_ms', float('nan')):.2f} ms, "
+            f"KS {radio.get('ks', float('nan')):.2f}",
+            fontsize=9,
+        )
+        ax.set_xlabel("one-way delay of the radio (ms)")
+        ax.set_ylabel("CDF")
+        ax.set_ylim(0, 1)
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=8, loc="lower right")
+    fig.tight_layout()
+    return Plot(
+        _save(fig, out, "radio_cdfs.png"),
+        "Radio delays against the oracle",
+        "One-way delay of sparse probes per radio direction in the link self-test, net of the "
+        "wired delay and the path without the link (solid), beside the closed form the radio's "
+        "parameters give for an idle UE (dashed).",
+    )
+
+
 def draw_all(
     data: RunData, errs: dict[str, dict[str, FrameErrors]], summary: dict[str, Any], out: Path
 ) -> dict[str, Plot | None]:
@@ -530,6 +570,7 @@ def draw_all(
         "latency_per_split": latency_per_split(data, out),
         "accuracy_vs_latency": accuracy_vs_latency(errs.get("edgeloc"), out),
         "link_rates": link_rates(data, out),
+        "radio_cdfs": radio_cdfs(summary, out),
         "realtime": realtime(data, summary, out),
         "split_error_latency": split_error_latency(summary, out),
     }

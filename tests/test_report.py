@@ -664,3 +664,49 @@ def test_the_cli_and_the_report_print_one_link_test_table() -> None:
     assert rows[0][:4] == ["av1-gnb1", "uplink", "10.20/11.00", "0.012"]
     assert report.text().splitlines()[0].split("  ")[0] == linktable.HEADERS[0]
     assert all(cell in report.text() for cell in rows[0] if cell)
+
+
+def test_a_radio_link_test_shows_its_cdfs_beside_the_oracle(tmp_path: Path) -> None:
+    """The radio figures `testbed link-test` keeps reach the report: a table of each radio
+    direction's W1, KS, tolerance, CDF points, HARQ shares and per-slot goodput, and a figure
+    of the two CDFs."""
+    import copy
+    import random
+
+    from netem.nr import RADIO_PROFILES
+    from testbed.linktest import harq_shares, oracle_comparison
+
+    oracle = RADIO_PROFILES["oai-tdd-30k"].oracle("uplink", size_bytes=92)
+    rng = random.Random(2)
+    radio = oracle_comparison([oracle.quantile(rng.random()) * 1000 for _ in range(200)], oracle)
+    radio.update(tolerance_ms=1.0, host_tolerance_ms=0.4, sampling_tolerance_ms=0.6)
+    before = {"retransmissions": [0, 0, 0, 0, 0, 0]}
+    radio["harq"] = harq_shares(before, {"retransmissions": [900, 90, 9, 1, 0, 0]}, 0.1, 4)
+    radio["slots"] = {
+        "blocks": 970,
+        "bytes_per_block": 4600.0,
+        "block_bytes": 5132.0,
+        "expected_bytes_per_block": 4618.8,
+        "occasions_per_s": 600.0,
+    }
+    lt = copy.deepcopy(LINKTEST)
+    lt["links"][0]["directions"][0]["radio"] = radio  # type: ignore[index]
+    lt["timer_floor"] = {"p50_ms": 0.057, "p99_ms": 0.198, "max_ms": 0.4, "count": 300}
+    synth = small_run()
+    synth.attachments["linktest.json"] = json.dumps(lt).encode()
+    folder = write_run(tmp_path, synth)
+    build_report(folder)
+    assert (folder / "plots/radio_cdfs.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    md = (folder / "report.md").read_text()
+    p50 = radio["measured_ms"][49], radio["oracle_ms"][49]
+    for text in (
+        "radio directions against the closed-form oracle",
+        f"| av1-gnb1 | uplink | 200 | {radio['w1_ms']:.3f} | {radio['ks']:.3f} |",
+        "1.000 (0.400 host + 0.600 chance)",
+        f"{p50[0]:.2f} / {p50[1]:.2f}",
+        "blocks 1000: +0 90% (90), +1 9% (9)",
+        "4600 B per block (4619 expected of a 5132 B transport block)",
+        "timer floor: p50 0.057 ms, p99 0.198 ms over 300 timed wake-ups",
+        "![Radio delays against the oracle](plots/radio_cdfs.png)",
+    ):
+        assert text in md, text

@@ -138,3 +138,57 @@ def test_multi_vehicle_shortened_run_serves_both_vehicles(
         )
     )
     assert wall < MULTI_WALL_S, f"the shortened multi-vehicle run took {wall:.1f} s"
+
+
+#: nr_cell shortened: its three radio phases in this many seconds of run.
+NR_SHORT_S = 15.0
+
+
+def test_nr_cell_runs_end_to_end_and_its_report_shows_the_radio(
+    interfaces: None, state_dir: Path, tmp_path: Path
+) -> None:
+    """Issue #16: `scenarios/nr_cell.yaml` through `testbed run`, shortened; the report shows
+    each radio direction's delay CDF beside the oracle's, and the learner's splits."""
+    file = REPO / "scenarios" / "nr_cell.yaml"
+    short = tmp_path / "nr_cell.yaml"
+    short.write_text(yaml.safe_dump(shorten(read_tree(file), NR_SHORT_S), sort_keys=False))
+    runs = tmp_path / "runs"
+    t0 = time.monotonic()
+    r = testbed_cli("run", str(short), "--runs-dir", str(runs), timeout=400)
+    wall = time.monotonic() - t0
+    assert r.returncode == 0, r.stdout[-4000:] + r.stderr[-4000:]
+    (folder,) = [p for p in runs.iterdir() if p.is_dir()]
+    run = json.loads((folder / "run.json").read_text())
+    assert run["ok"] and run["timeline"]["applied"] == 2
+    summary = json.loads((folder / "summary.json").read_text())
+    lt = summary["links"]["linktest"]
+    radio = {
+        d["direction"]: d["radio"]
+        for link in lt["links"]
+        if link["link"] == "av1-gnb1"
+        for d in link["directions"]
+    }
+    assert set(radio) == {"uplink", "downlink"}
+    for d in radio.values():
+        assert len(d["measured_ms"]) == len(d["oracle_ms"]) == 99 and d["samples"] >= 50
+        assert d["harq"]["blocks"] > 0 and d["slots"]["blocks"] > 0
+    assert lt["timer_floor"]["count"] > 0
+    md = (folder / "report.md").read_text()
+    for text in (
+        "radio directions against the closed-form oracle",
+        "| av1-gnb1 | uplink |",
+        "| av1-gnb1 | downlink |",
+        "![Radio delays against the oracle](plots/radio_cdfs.png)",
+        "![Split point over time, av1](plots/split_av1.png)",
+    ):
+        assert text in md, text
+    plays = run["nodes"]["processes"]["av1.inference"]["stats"]["split_plays"]
+    assert sum(plays.values()) > 0, plays
+    assert _ours(run["run_id"]) == [] and st.list_runs() == []
+    print(
+        f"\nnr_cell ({NR_SHORT_S:g} s): wall {wall:.1f} s; splits {plays}; "
+        + "; ".join(
+            f"{k}: W1 {d['w1_ms']:.3f} ms (tolerance {d['tolerance_ms']:.3f}), KS {d['ks']:.3f}"
+            for k, d in radio.items()
+        )
+    )
