@@ -528,6 +528,10 @@ class Radio:
     #: The buffer for this UE and direction, in bytes (drop-tail beyond it; None: only the
     #: link's packet limit). The gNB's RLC buffer per bearer, e.g. srsRAN's 5QI queue size.
     buffer_bytes: int | None = None
+    #: One-way delay from the gNB to the core (the N3 transport and the UPF), carried in this
+    #: direction's delay, so a named radio alone gives a cell's round trip to the core
+    #: (0: the scenario's backhaul link holds it).
+    core_delay_s: float = 0.0
 
     def __str__(self) -> str:
         """A line a log can carry: the grid, the carrier and how the uplink is granted."""
@@ -601,6 +605,7 @@ class Radio:
         """
         grid = self.grid(direction)
         harq = (self.bler, self.max_retx, self.harq_s)
+        fixed_s += self.core_delay_s
         if grid.access == "sr":
             return DelayOracle.scheduling_request(
                 grid.occasions,
@@ -647,6 +652,8 @@ class Radio:
             raise NrError(f"rlc must be am or um, got {self.rlc!r}")
         if not 0.0 <= self.rlc_status_s <= 1.0:
             raise NrError(f"rlc_status must be 0 to 1 s, got {self.rlc_status_s}")
+        if not 0.0 <= self.core_delay_s <= 1.0:
+            raise NrError(f"core_delay must be 0 to 1 s, got {self.core_delay_s}")
         if self.ul_access not in UL_ACCESS:
             allowed = ", ".join(UL_ACCESS)
             raise NrError(f"ul_access must be one of {allowed}, got {self.ul_access!r}")
@@ -734,8 +741,8 @@ def _repeated(base: Sequence[Occasion], period_s: float, times: int) -> list[Occ
     ]
 
 
-#: Named radios, each value with its source. What the model has today: TDD windows, transport
-#: blocks, uplink access (SR and grants, or a configured grant) and HARQ (RLC comes later, #16).
+#: Named radios, each value with its source: TDD windows, transport blocks, uplink access (SR
+#: and grants, or a configured grant), HARQ, RLC and, for a commercial cell, the core's distance.
 RADIO_PROFILES: dict[str, Radio] = {
     # OpenAirInterface's default band-78 gNB, gnb.sa.band78.fr1.106PRB.usrpb210.conf:
     # subcarrierSpacing 1 (30 kHz), dl_UL_TransmissionPeriodicity 6 (5 ms) with
@@ -782,5 +789,36 @@ RADIO_PROFILES: dict[str, Radio] = {
         grant_slots=2,
         cg_period_slots=4,
         cg_offset=3,
+    ),
+    # A commercial mid-band (n78/n77) cell as measurements see one, not any operator's
+    # configuration. 30 kHz and a 5 ms DDDDDDDSUU frame: the LTE-compatible 3.5 GHz frame of
+    # the GSMA's "5G TDD Synchronisation" guidelines (2020). 273 PRBs: a 100 MHz carrier at
+    # 30 kHz (TS 38.101-1 Table 5.3.2-1). An SR every 10 ms, the short end of the 10-20 ms
+    # that commercial cells configure (issue #16); RLC-AM status after 20 ms; the core ~3 ms
+    # from the gNB each way. By the oracle an idle UE's 92-byte packet then takes ~19 ms up
+    # and ~5 ms down (median), a ~24 ms round trip: Rohde & Schwarz measured one-way delays
+    # of under 7 ms down and up to ~18 ms up on Deutsche Telekom's public 5G in Munich
+    # (M. Kottkamp, "5G NR and LTE latency analysis in a public network", 2022), and issue
+    # #16 puts commercial median RTTs at 20-30 ms. MCS 16 (a mid-cell link) is an assumption.
+    "commercial-midband": Radio(
+        slots="DDDDDDDSUU",
+        special=(6, 4, 4),
+        numerology=1,
+        n_prb=273,
+        mcs=16,
+        k2_slots=2,
+        bler=0.1,  # the CQI definition's 10% target (TS 38.214 §5.2.2.1)
+        max_retx=4,
+        harq_slots=2,
+        ul_access="sr",
+        sr_period_slots=20,  # 10 ms at 30 kHz
+        sr_offset=8,  # the first full uplink slot of the first 5 ms
+        sr_grant_bytes=72,
+        grant_slots=3,  # an assumption: a commercial scheduler a little slower than OAI's
+        cg_period_slots=10,
+        cg_offset=8,
+        rlc="am",
+        rlc_status_s=0.02,
+        core_delay_s=0.003,
     ),
 }

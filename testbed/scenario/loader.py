@@ -21,11 +21,11 @@ from typing import Any
 import yaml
 from yaml.nodes import Node
 
-from netem.nr import RADIO_PROFILES, SYMBOLS_PER_SLOT, NrError, Radio
+from netem.nr import RADIO_PROFILES, Radio
 from netem.profile import GilbertElliott, LinkProfile
 from netem.traces import TraceError, TraceProblem, default_format
 from testbed import units
-from testbed.scenario import model, schema_v1
+from testbed.scenario import model, radios, schema_v1
 from testbed.scenario.issues import ROOT_PATH, Issue, ScenarioError, did_you_mean
 from testbed.scenario.kinds import Context, Invalid, Items, Section
 
@@ -34,6 +34,7 @@ __all__ = ["load", "loads", "profile_changes"]
 #: Names of this scenario (nodes, links, splits) are short words, so a misspelt one is matched
 #: more loosely than a key of the schema (`kinds.SPELLING_CUTOFF`).
 NAME_CUTOFF = 0.5
+DIRS = ("uplink", "downlink")
 
 
 def load(path: str | Path) -> model.Scenario:
@@ -150,18 +151,26 @@ def _compose(text: str, ctx: Context) -> Node | None:
 # ---- profiles -------------------------------------------------------------------------------
 
 
-def profile_changes(section: Section, ctx: Context | None = None) -> dict[str, object]:
+def profile_changes(
+    section: Section,
+    ctx: Context | None = None,
+    radio_base: Radio | None = None,
+    with_radio: bool = True,
+    check_radio: bool = True,
+) -> dict[str, object]:
     """`LinkProfile` fields (SI) set by the profile keys written in `section`.
 
     Keys that set one of two alternatives also clear the other (a loss percentage removes a
     Gilbert-Elliott model, a packet queue limit removes a time limit), so merging and `set`
     events never leave both in place. A radio whose fields do not fit together (a pattern
-    whose period TS 38.331 does not allow, say) is reported to `ctx` at its line.
+    whose period TS 38.331 does not allow, say) is reported to `ctx` at its line. A radio
+    mapping without a `profile` changes `radio_base` (`testbed.scenario.radios`); with
+    `with_radio` off the radio is left to the caller.
     """
     v = section.values
     changes: dict[str, object] = {}
-    if "radio" in v:
-        radio = _radio(v["radio"], section, ctx)
+    if "radio" in v and with_radio:
+        radio = _radio(v["radio"], section, ctx, radio_base, check_radio)
         if radio is not False:
             changes["radio"] = radio
     if "rate" in v:
@@ -191,8 +200,16 @@ def profile_changes(section: Section, ctx: Context | None = None) -> dict[str, o
     return changes
 
 
-def _radio(value: object, section: Section, ctx: Context | None) -> Radio | bool | None:
-    """The `Radio` a profile's `radio` key names or describes (False: reported, none built)."""
+def _radio(
+    value: object,
+    section: Section,
+    ctx: Context | None,
+    base: Radio | None = None,
+    check: bool = True,
+) -> Radio | bool | None:
+    """The `Radio` a `radio` key names or describes over `base` (False: reported, none
+    built). Without `check` its fields are not checked together (a later layer may still
+    change them: the caller checks what they add up to)."""
     if value is None:
         return None
     if isinstance(value, str):
@@ -200,54 +217,22 @@ def _radio(value: object, section: Section, ctx: Context | None) -> Radio | bool
     assert isinstance(value, Section)
     if not value.clean:
         return False
-    v = value.values
-    base = RADIO_PROFILES[v.get("profile", "oai-tdd-30k")]
-    dl, _, ul = base.special
-    dl, ul = v.get("special_dl", dl), v.get("special_ul", ul)
-    changes: dict[str, object] = {"special": (dl, SYMBOLS_PER_SLOT - dl - ul, ul)}
-    for key, attr in (
-        ("tdd", "slots"),
-        ("numerology", "numerology"),
-        ("prbs", "n_prb"),
-        ("mcs", "mcs"),
-        ("layers", "layers"),
-        ("k2", "k2_slots"),
-        ("bler", "bler"),
-        ("max_retx", "max_retx"),
-        ("harq_slots", "harq_slots"),
-        ("access", "ul_access"),
-        ("sr_period", "sr_period_slots"),
-        ("sr_offset", "sr_offset"),
-        ("sr_grant", "sr_grant_bytes"),
-        ("grant_slots", "grant_slots"),
-        ("cg_period", "cg_period_slots"),
-        ("cg_offset", "cg_offset"),
-        ("rlc", "rlc"),
-        ("rlc_status", "rlc_status_s"),
-        ("in_order", "in_order"),
-        ("buffer", "buffer_bytes"),
-    ):
-        if key in v:
-            changes[attr] = v[key]
-    radio = dataclasses.replace(base, **changes)  # type: ignore[arg-type]
-    problem = None
-    if dl + ul > SYMBOLS_PER_SLOT:
-        problem = f"special_dl {dl} + special_ul {ul} symbols, more than a slot's 14"
-    else:
-        try:
-            radio.check()
-        except NrError as exc:
-            problem = str(exc)
-    if problem is None:
+    radio = radios.changed(value.values, base)
+    why = radios.problem(radio) if check else None
+    if why is None:
         return radio
     if ctx is not None:
-        ctx.add(
-            section.at("radio"),
-            section.path_of("radio"),
-            "a radio whose fields fit together (TS 38.211/38.213/38.331)",
-            problem,
-        )
+        _misfit(ctx, section, why)
     return False
+
+
+def _misfit(ctx: Context, section: Section, why: str) -> None:
+    ctx.add(
+        section.at("radio"),
+        section.path_of("radio"),
+        "a radio whose fields fit together (TS 38.211/38.213/38.331)",
+        why,
+    )
 
 
 def _trace_problems(text: str, fmt: str) -> list[TraceProblem]:
@@ -291,6 +276,7 @@ class _Builder:
         self.roles: dict[str, str] = {}  # node name -> vehicle | gnb | core
         self.topology_ok = False  # every node known: references to unknown names are errors
         self.link_kinds: dict[str, str] = {}  # link name -> air | backhaul
+        self.link_specs: dict[str, model.LinkSpec] = {}  # the links, once they checked out
 
     def build(self) -> model.Scenario | None:
         topology = self._topology()
@@ -393,9 +379,26 @@ class _Builder:
         assert cells is not None and vehicles is not None
         return model.Topology(
             vehicles=tuple(schema_v1.VEHICLE.build(v) for _, v, _ in vehicles.good()),
-            cells=tuple(schema_v1.CELL.build(c) for _, c, _ in cells.good()),
+            cells=tuple(self._cell(c) for _, c, _ in cells.good()),
             address_pool=pool,
         )
+
+    def _cell(self, cell: Section) -> model.Cell:
+        """A cell, its scheduler written as its own field or in its `radio` (not both)."""
+        built: model.Cell = schema_v1.CELL.build(cell)
+        radio = cell.get("radio")
+        if not isinstance(radio, Section) or "scheduler" not in radio:
+            return built
+        if cell.written("scheduler") and cell["scheduler"] != radio["scheduler"]:
+            self.ctx.add(
+                radio.at("scheduler"),
+                radio.path_of("scheduler"),
+                f"the cell's scheduler ({cell['scheduler']}, at {cell.path_of('scheduler')}) "
+                "or no scheduler here",
+                repr(radio["scheduler"]),
+                "write the scheduler in one place",
+            )
+        return dataclasses.replace(built, scheduler=radio["scheduler"])
 
     def _check_link(self, section: Section, key: str) -> bool:
         """Whether `section[key]` names a link of the topology (reported when it does not)."""
@@ -441,14 +444,28 @@ class _Builder:
             kind: {"uplink": {}, "downlink": {}} for kind in ("air", "backhaul")
         }
         merged: dict[str, dict[str, dict[str, object]]] = {}
+        # Where each radio was written last (the section holding its `radio` key): the air
+        # defaults by direction, the overrides by link and direction.
+        where: dict[tuple[str, str], Section] = {}
         if links is not None:
             for kind in ("air", "backhaul"):
                 pair: Section | None = links.get(kind)
+                both = _radio(pair.get("radio"), pair, self.ctx, check=False) if pair else None
                 for direction in ("uplink", "downlink"):
                     profile = pair.get(direction) if pair else None
-                    defaults[kind][direction] = (
-                        profile_changes(profile, self.ctx) if profile else {}
+                    base = both if isinstance(both, Radio) else None
+                    changes = (
+                        profile_changes(profile, self.ctx, base, check_radio=False)
+                        if profile
+                        else {}
                     )
+                    if pair is not None and "radio" in pair and "radio" not in changes:
+                        if not (profile and "radio" in profile):
+                            changes["radio"] = base
+                            where[kind, direction] = pair
+                    elif profile is not None and "radio" in profile:
+                        where[kind, direction] = profile
+                    defaults[kind][direction] = changes
             overrides: Items | None = links.get("overrides")
             seen: dict[str, str] = {}
             for _, override, _ in overrides.good() if overrides else ():
@@ -464,10 +481,21 @@ class _Builder:
                     )
                     continue
                 seen[name] = override.path
-                merged[name] = {
-                    d: profile_changes(override[d], self.ctx) if d in override else {}
-                    for d in ("uplink", "downlink")
-                }
+                kind = self.link_kinds[name]
+                merged[name] = {}
+                for d in ("uplink", "downlink"):
+                    if d not in override:
+                        merged[name][d] = {}
+                        continue
+                    base = defaults[kind][d].get("radio")
+                    merged[name][d] = profile_changes(
+                        override[d],
+                        self.ctx,
+                        base if isinstance(base, Radio) else None,
+                        check_radio=False,
+                    )
+                    if "radio" in override[d]:
+                        where[name, d] = override[d]
         if not self.topology_ok or self.ctx.issues:
             return None
         specs = []
@@ -477,34 +505,196 @@ class _Builder:
                 d: LinkProfile(**{**defaults[kind][d], **merged.get(name, {}).get(d, {})})
                 for d in ("uplink", "downlink")
             }
+            for d in ("uplink", "downlink"):
+                if (name, d) not in where and (kind, d) in where:
+                    where[name, d] = where[kind, d]
             specs.append(
                 model.LinkSpec(name, kind, lower, upper, profiles["uplink"], profiles["downlink"])  # type: ignore[arg-type]
             )
+        specs = self._cell_radios(specs, where)
+        if specs is None or not self._radios_fit(specs, where):
+            return None
+        if not self._one_grid_per_cell(specs, where):
+            return None
         backend = links.get("backend", "auto") if links is not None else "auto"
-        radios = [s.name for s in specs if s.uplink.radio or s.downlink.radio]
-        if backend == "tc" and radios and links is not None:
+        with_radio = [s.name for s in specs if s.uplink.radio or s.downlink.radio]
+        if backend == "tc" and with_radio and links is not None:
             self.ctx.add(
                 links.at("backend"),
                 links.path_of("backend"),
                 "userspace or auto for links with a radio",
-                f"tc, with a radio on {', '.join(radios)}",
+                f"tc, with a radio on {', '.join(with_radio)}",
                 "the NR slot model runs in the userspace relay; tc's qdiscs have no slot clock",
             )
             return None
+        self.link_specs = {s.name: s for s in specs}
         return model.Links(backend=backend, links=tuple(specs))
+
+    def _cells(self) -> list[Section]:
+        topo: Section | None = self.root.get("topology")
+        cells: Items | None = topo.get("cells") if topo else None
+        return [c for _, c, _ in cells.good()] if cells else []
+
+    def _cell_radios(
+        self, specs: list[model.LinkSpec], where: dict[tuple[str, str], Section]
+    ) -> list[model.LinkSpec] | None:
+        """`specs` with each cell's `radio` (its slot grid and carrier) laid over its air
+        links' radios; None when one does not fit (reported)."""
+        out = {s.name: s for s in specs}
+        for cell in self._cells():
+            if "radio" not in cell:
+                continue
+            value = cell["radio"]
+            part, profile = radios.cell_part(value.values if isinstance(value, Section) else value)
+            mine = [s for s in specs if s.kind == "air" and s.upper == cell["gnb"]]
+            for spec in mine:
+                changed = {}
+                for d in ("uplink", "downlink"):
+                    radio = radios.with_cell(getattr(spec, d).radio, part, profile)
+                    changed[d] = dataclasses.replace(getattr(spec, d), radio=radio)
+                    if radio is not None:
+                        where[spec.name, d] = cell
+                out[spec.name] = dataclasses.replace(spec, **changed)
+            if profile is None and all(
+                s.uplink.radio is None and s.downlink.radio is None for s in mine
+            ):
+                self.ctx.add(
+                    cell.at("radio"),
+                    cell.path_of("radio"),
+                    "air links with a radio (links.air.radio) for the cell's part to change, "
+                    "or a `profile` here",
+                    f"no radio on {', '.join(s.name for s in mine) or 'any air link of it'}",
+                )
+                return None
+        return [out[s.name] for s in specs]
+
+    def _radios_fit(
+        self, specs: list[model.LinkSpec], where: dict[tuple[str, str], Section]
+    ) -> bool:
+        """Whether every link direction's radio, all its layers laid, has fields that fit
+        together; each misfit is reported once, where its radio was written last."""
+        said: set[str] = set()
+        for spec in specs:
+            for d in ("uplink", "downlink"):
+                radio = getattr(spec, d).radio
+                why = None if radio is None else radios.problem(radio)
+                section = where.get((spec.name, d))
+                if why is None or section is None or section.path in said:
+                    continue
+                said.add(section.path)
+                _misfit(self.ctx, section, f"on {spec.name} {d}: {why}")
+        return not said
+
+    def _one_grid_per_cell(
+        self, specs: list[model.LinkSpec], where: dict[tuple[str, str], Section]
+    ) -> bool:
+        """Whether the radios of each gNB's air links share one slot grid (reported where
+        the first that does not was written)."""
+        for d in ("uplink", "downlink"):
+            first: dict[str, tuple[str, Radio]] = {}
+            for spec in specs:
+                radio = getattr(spec, d).radio
+                if spec.kind != "air" or radio is None:
+                    continue
+                if spec.upper not in first:
+                    first[spec.upper] = (spec.name, radio)
+                    continue
+                name, other = first[spec.upper]
+                if radios.grid(radio) == radios.grid(other):
+                    continue
+                section = where.get((spec.name, d))
+                if section is None:  # pragma: no cover - a differing radio was written somewhere
+                    continue
+                self.ctx.add(
+                    section.at("radio"),
+                    section.path_of("radio"),
+                    f"the slot grid of cell {spec.upper} ({radios.grid_text(other)}, as on "
+                    f"{name}): one gNB, one slot grid for all its UEs",
+                    f"{radios.grid_text(radio)} on {spec.name} {d}",
+                    "put the cell's TDD pattern and numerology in topology.cells[].radio",
+                )
+                return False
+        return True
 
     # -- timeline --
 
     def _timeline(self) -> list[model.Event]:
         events: Items | None = self.root.get("timeline")
         out: list[model.Event] = []
+        radio_sets: list[tuple[model.SetEvent, Section]] = []
         for _, event, node in events.good() if events else ():
             if event.tag is None:
                 continue
             built = self._event(event, node.start_mark.line + 1)
-            if built is not None:
+            if isinstance(built, model.SetEvent) and "radio" in event:
+                radio_sets.append((built, event))
+            elif built is not None:
                 out.append(built)
+        return out + self._radio_sets(radio_sets)
+
+    def _radio_sets(self, sets: list[tuple[model.SetEvent, Section]]) -> list[model.Event]:
+        """`set` events with their radios: in time order, a mapping changes the radio the
+        link has then (its profile's, or the last `set`'s). Where the two directions of a
+        `both` event end up with different radios, it becomes one event per direction. A
+        radio that leaves its cell's slot grid is refused: one gNB, one grid."""
+        if not self.link_specs:
+            return []  # the links did not check out: reported there
+        now = {(s.name, d): s.profile(d).radio for s in self.link_specs.values() for d in DIRS}
+        out: list[model.Event] = []
+        for event, section in sorted(sets, key=lambda p: (p[0].at_s, p[0].line)):
+            directions = DIRS if event.direction == "both" else (event.direction,)
+            built: dict[str, Radio | None] = {}
+            for d in directions:
+                radio = _radio(section["radio"], section, self.ctx, now[event.link, d])
+                if radio is False:
+                    break
+                assert radio is not True
+                if not self._grid_kept(event.link, d, radio, now, section):
+                    break
+                built[d] = radio
+            else:
+                for d, radio in built.items():
+                    now[event.link, d] = radio
+                values = list(built.values())
+                if len(values) == 1 or values[0] == values[1]:
+                    changes = {**event.changes, "radio": values[0]}
+                    out.append(dataclasses.replace(event, changes=changes))
+                else:
+                    out += [
+                        dataclasses.replace(
+                            event, direction=d, changes={**event.changes, "radio": r}
+                        )
+                        for d, r in built.items()
+                    ]
         return out
+
+    def _grid_kept(
+        self,
+        link: str,
+        direction: str,
+        radio: Radio | None,
+        now: dict[tuple[str, str], Radio | None],
+        section: Section,
+    ) -> bool:
+        """Whether `radio` on `link` keeps the slot grid of the other UEs of its cell."""
+        spec = self.link_specs[link]
+        if spec.kind != "air" or radio is None:
+            return True
+        for other in self.link_specs.values():
+            theirs = now[other.name, direction]
+            if other.name == link or other.upper != spec.upper or theirs is None:
+                continue
+            if radios.grid(theirs) != radios.grid(radio):
+                self.ctx.add(
+                    section.at("radio"),
+                    section.path_of("radio"),
+                    f"the slot grid of cell {spec.upper} ({radios.grid_text(theirs)}, as on "
+                    f"{other.name} then): one gNB, one slot grid for all its UEs",
+                    f"{radios.grid_text(radio)} on {link} {direction}",
+                    "a set event changes one UE; a cell's TDD pattern stays as it started",
+                )
+                return False
+        return True
 
     def _check_time(self, event: Section) -> None:
         at = event.get("at")
@@ -524,9 +714,8 @@ class _Builder:
             self._check_link(event, "set")
             if not event.clean:
                 return None
-            return model.SetEvent(
-                at, event["set"], event["direction"], profile_changes(event, self.ctx), line=line
-            )
+            changes = profile_changes(event, self.ctx, with_radio=False)  # see _radio_sets
+            return model.SetEvent(at, event["set"], event["direction"], changes, line=line)
         if event.tag == "shape":
             self._check_node(event, "shape")
             if not event.clean:

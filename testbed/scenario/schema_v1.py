@@ -212,9 +212,35 @@ RADIO = Obj(
             " when decoded).",
             attr=None,
         ),
+        Field(
+            "core_delay",
+            Duration(1.0, noun="a delay"),
+            "One-way delay from the gNB to the core carried in this direction (0: the"
+            " backhaul link holds it).",
+            attr=None,
+        ),
     ],
     fill_defaults=False,
     ref="radio",
+)
+RADIO_VALUE = Either(Enum(tuple(RADIO_PROFILES)), RADIO)
+#: The fields of a radio that belong to the cell (its slot grid and carrier), not to a UE.
+CELL_RADIO_KEYS = ("profile", "tdd", "special_dl", "special_ul", "numerology", "prbs")
+CELL_RADIO = Obj(
+    "The cell-level part of the radios of a gNB's air links: its TDD pattern, numerology and"
+    " PRBs (one gNB, one slot grid), and how it schedules. A `profile` takes those fields from"
+    " a named radio and gives that radio to the air links that have none.",
+    [
+        *(f for f in RADIO.fields if f.key in CELL_RADIO_KEYS),
+        Field(
+            "scheduler",
+            Enum(SCHEDULERS),
+            "How the gNB shares its slots among its UEs: rr or pf (as the cell's scheduler).",
+            attr=None,
+        ),
+    ],
+    fill_defaults=False,
+    ref="cell_radio",
 )
 
 # Each profile key maps to one or more LinkProfile attributes; `loader.profile_changes` says how.
@@ -280,7 +306,7 @@ PROFILE_FIELDS: tuple[Field, ...] = (
     Field("reorder", Bool(), "Let jitter reorder packets (otherwise order is kept)."),
     Field(
         "radio",
-        Nullable(Either(Enum(tuple(RADIO_PROFILES)), RADIO)),
+        Nullable(RADIO_VALUE),
         "5G NR air interface of this direction (userspace backend): a named radio "
         f"({', '.join(RADIO_PROFILES)}), or a mapping that changes one; null: a plain link.",
     ),
@@ -296,15 +322,22 @@ PROFILE = Obj(
 )
 
 
-def _direction_pair(doc: str) -> Obj:
-    return Obj(
-        doc,
-        [
-            Field("uplink", PROFILE, "Towards the core (vehicle -> gNB -> core)."),
-            Field("downlink", PROFILE, "Towards the vehicle."),
-        ],
-        fill_defaults=False,
-    )
+def _direction_pair(doc: str, radio: bool = False) -> Obj:
+    fields = [
+        Field("uplink", PROFILE, "Towards the core (vehicle -> gNB -> core)."),
+        Field("downlink", PROFILE, "Towards the vehicle."),
+    ]
+    if radio:
+        fields.append(
+            Field(
+                "radio",
+                Nullable(RADIO_VALUE),
+                "5G NR air interface of both directions of every air link (userspace backend):"
+                f" a named radio ({', '.join(RADIO_PROFILES)}) or a mapping that changes one."
+                " A direction's own `radio` mapping changes this one.",
+            )
+        )
+    return Obj(doc, fields, fill_defaults=False)
 
 
 OVERRIDE = Obj(
@@ -328,7 +361,7 @@ LINKS = Obj(
         ),
         Field(
             "air",
-            _direction_pair("Default of every vehicle-gNB link (named like av1-gnb1)."),
+            _direction_pair("Default of every vehicle-gNB link (named like av1-gnb1).", True),
             "Default of every vehicle-gNB link (named like av1-gnb1).",
         ),
         Field(
@@ -357,6 +390,13 @@ CELL = Obj(
             Enum(SCHEDULERS),
             "How the gNB shares the NR slots of its air links' radios among its UEs: rr (equal"
             " shares of each slot's PRBs) or pf (proportional fair in time).",
+        ),
+        Field(
+            "radio",
+            Either(Enum(tuple(RADIO_PROFILES)), CELL_RADIO),
+            "The cell-level part of its air links' radios (TDD pattern, numerology, PRBs,"
+            " scheduler): a named radio, or a mapping of those fields.",
+            attr=None,
         ),
     ],
     model=model.Cell,
