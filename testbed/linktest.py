@@ -546,7 +546,7 @@ class LinkTest:
         if not counters or "radio" not in counters.get(direction, {}):
             return None
         snap = counters[direction]
-        return {**snap["radio"], "bytes_out": snap["total"]["bytes_out"]}
+        return {**snap["radio"], "bytes_out": snap["total"]["bytes_out"], "t": time.monotonic()}
 
     def _radio_air(
         self,
@@ -713,19 +713,38 @@ def harq_shares(
 def slot_goodput(
     before: dict[str, Any], after: dict[str, Any], grid: Grid, bler: float
 ) -> dict[str, Any]:
-    """What a slot carried while the rate test saturated the direction: bytes delivered per
-    transport block of new data, beside the mean transport block size of the direction's
-    occasions and the share of it left when a share `bler` of every occasion goes to
-    retransmissions of earlier blocks."""
+    """What a slot carried while the rate test saturated the direction.
+
+    A saturated UE fills every occasion it gets with one transport block: a new one or a
+    retransmission of an earlier one (which takes the whole occasion, its block being full).
+    So the occasions it used are its new blocks plus their retransmissions, and the bytes
+    delivered per occasion used should be the mean transport block less the share `bler`
+    of them that goes to resends (1 - bler: each new block takes 1 / (1 - bler) tries on
+    average). Also: bytes per new block (a whole block), and, from the times of the two
+    reads, the share of the direction's occasions in that time the UE used.
+    """
     blocks = after["blocks"] - before["blocks"]
+    tries = [
+        a - (before["retransmissions"][k] if k < len(before["retransmissions"]) else 0)
+        for k, a in enumerate(after["retransmissions"])
+    ]
+    # tries[k]: decoded after k resends; the last entry: given up on after all of them
+    resends = sum(k * t for k, t in enumerate(tries[:-1])) + (len(tries) - 2) * tries[-1]
+    used = blocks + resends
     delivered = after["bytes_out"] - before["bytes_out"]
     capacity = statistics.fmean(o.capacity_bytes for o in grid.occasions)
+    per_s = len(grid.occasions) / grid.period_s
+    seconds = after.get("t", 0.0) - before.get("t", 0.0)
     return {
         "blocks": blocks,
+        "occasions": used,
+        "bytes_per_occasion": delivered / used if used else None,
+        "expected_bytes_per_occasion": capacity * (1 - bler),
         "bytes_per_block": delivered / blocks if blocks else None,
         "block_bytes": capacity,
-        "expected_bytes_per_block": capacity * (1 - bler),
-        "occasions_per_s": len(grid.occasions) / grid.period_s,
+        "occasions_per_s": per_s,
+        "seconds": seconds,
+        "used_share": used / (seconds * per_s) if seconds > 0 else None,
     }
 
 

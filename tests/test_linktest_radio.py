@@ -107,14 +107,21 @@ def test_the_harq_bound_holds_a_true_bler_and_refuses_a_wrong_one() -> None:
     assert abs(0.2 - 0.1) > got["bound"]
 
 
-def test_slot_goodput_is_bytes_per_new_block_beside_the_transport_block() -> None:
+def test_slot_goodput_counts_the_occasions_new_blocks_and_resends_took() -> None:
     grid = OAI.grid("uplink")
-    got = slot_goodput(_counts([0], blocks=100), _counts([0], blocks=600, out=1_000_000), grid, 0.1)
-    assert got["bytes_per_block"] == pytest.approx(2000.0)
+    # 500 new blocks: 440 decoded first time, 50 after one resend, 8 after two, 2 given up
+    # on after all four: 50 + 16 + 8 = 74 resends, so 574 occasions used, in 1 s.
+    before = {**_counts([0] * 6, blocks=100), "t": 10.0}
+    after = {**_counts([440, 50, 8, 0, 0, 2], blocks=600, out=1_148_000), "t": 11.0}
+    got = slot_goodput(before, after, grid, 0.1)
+    assert (got["blocks"], got["occasions"]) == (500, 574)
+    assert got["bytes_per_occasion"] == pytest.approx(2000.0)
+    assert got["bytes_per_block"] == pytest.approx(1_148_000 / 500)
     caps = [o.capacity_bytes for o in grid.occasions]
     assert got["block_bytes"] == pytest.approx(sum(caps) / len(caps))
-    assert got["expected_bytes_per_block"] == pytest.approx(0.9 * got["block_bytes"])
+    assert got["expected_bytes_per_occasion"] == pytest.approx(0.9 * got["block_bytes"])
     assert got["occasions_per_s"] == pytest.approx(len(caps) / grid.period_s)
+    assert got["used_share"] == pytest.approx(574 / got["occasions_per_s"])
 
 
 def test_the_timer_floor_is_the_lateness_of_real_sleeps() -> None:
@@ -148,6 +155,7 @@ def test_radio_lines_print_the_cdf_points_harq_and_slots() -> None:
     )
     assert "blocks 1000: +0 90% (90), +1 9% (9)" in lines[4]
     assert "lost 0% (0.001)" in lines[4]
-    assert lines[5].startswith("  per slot   2500 B per block (")
+    assert lines[5].startswith("  per slot   2500 B per occasion (")
+    assert "2500 B per new block, 10 occasions at saturation" in lines[5]
     # a plain link prints no radio lines
     assert linktable.radio_lines({"links": [{"directions": [{"direction": "uplink"}]}]}) == []

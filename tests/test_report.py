@@ -684,10 +684,14 @@ def test_a_radio_link_test_shows_its_cdfs_beside_the_oracle(tmp_path: Path) -> N
     radio["harq"] = harq_shares(before, {"retransmissions": [900, 90, 9, 1, 0, 0]}, 0.1, 4)
     radio["slots"] = {
         "blocks": 970,
-        "bytes_per_block": 4600.0,
+        "occasions": 1078,
+        "bytes_per_occasion": 4600.0,
+        "expected_bytes_per_occasion": 4618.8,
+        "bytes_per_block": 5112.0,
         "block_bytes": 5132.0,
-        "expected_bytes_per_block": 4618.8,
         "occasions_per_s": 600.0,
+        "seconds": 2.0,
+        "used_share": 0.898,
     }
     lt = copy.deepcopy(LINKTEST)
     lt["links"][0]["directions"][0]["radio"] = radio  # type: ignore[index]
@@ -705,7 +709,8 @@ def test_a_radio_link_test_shows_its_cdfs_beside_the_oracle(tmp_path: Path) -> N
         "1.000 (0.400 host + 0.600 chance)",
         f"{p50[0]:.2f} / {p50[1]:.2f}",
         "blocks 1000: +0 90% (90), +1 9% (9)",
-        "4600 B per block (4619 expected of a 5132 B transport block)",
+        "4600 B per occasion (4619 expected: a 5132 B block less the resends), 5112 B per "
+        "new block, 1078 occasions at saturation, 90% of the 600/s in 2.00 s",
         "timer floor: p50 0.057 ms, p99 0.198 ms over 300 timed wake-ups",
         "![Radio delays against the oracle](plots/radio_cdfs.png)",
     ):
