@@ -741,32 +741,34 @@ def _repeated(base: Sequence[Occasion], period_s: float, times: int) -> list[Occ
     ]
 
 
+# OpenAirInterface's default band-78 gNB, gnb.sa.band78.fr1.106PRB.usrpb210.conf:
+# subcarrierSpacing 1 (30 kHz), dl_UL_TransmissionPeriodicity 6 (5 ms) with
+# nrofDownlinkSlots 7, nrofDownlinkSymbols 6, nrofUplinkSymbols 4, nrofUplinkSlots 2;
+# 106 PRBs; min_rxtxtime 2 (K2 = 2 slots). MCS 20 is a mid-cell link adaptation choice
+# (an assumption, not from the file).
+_OAI_TDD_30K = Radio(
+    slots="DDDDDDDSUU",
+    special=(6, 4, 4),
+    numerology=1,
+    n_prb=106,
+    mcs=20,
+    k2_slots=2,
+    bler=0.1,  # OAI's link adaptation targets 10% first-transmission BLER
+    max_retx=4,  # OAI's and srsRAN's default HARQ retransmissions
+    harq_slots=2,  # min_rxtxtime 2
+    ul_access="sr",
+    sr_period_slots=10,  # nr_rrc_config.c: sl10 for an SR slot offset below 10
+    sr_offset=7,  # "SR in the first uplink slot": nrofDownlinkSlots, the special slot
+    sr_grant_bytes=72,  # an assumption: srsRAN's 576-bit first grant (issue #603)
+    grant_slots=2,  # an assumption; any of 0..7 puts the PUSCH one period after the SR
+    cg_period_slots=10,  # for ul_access: configured, once per TDD period...
+    cg_offset=8,  # ...in its first full uplink slot
+)
+
 #: Named radios, each value with its source: TDD windows, transport blocks, uplink access (SR
 #: and grants, or a configured grant), HARQ, RLC and, for a commercial cell, the core's distance.
 RADIO_PROFILES: dict[str, Radio] = {
-    # OpenAirInterface's default band-78 gNB, gnb.sa.band78.fr1.106PRB.usrpb210.conf:
-    # subcarrierSpacing 1 (30 kHz), dl_UL_TransmissionPeriodicity 6 (5 ms) with
-    # nrofDownlinkSlots 7, nrofDownlinkSymbols 6, nrofUplinkSymbols 4, nrofUplinkSlots 2;
-    # 106 PRBs; min_rxtxtime 2 (K2 = 2 slots). MCS 20 is a mid-cell link adaptation choice
-    # (an assumption, not from the file).
-    "oai-tdd-30k": Radio(
-        slots="DDDDDDDSUU",
-        special=(6, 4, 4),
-        numerology=1,
-        n_prb=106,
-        mcs=20,
-        k2_slots=2,
-        bler=0.1,  # OAI's link adaptation targets 10% first-transmission BLER
-        max_retx=4,  # OAI's and srsRAN's default HARQ retransmissions
-        harq_slots=2,  # min_rxtxtime 2
-        ul_access="sr",
-        sr_period_slots=10,  # nr_rrc_config.c: sl10 for an SR slot offset below 10
-        sr_offset=7,  # "SR in the first uplink slot": nrofDownlinkSlots, the special slot
-        sr_grant_bytes=72,  # an assumption: srsRAN's 576-bit first grant (issue #603)
-        grant_slots=2,  # an assumption; any of 0..7 puts the PUSCH one period after the SR
-        cg_period_slots=10,  # for ul_access: configured, once per TDD period...
-        cg_offset=8,  # ...in its first full uplink slot
-    ),
+    "oai-tdd-30k": _OAI_TDD_30K,
     # srsRAN Project configs/low_latency.yml: a 2 ms period at 30 kHz of 2 downlink slots, a
     # special slot of 10 downlink symbols, and 1 uplink slot; min K1 = K2 = 2. 106 PRBs (a
     # 40 MHz carrier at 30 kHz, TS 38.101-1 Table 5.3.2-1) and MCS 20 are assumptions.
@@ -800,25 +802,14 @@ RADIO_PROFILES: dict[str, Radio] = {
     # of under 7 ms down and up to ~18 ms up on Deutsche Telekom's public 5G in Munich
     # (M. Kottkamp, "5G NR and LTE latency analysis in a public network", 2022), and issue
     # #16 puts commercial median RTTs at 20-30 ms. MCS 16 (a mid-cell link) is an assumption.
-    "commercial-midband": Radio(
-        slots="DDDDDDDSUU",
-        special=(6, 4, 4),
-        numerology=1,
+    # Of OAI's profile, the frame, K2, HARQ and RLC; the rest as above.
+    "commercial-midband": dataclasses.replace(
+        _OAI_TDD_30K,
         n_prb=273,
         mcs=16,
-        k2_slots=2,
-        bler=0.1,  # the CQI definition's 10% target (TS 38.214 §5.2.2.1)
-        max_retx=4,
-        harq_slots=2,
-        ul_access="sr",
         sr_period_slots=20,  # 10 ms at 30 kHz
         sr_offset=8,  # the first full uplink slot of the first 5 ms
-        sr_grant_bytes=72,
         grant_slots=3,  # an assumption: a commercial scheduler a little slower than OAI's
-        cg_period_slots=10,
-        cg_offset=8,
-        rlc="am",
-        rlc_status_s=0.02,
         core_delay_s=0.003,
     ),
 }
