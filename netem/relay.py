@@ -284,7 +284,10 @@ class Relay:
                 (
                     str(request[f"netns_{e}"]),
                     TunConfig(
-                        str(request[f"dev_{e}"]), mtu, request.get(f"addr_{e}"), self.offload
+                        str(request[f"dev_{e}"]),
+                        mtu,
+                        request.get(f"addr_{e}"),
+                        offload=self.offload,
                     ),
                 )
                 for e in "ab"

@@ -556,3 +556,49 @@ def test_two_ues_of_one_cell_share_its_uplink_slots(cell_namespaces) -> None:
     assert sum(rates) == pytest.approx(cell, rel=0.05), rates
     for r in rates:
         assert 0.4 <= r / sum(rates) <= 0.6, rates
+
+
+def _txqueuelen(ns: str, dev: str) -> int:
+    import json
+    import subprocess
+
+    out = subprocess.run(
+        ["ip", "-n", ns, "-j", "link", "show", "dev", dev],
+        capture_output=True,
+        text=True,
+        check=True,
+    ).stdout
+    return int(json.loads(out)[0]["txqlen"])
+
+
+def test_a_link_attached_to_a_cell_queues_like_its_host(cell_namespaces) -> None:
+    """An attached link's TUN ends are made as the host's (a queue of 1000 packets): a
+    stream of small datagrams crosses it whole (a one-packet queue lost 87% of it)."""
+    ue1, ue2, gnb = cell_namespaces
+    first = UserspaceLink(ue1, gnb, dev_a="ul0", dev_b="ul1", addr_a="10.213.1.1/30",
+                          addr_b="10.213.1.2/30", cell="gnb1")  # fmt: skip
+    with first:
+        second = UserspaceLink(ue2, gnb, dev_a="ul0", dev_b="ul2", addr_a="10.213.2.1/30",
+                               addr_b="10.213.2.2/30", cell="gnb1", name="ue2",
+                               host=first)  # fmt: skip
+        with second:
+            host_q = _txqueuelen(ue1, "ul0")
+            assert host_q >= 1000
+            assert _txqueuelen(ue2, "ul0") == _txqueuelen(gnb, "ul2") == host_q
+            sink = udp_socket(gnb, ("10.213.2.2", PORT))
+            sink.settimeout(0.5)
+            sock = udp_socket(ue2)
+            count, seen = 2000, set()
+            try:
+                t = time.monotonic()
+                for i in range(count):  # 10,000 datagrams/s, as the link self-test sends
+                    sock.sendto(struct.pack("!I", i) + bytes(60), ("10.213.2.2", PORT))
+                    t += 1e-4
+                    time.sleep(max(0.0, t - time.monotonic()))
+                with contextlib.suppress(TimeoutError):
+                    while len(seen) < count:
+                        seen.add(struct.unpack("!I", sink.recv(2048)[:4])[0])
+            finally:
+                sock.close()
+                sink.close()
+    assert len(seen) >= 0.995 * count, f"{count - len(seen)} of {count} datagrams lost"
