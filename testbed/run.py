@@ -182,6 +182,15 @@ def node_line(nodes: dict[str, Any]) -> str:
     return "  nodes stopped; " + ("; ".join(parts) or "no stats")
 
 
+def unanswered(nodes: dict[str, Any]) -> list[str]:
+    """The inference nodes that reported stats but not one answer."""
+    return [
+        name
+        for name, p in nodes.get("processes", {}).items()
+        if name.endswith(".inference") and p.get("stats") and not p["stats"].get("answers")
+    ]
+
+
 def links_config(net: Net, backend: str) -> dict[str, Any]:
     """`links.json` of the run folder: per link and direction the applied profile, and how the
     backend realises it (the relay's command line and stages, or the equivalent tc commands)."""
@@ -467,3 +476,8 @@ class _Run:
             }
         if ros_ok:
             progress(node_line(result.nodes))
+            for name in unanswered(result.nodes):
+                progress(
+                    f"  warning: {name} got no answer from its edge server in the whole run: "
+                    "that vehicle fused VO alone (see its log in logs/)"
+                )

@@ -498,3 +498,17 @@ def test_links_json_of_a_tc_run_lists_profiles_and_the_tc_commands() -> None:
     assert set(cfg["links"]) == {"av1-gnb1", "gnb1-core1"}
     assert set(cfg["links"]["av1-gnb1"]["profiles"]) == {"uplink", "downlink"}
     assert any(line.startswith("tc -n ") and " htb " in line for line in cfg["tc_commands"])
+
+
+def test_an_inference_node_with_no_answer_is_named() -> None:
+    from testbed.run import unanswered
+
+    nodes = {
+        "processes": {
+            "av1.inference": {"stats": {"requests": 780, "answers": 779}},
+            "av2.inference": {"stats": {"requests": 0, "answers": 0}},
+            "av3.inference": {"stats": {}},  # died before writing stats: reported elsewhere
+            "av2.fusion": {"stats": {"answers": 0}},
+        }
+    }
+    assert unanswered(nodes) == ["av2.inference"]
