@@ -466,6 +466,7 @@ class Relay:
             "uplink": port.pipelines["uplink"].snapshot(),
             "downlink": port.pipelines["downlink"].snapshot(),
             "cell": port.cell,
+            "scheduler": self.scheduler if port.cell is not None else None,
             "relay": {
                 **self.stats,
                 "offload": self.offload,

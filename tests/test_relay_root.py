@@ -502,14 +502,17 @@ def _flood(
         sock.close()
 
 
-def test_two_ues_of_one_cell_share_its_uplink_slots(cell_namespaces) -> None:
+@pytest.mark.parametrize("scheduler", ["rr", "pf"])
+def test_two_ues_of_one_cell_share_its_uplink_slots(cell_namespaces, scheduler: str) -> None:
     from netem.nr import Radio
 
     ue1, ue2, gnb = cell_namespaces
     radio = Radio(ul_access="ideal")  # a saturated UE always has a grant
     profile = LinkProfile(radio=radio)
+    # Equal MCS: round robin and proportional fair both give each about half.
     first = UserspaceLink(ue1, gnb, dev_a="ul0", dev_b="ul1", addr_a="10.213.1.1/30",
-                          addr_b="10.213.1.2/30", uplink=profile, cell="gnb1")  # fmt: skip
+                          addr_b="10.213.1.2/30", uplink=profile, cell="gnb1",
+                          scheduler=scheduler)  # fmt: skip
     with first:
         second = UserspaceLink(ue2, gnb, dev_a="ul0", dev_b="ul2", addr_a="10.213.2.1/30",
                                addr_b="10.213.2.2/30", uplink=profile, cell="gnb1",
@@ -550,7 +553,7 @@ def test_two_ues_of_one_cell_share_its_uplink_slots(cell_namespaces) -> None:
             for sock in sinks:
                 sock.close()
             counters = second.counters()
-            assert counters["cell"] == "gnb1"
+            assert counters["cell"] == "gnb1" and counters["scheduler"] == scheduler
     rates = [8 * g / seconds for g in got]
     cell = radio.goodput_bps("uplink")
     assert sum(rates) == pytest.approx(cell, rel=0.05), rates
