@@ -66,6 +66,12 @@ class LinkProfile:
         return dataclasses.replace(self, **changes)
 
     @property
+    def fixed_delay_s(self) -> float:
+        """The delay every packet of this direction pays besides slots and jitter: `delay_s`
+        and, on a radio, its gNB-to-core distance."""
+        return self.delay_s + (self.radio.core_delay_s if self.radio is not None else 0.0)
+
+    @property
     def expected_loss(self) -> float:
         """The loss rate a measurement over many packets should find."""
         if self.gilbert_elliott is not None:

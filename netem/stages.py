@@ -1069,7 +1069,7 @@ class Delay(Stage):
         self._last_due = -math.inf
 
     def configure(self, profile: LinkProfile) -> None:
-        self.delay_s = profile.delay_s + (profile.radio.core_delay_s if profile.radio else 0.0)
+        self.delay_s = profile.fixed_delay_s
         self.jitter_s = profile.jitter_s
         self.distribution = profile.jitter_distribution
         if profile.reorder != self.reorder:

@@ -63,8 +63,8 @@ DELAY_TOL_S = 0.0005
 #: over the 99th percentile of this host's timed wake-ups where those are later (measured at
 #: the start of the test, `hostload.timer_floor`, and printed). The probes': a finite sample
 #: of the oracle itself is this far from it, by chance; its 99th percentile over
-#: SAMPLING_DRAWS draws of as many probes (`sampling_chance`: 0.76 ms for 100 probes of OAI's
-#: uplink, whose 10% HARQ tail is 5 ms away, 0.24 ms for 1000).
+#: SAMPLING_DRAWS draws of as many probes (`sampling_chance`; `testbed link-test` prints it:
+#: 0.757 ms for 100 probes of OAI's uplink, whose 10% HARQ tail is 5 ms away).
 RADIO_TOL_S = 0.0003
 RADIO_TOL_MARGIN_S = 0.00025
 SAMPLING_DRAWS = 400
@@ -687,6 +687,13 @@ def sampling_chance(oracle: DelayOracle, n: int, q: float = 0.99, seed: int = 0)
     return Chance(float(np.quantile(distances, q)), float(np.quantile(medians, q)))
 
 
+def _tries_between(before: dict[str, Any], after: dict[str, Any]) -> list[int]:
+    """Blocks by the HARQ retransmissions they needed, between two reads of a radio's
+    counters (the last entry: given up on after all of them)."""
+    was = before["retransmissions"]
+    return [a - (was[k] if k < len(was) else 0) for k, a in enumerate(after["retransmissions"])]
+
+
 def harq_shares(
     before: dict[str, Any], after: dict[str, Any], bler: float, max_retx: int
 ) -> dict[str, Any]:
@@ -694,10 +701,7 @@ def harq_shares(
     counters (the last share: given up on), beside the shares a first-transmission BLER
     implies (retry k: bler^k (1 - bler)); `bound` is HARQ_SIGMAS binomial deviations of the
     share of blocks whose first transmission failed."""
-    tries = [
-        a - (before["retransmissions"][k] if k < len(before["retransmissions"]) else 0)
-        for k, a in enumerate(after["retransmissions"])
-    ]
+    tries = _tries_between(before, after)
     blocks = sum(tries)
     expected = [bler**k * (1 - bler) for k in range(max_retx + 1)] + [bler ** (max_retx + 1)]
     shares = [t / blocks if blocks else 0.0 for t in tries]
@@ -724,11 +728,7 @@ def slot_goodput(
     reads, the share of the direction's occasions in that time the UE used.
     """
     blocks = after["blocks"] - before["blocks"]
-    tries = [
-        a - (before["retransmissions"][k] if k < len(before["retransmissions"]) else 0)
-        for k, a in enumerate(after["retransmissions"])
-    ]
-    # tries[k]: decoded after k resends; the last entry: given up on after all of them
+    tries = _tries_between(before, after)
     resends = sum(k * t for k, t in enumerate(tries[:-1])) + (len(tries) - 2) * tries[-1]
     used = blocks + resends
     delivered = after["bytes_out"] - before["bytes_out"]

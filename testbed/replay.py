@@ -208,7 +208,7 @@ class _PathPlan:
                 rate = min(rate, cap)
             return PathState(
                 rate_bps=rate,
-                delay_s=p.delay_s + (p.radio.core_delay_s if p.radio else 0.0),
+                delay_s=p.fixed_delay_s,
                 jitter_s=p.jitter_s,
                 jitter_distribution=p.jitter_distribution,
                 loss=p.expected_loss,

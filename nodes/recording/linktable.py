@@ -88,13 +88,12 @@ def radio_directions(linktest: dict[str, Any]) -> list[tuple[str, str, dict[str,
 
 def cdf_points(radio: dict[str, Any]) -> list[tuple[float, float, float]]:
     """(probability, measured ms, oracle ms) at SHOWN_QUANTILES, from what was kept."""
-    qs = radio.get("quantiles") or []
-    out = []
-    for q in SHOWN_QUANTILES:
-        i = min(range(len(qs)), key=lambda k: abs(qs[k] - q), default=None)
-        if i is not None and abs(qs[i] - q) < 1e-9:
-            out.append((q, radio["measured_ms"][i], radio["oracle_ms"][i]))
-    return out
+    at = {round(q, 9): i for i, q in enumerate(radio.get("quantiles") or [])}
+    return [
+        (q, radio["measured_ms"][at[q]], radio["oracle_ms"][at[q]])
+        for q in SHOWN_QUANTILES
+        if q in at
+    ]
 
 
 def harq_text(harq: dict[str, Any]) -> str:

@@ -459,12 +459,11 @@ class _Builder:
                         if profile
                         else {}
                     )
-                    if pair is not None and "radio" in pair and "radio" not in changes:
-                        if not (profile and "radio" in profile):
-                            changes["radio"] = base
-                            where[kind, direction] = pair
-                    elif profile is not None and "radio" in profile:
+                    if profile is not None and "radio" in profile:
                         where[kind, direction] = profile
+                    elif pair is not None and "radio" in pair:
+                        changes["radio"] = base
+                        where[kind, direction] = pair
                     defaults[kind][direction] = changes
             overrides: Items | None = links.get("overrides")
             seen: dict[str, str] = {}
@@ -605,14 +604,10 @@ class _Builder:
                 section = where.get((spec.name, d))
                 if section is None:  # pragma: no cover - a differing radio was written somewhere
                     continue
-                self.ctx.add(
-                    section.at("radio"),
-                    section.path_of("radio"),
-                    f"the slot grid of cell {spec.upper} ({radios.grid_text(other)}, as on "
-                    f"{name}): one gNB, one slot grid for all its UEs",
-                    f"{radios.grid_text(radio)} on {spec.name} {d}",
+                self._off_grid(
+                    section, spec, d, radio, (name, other),
                     "put the cell's TDD pattern and numerology in topology.cells[].radio",
-                )
+                )  # fmt: skip
                 return False
         return True
 
@@ -685,16 +680,33 @@ class _Builder:
             if other.name == link or other.upper != spec.upper or theirs is None:
                 continue
             if radios.grid(theirs) != radios.grid(radio):
-                self.ctx.add(
-                    section.at("radio"),
-                    section.path_of("radio"),
-                    f"the slot grid of cell {spec.upper} ({radios.grid_text(theirs)}, as on "
-                    f"{other.name} then): one gNB, one slot grid for all its UEs",
-                    f"{radios.grid_text(radio)} on {link} {direction}",
+                self._off_grid(
+                    section, spec, direction, radio, (f"{other.name} then", theirs),
                     "a set event changes one UE; a cell's TDD pattern stays as it started",
-                )
+                )  # fmt: skip
                 return False
         return True
+
+    def _off_grid(
+        self,
+        section: Section,
+        spec: model.LinkSpec,
+        direction: str,
+        radio: Radio,
+        cell_radio: tuple[str, Radio],
+        hint: str,
+    ) -> None:
+        """Report `radio` on `spec` as off the slot grid its cell's other UEs have
+        (`cell_radio`: where that grid was seen, and a radio with it)."""
+        seen_on, other = cell_radio
+        self.ctx.add(
+            section.at("radio"),
+            section.path_of("radio"),
+            f"the slot grid of cell {spec.upper} ({radios.grid_text(other)}, as on "
+            f"{seen_on}): one gNB, one slot grid for all its UEs",
+            f"{radios.grid_text(radio)} on {spec.name} {direction}",
+            hint,
+        )
 
     def _check_time(self, event: Section) -> None:
         at = event.get("at")
