@@ -327,6 +327,8 @@ def _splits(s: dict[str, Any], plots: dict[str, Plot | None]) -> Section:
             "could). Cells: mean position error m / mean request latency ms."
         )
     )
+    if sp.get("fusion"):
+        sec.add(Para(f"EdgeLoc's fusion in every row: {sp['fusion']}."))
     phases = sp["phases"]
     heads = ["policy", "total m"] + [f"{p['start_s']:g}-{p['end_s']:g} s" for p in phases]
     rows = []

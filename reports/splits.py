@@ -124,6 +124,7 @@ def split_comparison(
     return {
         **comparison.to_dict(),
         "vehicle": vd.name,
+        "fusion": config.describe_fusion(),
         "requests": len(requests),
         "replayed_splits": list(comparison.fixed),
         "real_learned_total_m": (real_totals or {}).get(vd.name),

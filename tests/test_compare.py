@@ -161,3 +161,18 @@ def test_measured_comparison_leaves_out_a_split_the_run_never_played() -> None:
     c = compare_splits(cfg, lm, ds, load_model(cfg.weights))
     assert sorted(c.fixed) == ["conv3", "image"] and "vehicle" in c.skipped
     assert c.latency_source == "measured" and c.learned is not None
+
+
+def test_ekf_fusion_beats_the_papers_weight_and_kalman_on_the_default_replay(
+    default_comparison: SplitComparison,
+) -> None:
+    """Beyond the paper: `fusion.method: ekf` on the same drive, network and learner."""
+    scenario = load(SCENARIOS / "default.yaml")
+    cfg = replace(replay_config(scenario), fusion_method="ekf")
+    s = run_replay(cfg, latency_model(scenario)).summary()
+    reductions = {r["versus"]: r["ours_pct"] for r in s["paper_comparison"]["reductions"]}
+    totals = {t["method"]: t["ours"] for t in s["paper_comparison"]["totals"]}
+    print(totals, reductions)
+    assert s["fusion"]["method"] == "ekf" and "BEYOND THE PAPER" in s["fusion"]["description"]
+    assert totals["edgeloc"] < default_comparison.learned.total_m  # type: ignore[union-attr]
+    assert reductions["kalman"] > 30.26, reductions  # the paper's reduction against its KF

@@ -93,6 +93,17 @@ def test_fresh_accurate_answers_pull_edgeloc_below_vo_drift() -> None:
     assert np.allclose(poses["dnn"][0], poses["vo"][0])
 
 
+def test_the_node_runs_the_ekf_fusion_the_settings_name() -> None:
+    """`fusion.method: ekf` reaches the fusion node's estimators (beyond the paper)."""
+    est = VehicleEstimators(ReplayConfig(fusion_method="ekf", gate=None))
+    assert type(est.fuser).__name__ == "DelayedEkf"
+    poses, gt = _drive(est, answers_every=2, latency_s=0.15)
+    vo_err = position_errors(poses["vo"], gt).sum()
+    edge_err = position_errors(poses["edgeloc"], gt).sum()
+    assert est.applied > 150 and 0 < est.weight_sum / est.applied < 1
+    assert edge_err < 0.5 * vo_err, (edge_err, vo_err)
+
+
 def test_no_answers_leave_every_estimator_on_vo() -> None:
     """The fault-tolerance case in miniature: no DNN answer ever arrives; each method still
     gives a pose every frame (the VO dead-reckoning of the paper's thread 1)."""

@@ -268,6 +268,16 @@ def test_partial_workload_sections_keep_model_defaults() -> None:
     assert s.workload.dataset == "synthetic"
 
 
+def test_the_ekf_fusion_is_chosen_by_method_and_reaches_the_replay() -> None:
+    from testbed.replay import replay_config
+
+    s = loads(BASE + "workload:\n  fusion: {method: ekf, robust: null}\n")
+    assert s.workload.fusion == m.Fusion(method="ekf", robust_c=None)
+    cfg = replay_config(s)
+    assert (cfg.fusion_method, cfg.robust_c) == ("ekf", None)
+    assert type(cfg.build_fuser()).__name__ == "DelayedEkf"
+
+
 def test_loading_never_constructs_arbitrary_tags(tmp_path: Path) -> None:
     marker = tmp_path / "ran"
     text = BASE + f'x-evil: !!python/object/apply:os.system ["touch {marker}"]\n'

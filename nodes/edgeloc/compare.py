@@ -7,8 +7,8 @@ network: the scenario's latency model, or a real run's measured latencies throug
 `latency.MeasuredLatency`), finds per bandwidth phase the split with the lowest mean request
 latency and the one with the lowest mean position error, and replays the oracle that plays the
 error-best split of each phase (best in hindsight: it reads ground truth, no vehicle could).
-When the configured fusion is not the paper's bare form (`robust_c`), the learned run is also
-replayed with the bare form, so both are reported.
+When the configured fusion is not the paper's bare form (`robust_c`, or the EKF), the learned
+run is also replayed with the bare form, so both are reported.
 
 `SplitComparison.to_dict()` is the `splits` block of a summary.json (keys on `to_dict`).
 """
@@ -232,8 +232,8 @@ def compare_splits(
         res = run_replay(free, latency, dataset, model, cache, schedule=schedule)  # type: ignore[arg-type]
         oracle = policy_row("oracle", res, bounds)
     paper = None
-    if config.robust_c is not None:
-        bare = replace(free, robust_c=None)
+    if config.robust_c is not None or config.fusion_method != "paper":
+        bare = replace(free, robust_c=None, fusion_method="paper")
         paper = policy_row(
             "learned, paper fusion", run_replay(bare, latency, dataset, model, cache), bounds
         )

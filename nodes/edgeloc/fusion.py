@@ -114,7 +114,7 @@ class FusionUpdate:
     fused: Pose
 
 
-def _check_times(t0: float, t_now: float) -> tuple[float, float]:
+def check_times(t0: float, t_now: float) -> tuple[float, float]:
     t0, t_now = float(t0), float(t_now)
     if not (math.isfinite(t0) and math.isfinite(t_now)):
         raise ValueError(f"DNN times must be finite, got t0={t0!r}, t_now={t_now!r}")
@@ -199,7 +199,7 @@ class EdgeLocFuser:
     def on_dnn(self, l_alpha_t0: Pose, t0: float, t_now: float) -> Pose | None:
         """Thread 2: revise L_alpha(t0) to the latest VO frame and fuse with u(t_now − t0)."""
         l_alpha_t0 = as_pose(l_alpha_t0, "DNN pose")
-        t0, t_now = _check_times(t0, t_now)
+        t0, t_now = check_times(t0, t_now)
         with self._lock:
             l_beta_t0 = self._vo.at(t0)
             latest = self._vo.latest()
@@ -249,7 +249,7 @@ class DnnHold:
 
     def on_dnn(self, l_alpha_t0: Pose, t0: float, t_now: float) -> Pose | None:
         l_alpha_t0 = as_pose(l_alpha_t0, "DNN pose")
-        t0, t_now = _check_times(t0, t_now)
+        t0, t_now = check_times(t0, t_now)
         with self._lock:
             if not self.revise:
                 self._pose = l_alpha_t0.copy()

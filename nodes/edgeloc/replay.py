@@ -47,7 +47,7 @@ import torch
 
 from nodes.edgeloc.codec import decode, encode
 from nodes.edgeloc.dataset import Dataset, open_dataset
-from nodes.edgeloc.fusion import DnnHold, EdgeLocFuser, VoHistory, time_zone_revision
+from nodes.edgeloc.fusion import DnnHold, VoHistory, time_zone_revision
 from nodes.edgeloc.gate import PlausibilityGate
 from nodes.edgeloc.kalman import KalmanBaseline
 from nodes.edgeloc.latency import LatencyModel, RequestTiming
@@ -281,6 +281,8 @@ class ReplayResult:
     def _fusion_summary(self) -> dict[str, object]:
         weights = [p.weight for p in self.plays if p.weight is not None]
         return {
+            "method": self.config.fusion_method,
+            "description": self.config.describe_fusion(),
             "k_s": self.config.k_s,
             "dt0_s": self.config.dt0_s,
             "answers": sum(not p.lost for p in self.plays),
@@ -422,7 +424,7 @@ class Replay:
         steps = np.hypot(*np.diff(self.vo[:, :2], axis=0).T)
         self.odometer = np.concatenate([[0.0], np.cumsum(steps)])
         kc = config.kalman
-        self.fuser = EdgeLocFuser(config.k_s, config.dt0_s, robust_c=config.robust_c)
+        self.fuser = config.build_fuser()
         self.kalman = KalmanBaseline(kc.q_pos, kc.q_yaw, kc.r_pos, kc.r_yaw)
         self.hold = DnnHold()
         self.vo_hist = VoHistory()

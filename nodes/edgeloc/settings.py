@@ -12,7 +12,13 @@ from dataclasses import asdict, dataclass, field, fields
 from typing import Any, Literal
 
 from nodes.edgeloc.bandit import AdaptiveSplitLearner
+from nodes.edgeloc.ekf import DelayedEkf, EkfNoise
+from nodes.edgeloc.fusion import EdgeLocFuser
 from nodes.edgeloc.gate import GateSettings
+
+#: EdgeLoc's fusions: the paper's latency weight (`fusion`), or the delayed-measurement EKF
+#: (`ekf`, beyond the paper).
+FUSION_METHODS: tuple[str, ...] = ("paper", "ekf")
 
 #: The split points of the localization DNN, in order (`model.LocNet` implements them):
 #: "image" sends the camera frame, "vehicle" runs the whole network on the vehicle.
@@ -101,6 +107,7 @@ class ReplayConfig:
     k_s: float = 2.0
     dt0_s: float = -1.4
     robust_c: float | None = 2.0  # beyond the paper; None: the paper's bare u (see fusion)
+    fusion_method: str = "paper"  # or "ekf" (beyond the paper: nodes.edgeloc.ekf)
     kalman: KalmanSettings = field(default_factory=KalmanSettings)
     gate: GateSettings | None = field(default_factory=GateSettings)
     phases: tuple[float, ...] = (0.0,)
@@ -119,6 +126,33 @@ class ReplayConfig:
             raise ValueError(f"fixed split {fixed!r} is not one of {', '.join(self.splits)}")
         if not (self.duration_s > 0 and self.rate_hz > 0):
             raise ValueError("duration_s and rate_hz must be > 0")
+        if self.fusion_method not in FUSION_METHODS:
+            raise ValueError(
+                f"unknown fusion method {self.fusion_method!r}; known: {', '.join(FUSION_METHODS)}"
+            )
+
+    def describe_fusion(self) -> str:
+        """EdgeLoc's fusion in words for reports, what goes beyond the paper named as such."""
+        robust = ""
+        if self.robust_c is not None:
+            robust = f", robust Cauchy weight c = {self.robust_c:g} (BEYOND THE PAPER)"
+        if self.fusion_method == "ekf":
+            kc = self.kalman
+            return (
+                "delayed-measurement EKF over pose, VO scale and yaw-rate bias (BEYOND THE "
+                f"PAPER), DNN noise R = {kc.r_pos:g} m^2, {kc.r_yaw:g} rad^2" + robust
+            )
+        bare = " (the paper's bare form)" if self.robust_c is None else ""
+        return f"the paper's latency weight, k_s {self.k_s:g}/s, dt0 {self.dt0_s:g} s{bare}{robust}"
+
+    def build_fuser(self) -> EdgeLocFuser | DelayedEkf:
+        """EdgeLoc's fuser these settings describe (the replay and the ROS node both use this):
+        the paper's with k_s, Δt0 and robust_c, or the EKF with robust_c and the Kalman
+        baseline's R as the DNN's measurement noise."""
+        if self.fusion_method == "ekf":
+            noise = EkfNoise(r_pos=self.kalman.r_pos, r_yaw=self.kalman.r_yaw)
+            return DelayedEkf(noise, robust_c=self.robust_c)
+        return EdgeLocFuser(self.k_s, self.dt0_s, robust_c=self.robust_c)
 
 
 def config_to_dict(config: ReplayConfig) -> dict[str, Any]:

@@ -22,7 +22,7 @@ from typing import Any
 
 import numpy as np
 
-from nodes.edgeloc.fusion import DnnHold, EdgeLocFuser, VoHistory, time_zone_revision
+from nodes.edgeloc.fusion import DnnHold, VoHistory, time_zone_revision
 from nodes.edgeloc.gate import PlausibilityGate
 from nodes.edgeloc.kalman import KalmanBaseline
 from nodes.edgeloc.metrics import position_errors
@@ -46,7 +46,7 @@ class VehicleEstimators:
 
     def __init__(self, cfg: ReplayConfig) -> None:
         kc = cfg.kalman
-        self.fuser = EdgeLocFuser(cfg.k_s, cfg.dt0_s, robust_c=cfg.robust_c)
+        self.fuser = cfg.build_fuser()
         self.kalman = KalmanBaseline(kc.q_pos, kc.q_yaw, kc.r_pos, kc.r_yaw)
         self.hold = DnnHold()
         self.vo_hist = VoHistory()

@@ -195,6 +195,10 @@ class Fusion:
     k_s: float = 2.0  # 1/s
     dt0_s: float = -1.4
     robust_c: float | None = 2.0
+    # "paper": the weight above; "ekf" (BEYOND THE PAPER, `nodes.edgeloc.ekf`): a
+    # delayed-measurement EKF that also estimates the VO's scale and yaw-rate bias, with the
+    # Kalman baseline's R as the DNN's noise and robust_c as above; k_s and Δt0 unused.
+    method: Literal["paper", "ekf"] = "paper"
 
 
 @dataclass(frozen=True)

@@ -550,6 +550,14 @@ FUSION = Obj(
             " latency-only weight.",
             attr="robust_c",
         ),
+        Field(
+            "method",
+            Enum(("paper", "ekf")),
+            "paper: the latency weight above; ekf (BEYOND THE PAPER): a delayed-measurement EKF"
+            " over pose, VO scale and yaw-rate bias that corrects its state at each answer's"
+            " capture time and replays the VO since, with the kalman block's r_pos/r_yaw as the"
+            " DNN's noise and robust as above (k_s and dt0 unused).",
+        ),
     ],
     model=model.Fusion,
 )

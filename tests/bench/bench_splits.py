@@ -19,11 +19,13 @@ per fusion setting, as plain tables:
 
 The fusion settings: `scenario` is the scenario's (k_s 2/s, Δt0 -1.4 s, robust_c 2: the
 "after"); `paper` is the paper's bare fusion at the schema's old defaults (k_s 20/s, Δt0
-0.25 s, robust_c None: the "before"). `--fusion both` (the default) prints both, before first.
+0.25 s, robust_c None: the "before"); `ekf` is BEYOND THE PAPER, the delayed-measurement EKF
+(`fusion.method: ekf`, robust_c 2, the Kalman baseline's R). `--fusion all` (the default)
+prints the three, before first.
 A benchmark reports: a missed goal is printed as MISS and the script still exits 0.
 
 The compute profile is the reference committed with the weights, so the figures are the same
-on every machine. ~11 replays per seed with both fusions, ~5 s each.
+on every machine. ~16 replays per seed with the three fusions, ~5 s each.
 Usage: python tests/bench/bench_splits.py [--seeds 1,2,3,4,7] [--fusion both|scenario|paper]
 """
 
@@ -60,6 +62,13 @@ ROOT = Path(__file__).resolve().parents[2]
 SEEDS = (1, 2, 3, 4, 7)
 #: The paper's bare fusion at the scenario schema's old defaults: the "before".
 PAPER_FUSION = {"k_s": 20.0, "dt0_s": 0.25, "robust_c": None}
+#: Beyond the paper: the delayed-measurement EKF (`nodes.edgeloc.ekf`), robust_c as scenario's.
+EKF_FUSION = {"fusion_method": "ekf"}
+TITLES = {
+    "paper": "before: the paper's bare fusion",
+    "scenario": "after: the scenario's fusion",
+    "ekf": "beyond the paper: the delayed-measurement EKF",
+}
 METHODS = ("vo", "dnn", "kalman", "edgeloc")
 
 
@@ -75,12 +84,9 @@ class SeedResult:
 def fusion_config(config: ReplayConfig, fusion: str) -> ReplayConfig:
     if fusion == "paper":
         return replace(config, **PAPER_FUSION)  # type: ignore[arg-type]
+    if fusion == "ekf":
+        return replace(config, **EKF_FUSION)  # type: ignore[arg-type]
     return config
-
-
-def fusion_label(config: ReplayConfig) -> str:
-    robust = "None (paper's bare u)" if config.robust_c is None else f"{config.robust_c:g}"
-    return f"k_s {config.k_s:g}/s, dt0 {config.dt0_s:g} s, robust_c {robust}"
 
 
 def table(headers: Sequence[str], rows: Sequence[Sequence[object]], indent: str = "  ") -> str:
@@ -244,7 +250,7 @@ def goals(results: Sequence[SeedResult]) -> list[tuple[str, str, bool]]:
 def report(
     title: str, config: ReplayConfig, results: Sequence[SeedResult], lm: LatencyModel
 ) -> None:
-    print(f"\n## {title}: {fusion_label(config)}")
+    print(f"\n## {title}: {config.describe_fusion()}")
     print("\n1. EdgeLoc total position error (m) per policy")
     print(totals_table(results))
     print("\n2. per phase: fixed splits' mean request latency and mean EdgeLoc error")
@@ -261,17 +267,20 @@ def main() -> int:
     p.add_argument("--seeds", default=",".join(map(str, SEEDS)), help="comma-separated seeds")
     p.add_argument(
         "--fusion",
-        choices=("both", "scenario", "paper"),
-        default="both",
+        choices=("all", "both", "scenario", "paper", "ekf"),
+        default="all",
         help="scenario: the scenario's fusion (after); paper: the paper's bare fusion at the "
-        "old defaults k_s 20/s, dt0 0.25 s (before); both (default): before, then after",
+        "old defaults k_s 20/s, dt0 0.25 s (before); ekf: the delayed-measurement EKF (beyond "
+        "the paper); both: before, then after; all (default): before, after, EKF",
     )
     a = p.parse_args()
     try:
         seeds = [int(s) for s in a.seeds.split(",")]
     except ValueError:
         p.error(f"--seeds must be comma-separated integers, got {a.seeds!r}")
-    fusions = ("paper", "scenario") if a.fusion == "both" else (a.fusion,)
+    fusions = {"all": ("paper", "scenario", "ekf"), "both": ("paper", "scenario")}.get(
+        a.fusion, (a.fusion,)
+    )
     torch.set_num_threads(1)
     sc = load(ROOT / "scenarios" / "default.yaml")
     compute = compute_profile(sc.workload.codec, None)
@@ -290,22 +299,19 @@ def main() -> int:
         for fusion, res in run_seed(config, lm, model, seed, fusions).items():
             by_fusion[fusion].append(res)
         print(f"  seed {seed}: replayed in {time.perf_counter() - t:.1f} s", flush=True)
-    titles = {
-        "paper": "before: the paper's bare fusion",
-        "scenario": "after: the scenario's fusion",
-    }
     for fusion in fusions:
-        report(titles[fusion], fusion_config(config, fusion), by_fusion[fusion], lm)
-    if len(fusions) == 2:
-        print("\n## before -> after (the goals' figures)")
-        before, after = (goals(by_fusion[f]) for f in fusions)
+        report(TITLES[fusion], fusion_config(config, fusion), by_fusion[fusion], lm)
+    if len(fusions) > 1:
+        print("\n## the goals' figures per fusion")
+        per = [goals(by_fusion[f]) for f in fusions]
         names = ("monotone phases", "learned < every fixed split (seeds)",
                  "reductions >= paper on all three (seeds)")  # fmt: skip
         rows = [
-            [name, b[1], "PASS" if b[2] else "MISS", x[1], "PASS" if x[2] else "MISS"]
-            for name, b, x in zip(names, before, after, strict=True)
+            [name, *[x for g in per for x in (g[i][1], "PASS" if g[i][2] else "MISS")]]
+            for i, name in enumerate(names)
         ]
-        print(table(["goal", "before", "verdict", "after", "verdict"], rows))
+        headers = ["goal", *[x for f in fusions for x in (TITLES[f].split(":")[0], "verdict")]]
+        print(table(headers, rows))
     print(f"\nreplays took {time.perf_counter() - t0:.1f} s")
     return 0
 
