@@ -637,6 +637,8 @@ class _Builder:
         now = {(s.name, d): s.profile(d).radio for s in self.link_specs.values() for d in DIRS}
         out: list[model.Event] = []
         for event, section in sorted(sets, key=lambda p: (p[0].at_s, p[0].line)):
+            if (event.link, DIRS[0]) not in now:
+                continue  # an unknown link: the event's own check reported it
             directions = DIRS if event.direction == "both" else (event.direction,)
             built: dict[str, Radio | None] = {}
             for d in directions:
