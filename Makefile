@@ -17,7 +17,7 @@ HAVE_APT_ROS := $(shell [ "$$ROS_DISTRO" = jazzy ] && $(PYTHON) -c 'import rclpy
 # Debian packages for the tc-backend VM tests (tests/vm/), needed only where the host kernel has
 # no sch_netem. INITRD=No: the kernel is only booted by qemu, so no initramfs/grub update.
 VM_DEBS := qemu-system-x86 linux-image-amd64 busybox-static
-.PHONY: sysdeps test-netem chromium report-screenshot
+.PHONY: sysdeps test-netem chromium tshark report-screenshot
 
 help:
 	@echo "make scenario   set up (first time) and run $(SCENARIO)"
@@ -56,7 +56,7 @@ scenario:
 smoke: setup
 	$(BIN)/testbed run scenarios/smoke.yaml
 
-test: setup sysdeps chromium
+test: setup sysdeps chromium tshark
 	$(BIN)/python -m pytest -q
 
 # Installs $(VM_DEBS) when this kernel lacks sch_netem and they are missing (root only).
@@ -78,6 +78,13 @@ chromium:
 	@command -v chromium >/dev/null 2>&1 || { [ "$$(id -u)" = 0 ] \
 	  && apt-get update -q && DEBIAN_FRONTEND=noninteractive apt-get install -y -q chromium \
 	  || echo "chromium: not installed (needs root: sudo make chromium); the report browser test will skip"; }
+
+# Debian's tshark: the GTP-U tests dissect what crosses N3 with Wireshark's own dissector (root
+# installs it; a user without root gets those tests' skip reason instead).
+tshark:
+	@command -v tshark >/dev/null 2>&1 || { [ "$$(id -u)" = 0 ] \
+	  && apt-get update -q && DEBIAN_FRONTEND=noninteractive apt-get install -y -q tshark \
+	  || echo "tshark: not installed (needs root: sudo make tshark); the GTP-U dissection tests will skip"; }
 
 report-screenshot: setup chromium
 	REPORT_SCREENSHOT=$(CURDIR)/report-screenshot.png $(BIN)/python -m pytest -q tests/test_report_browser.py
