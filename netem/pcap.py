@@ -2,14 +2,15 @@
 
     with PcapngWriter(path) as cap:
         up = cap.interface("av1-gnb1 uplink")
-        cap.packet(up, ip_packet, t_ns, direction="outbound")
-        cap.comment(up, t_ns, "dropped by the loss stage")
+        cap.packet(up, ip_packet, t_ns, direction="outbound", comment="first after the outage")
+        cap.statistics(up, t_ns, received=1, dropped=3)
 
 One file is one section (Section Header Block); each `interface` is an Interface Description
 Block with link type RAW (101: the packet starts at its IPv4/IPv6 header, as a TUN device hands
 it over) and nanosecond timestamps; each packet an Enhanced Packet Block whose flags carry the
-direction. The file is written to `<path>.part` and renamed on `close()`, so a reader never
-sees a half-written capture under the final name (pcapng spec: IETF draft-ietf-opsawg-pcapng).
+direction; `statistics` an Interface Statistics Block (packets seen and dropped). The file is
+written to `<path>.part` and renamed on `close()`, so a reader never sees a half-written
+capture under the final name (pcapng spec: IETF draft-ietf-opsawg-pcapng).
 """
 
 from __future__ import annotations
@@ -20,11 +21,12 @@ from pathlib import Path
 from typing import BinaryIO, Literal
 
 LINKTYPE_RAW = 101
-_SHB, _IDB, _EPB = 0x0A0D0D0A, 0x00000001, 0x00000006
+_SHB, _IDB, _EPB, _ISB = 0x0A0D0D0A, 0x00000001, 0x00000006, 0x00000005
 _BYTE_ORDER_MAGIC = 0x1A2B3C4D
 _OPT_END, _OPT_COMMENT = 0, 1
 _IF_NAME, _IF_TSRESOL = 2, 9
 _EPB_FLAGS = 2
+_ISB_IFRECV, _ISB_IFDROP = 4, 5
 _DIRECTION = {"inbound": 1, "outbound": 2}
 
 
@@ -87,6 +89,16 @@ class PcapngWriter:
         body = struct.pack("<IIIII", interface, t_ns >> 32, t_ns & 0xFFFFFFFF, len(data), orig)
         f.write(_block(_EPB, body + data + b"\0" * pad + opts))
         self.packets += 1
+
+    def statistics(self, interface: int, t_ns: int, received: int, dropped: int) -> None:
+        """An Interface Statistics Block: `received` packets seen and `dropped` ones (what the
+        link's impairments dropped before they could be captured), as capinfos shows them."""
+        f = self._file()
+        body = struct.pack("<III", interface, t_ns >> 32, t_ns & 0xFFFFFFFF)
+        body += _option(_ISB_IFRECV, struct.pack("<Q", received))
+        body += _option(_ISB_IFDROP, struct.pack("<Q", dropped))
+        body += _option(_OPT_END, b"")
+        f.write(_block(_ISB, body))
 
     def _file(self) -> BinaryIO:
         if self._f is None:

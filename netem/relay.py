@@ -63,6 +63,7 @@ from typing import Any
 from netem.cell import SCHEDULERS, Cell, CellError
 from netem.errors import NetemError
 from netem.gso import VNET_LEN, Frame
+from netem.pcap import PcapngWriter
 from netem.profile import PROFILE_FIELDS, LinkProfile, check_profile
 from netem.stages import Pipeline, Slots
 from netem.traces import TRACE_FORMATS, load_trace
@@ -162,6 +163,44 @@ class Port:
         self.fd_a, self.fd_b = fd_a, fd_b
         self.pipelines = {"uplink": uplink, "downlink": downlink}
         self.cell: str | None = None
+        self.capture: Capture | None = None
+
+
+def _dropped(pipeline: Pipeline) -> int:
+    """Packets the direction's stages dropped so far, every reason together."""
+    return sum(pipeline.snapshot()["total"]["dropped_packets"].values())
+
+
+class Capture:
+    """A pcapng file of what one link delivers, per direction (one interface each), written as
+    packets leave the link: after every impairment, so dropped packets are not in it; their
+    number goes into the file's interface statistics when it is closed. With TUN offloads a
+    TCP super-packet is captured whole, as tcpdump shows one on a NIC with TSO."""
+
+    def __init__(self, path: str, port: Port, label: str | None = None) -> None:
+        self.path = path
+        self.writer = PcapngWriter(path)
+        name = label or port.name
+        self.interfaces = {d: self.writer.interface(f"{name} {d}") for d in DIRECTIONS}
+        self._dropped0 = {d: _dropped(port.pipelines[d]) for d in DIRECTIONS}
+        self.packets = {d: 0 for d in DIRECTIONS}
+
+    def write(self, direction: str, packet: bytes) -> None:
+        self.writer.packet(
+            self.interfaces[direction], packet, time.time_ns(),
+            direction="outbound" if direction == "uplink" else "inbound",
+        )  # fmt: skip
+        self.packets[direction] += 1
+
+    def close(self, port: Port) -> dict[str, Any]:
+        """Finish the file: interface statistics, final name; returns what it holds."""
+        now = time.time_ns()
+        dropped = {}
+        for d in DIRECTIONS:
+            dropped[d] = _dropped(port.pipelines[d]) - self._dropped0[d]
+            self.writer.statistics(self.interfaces[d], now, self.packets[d], dropped[d])
+        self.writer.close()
+        return {"path": self.path, "packets": dict(self.packets), "dropped": dropped}
 
 
 class Relay:
@@ -247,6 +286,10 @@ class Relay:
         port = self._port({"link": name})
         if name == self.first:
             raise ControlError(f"{name} is this relay's first link: stop the relay instead")
+        if port.capture is not None:
+            with contextlib.suppress(OSError):
+                port.capture.close(port)
+            port.capture = None
         for d, pipeline in port.pipelines.items():
             if port.cell is not None:
                 self.cells[port.cell, d].leave(pipeline.stage("slots"))  # type: ignore[arg-type]
@@ -257,11 +300,14 @@ class Relay:
         self._outputs = self._output_list()
         return port
 
-    def _output_list(self) -> list[tuple[Pipeline, int]]:
-        """Each pipeline with the TUN fd it writes to."""
+    def _output_list(self) -> list[tuple[Pipeline, int, Port, str]]:
+        """Each pipeline with the TUN fd it writes to, its port and direction."""
         out = []
         for port in self.ports.values():
-            out += [(port.pipelines["uplink"], port.fd_b), (port.pipelines["downlink"], port.fd_a)]
+            out += [
+                (port.pipelines["uplink"], port.fd_b, port, "uplink"),
+                (port.pipelines["downlink"], port.fd_a, port, "downlink"),
+            ]
         return out
 
     def _port(self, request: dict[str, Any]) -> Port:
@@ -439,6 +485,8 @@ class Relay:
             for d in self._directions(request, default="both"):
                 port.pipelines[d].outage(now, float(seconds))
             return {}
+        if op == "capture":
+            return self._capture(port, request)
         if op == "trace":
             targets = self._directions(request)
             path = request.get("path")
@@ -451,8 +499,29 @@ class Relay:
                 port.pipelines[d].play_trace(trace, now, loop=bool(request.get("loop", False)))
             return {"mean_rate_bps": None if trace is None else trace.mean_rate_bps()}
         raise ControlError(
-            f"unknown op {op!r}; allowed: ping, set, outage, trace, counters, attach, detach"
+            f"unknown op {op!r}; allowed: ping, set, outage, trace, capture, counters, attach, "
+            "detach"
         )
+
+    def _capture(self, port: Port, request: dict[str, Any]) -> dict[str, Any]:
+        """Start (`path`; `label` names its interfaces, default the link's name here) or stop
+        (`stop`: true) the link's capture; a stop returns what the file holds."""
+        if request.get("stop"):
+            if port.capture is None:
+                return {}
+            capture, port.capture = port.capture, None
+            return capture.close(port)
+        path = request.get("path")
+        if not isinstance(path, str) or not path.endswith(".pcapng"):
+            raise ControlError(f"capture needs `path`, a .pcapng file name, got {path!r}")
+        if port.capture is not None:
+            raise ControlError(f"link {port.name} is already captured to {port.capture.path}")
+        try:
+            label = request.get("label")
+            port.capture = Capture(path, port, label if isinstance(label, str) else None)
+        except OSError as exc:
+            raise ControlError(f"cannot write capture {path}: {exc.strerror}") from None
+        return {"path": path}
 
     def counters(self, port: Port | None = None) -> dict[str, Any]:
         port = port if port is not None else self.ports[self.first]
@@ -503,7 +572,7 @@ class Relay:
 
     def _deliver(self, now: float) -> None:
         offload = self.offload
-        for pipeline, fd in self._outputs:
+        for pipeline, fd, port, direction in self._outputs:
             handoff, exit_ = pipeline.deadlines()
             if (exit_ is None or exit_ > now) and (handoff is None or handoff > now):
                 continue  # nothing of this direction is due: leave its stages alone
@@ -512,19 +581,24 @@ class Relay:
                 self.lateness.append(self.clock() - exit_)
             out = pipeline.pop_ready(now)
             self.stats["writes"] += len(out)
+            capture = port.capture
             for packet in out:
+                data = packet.data if offload else packet  # type: ignore[attr-defined]
                 try:
-                    os.write(fd, packet.data if offload else packet)  # type: ignore[attr-defined]
+                    os.write(fd, data)
                 except OSError:
                     # The far end is down or its queue is full: the packet is lost, as on
                     # a wire; count it so a report can tell.
                     self.stats["write_errors"] += 1
+                    continue
+                if capture is not None:
+                    capture.write(direction, data[VNET_LEN:] if offload else data)
 
     def _deadlines(self) -> tuple[float | None, float | None]:
         """(earliest hand-off or exit, earliest exit) over both directions."""
         soft: float | None = None
         hard: float | None = None
-        for pipeline, _ in self._outputs:
+        for pipeline, *_ in self._outputs:
             due, exit_ = pipeline.deadlines()
             if due is not None and (soft is None or due < soft):
                 soft = due
@@ -570,8 +644,13 @@ class Relay:
             self._deliver(clock() + timer.ahead_s)
 
     def close(self) -> None:
-        """Close the control socket and the TUN ends of attached links (the first link's
-        fds are its opener's)."""
+        """Finish the captures, close the control socket and the TUN ends of attached links
+        (the first link's fds are its opener's)."""
+        for port in self.ports.values():
+            if port.capture is not None:
+                with contextlib.suppress(OSError):
+                    port.capture.close(port)
+                port.capture = None
         for name in [n for n in self.ports if n != self.first]:
             port = self._remove_port(name)
             for fd in (port.fd_a, port.fd_b):

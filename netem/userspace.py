@@ -439,6 +439,19 @@ class UserspaceLink:
             }
         )
 
+    def capture(self, path: str | os.PathLike[str], label: str | None = None) -> None:
+        """Write what the link delivers, both directions, to the pcapng file `path` (it
+        appears under that name when `stop_capture` or `close` finishes it); its interfaces
+        are "<label> uplink" and "<label> downlink" (default: the link's name)."""
+        request = {"op": "capture", "link": self.name, "path": os.fspath(path)}
+        self.request({**request, "label": label} if label else request)
+
+    def stop_capture(self) -> dict[str, Any]:
+        """Finish the capture: {path, packets: {direction: n}, dropped: {direction: n}}, or
+        {} when none was running."""
+        reply = self.request({"op": "capture", "link": self.name, "stop": True})
+        return {k: v for k, v in reply.items() if k in ("path", "packets", "dropped")}
+
     def counters(self) -> dict[str, Any]:
         """Per direction: totals and per-stage counters; plus the relay's own figures."""
         reply = self.request({"op": "counters"})

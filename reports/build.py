@@ -10,6 +10,7 @@ recorded is named as such rather than failing the build.
 
 from __future__ import annotations
 
+import json
 import shutil
 from collections.abc import Iterable
 from dataclasses import dataclass, field
@@ -20,7 +21,7 @@ import numpy as np
 
 from nodes.edgeloc.metrics import write_tum
 from nodes.recording import linktable
-from nodes.recording.layout import PARTS_DIR, RUN_MCAP, SUMMARY_FILE
+from nodes.recording.layout import PARTS_DIR, PCAP_DIR, RUN_MCAP, SUMMARY_FILE
 from reports.document import Code, Document, Image, Para, Section, Table, to_markdown
 from reports.html import to_html
 from reports.mcapread import ReportInputError, RunData, read_run
@@ -739,7 +740,38 @@ def _recording(data: RunData, s: dict[str, Any]) -> Section:
         sec.add(Para("Not recorded: " + ", ".join(s["not_recorded"]) + ".", "note"))
     if data.attachments:
         sec.add(Para("Attachments: " + ", ".join(sorted(data.attachments)) + "."))
+    _captures(sec, data.path.parent)
     return sec
+
+
+def _captures(sec: Section, folder: Path) -> None:
+    """The run's packet captures (`record.pcap`), with what run.json says each holds."""
+    files = sorted((folder / PCAP_DIR).glob("*.pcapng"))
+    if not files:
+        return
+    try:
+        captures = json.loads((folder / "run.json").read_text()).get("captures") or {}
+    except (OSError, ValueError):
+        captures = {}
+    rows = []
+    for f in files:
+        info = captures.get(f.stem) or {}
+        packets, dropped = info.get("packets") or {}, info.get("dropped") or {}
+        rows.append(
+            [
+                f"{PCAP_DIR}/{f.name}",
+                f"{f.stat().st_size / 1e6:.2f}",
+                *[f"{packets.get(d, '-')} / {dropped.get(d, '-')}" for d in ("uplink", "downlink")],
+            ]
+        )
+    sec.add(
+        Table(
+            ["capture (open in Wireshark)", "MB", "uplink packets / dropped", "downlink"],
+            rows,
+            caption="what each link delivered, after its impairments; drops are counted, "
+            "not captured",
+        )
+    )
 
 
 def document(

@@ -286,6 +286,15 @@ def run(
             f"run {result.run_id} ok: every vehicle reached its edge server; up "
             f"{t['up'] * 1000:.0f} ms, down {t['down'] * 1000:.0f} ms; results in {result.folder}/"
         )
+    for link, cap in result.captures.items():
+        if "error" in cap:
+            con.warn(f"capture of {link}: {cap['error']}")
+            continue
+        n = cap["packets"]
+        con.plain(
+            f"capture {link}: {result.folder / cap['path']} ({n['uplink']} uplink, "
+            f"{n['downlink']} downlink packets; open in Wireshark)"
+        )
     if scenario.report.enabled:  # last: the headline numbers and where the report is
         _report_after_run(result.folder, scenario.report.formats, scenario.report.plots)
     if not result.ok:

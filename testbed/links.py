@@ -409,6 +409,14 @@ class LinkController(Protocol):
         None where the backend does not count (the tc backend's qdisc statistics are not read)."""
         ...
 
+    def capture(self, link: str, path: Path) -> None:
+        """Write what the link delivers, both directions, to the pcapng file `path`."""
+        ...
+
+    def stop_capture(self, link: str) -> dict[str, Any]:
+        """Finish the link's capture: {path, packets, dropped} per direction ({} if none)."""
+        ...
+
     def realisation(self, link: str) -> dict[str, Any]:
         """How the backend realises the link, for the run folder's links.json: the relay's
         command line and stages; nothing per link on tc (see `commands`)."""
@@ -565,6 +573,12 @@ class UserspaceController(_Base):
     def counters(self, link: str) -> dict[str, Any] | None:
         return self._relay(link).counters()
 
+    def capture(self, link: str, path: Path) -> None:
+        self._relay(link).capture(path, label=link)
+
+    def stop_capture(self, link: str) -> dict[str, Any]:
+        return self._relay(link).stop_capture()
+
     def realisation(self, link: str) -> dict[str, Any]:
         relay = self._relay(link)
         out: dict[str, Any] = {"relay_command": relay.command()}
@@ -628,6 +642,17 @@ class TcController(_Base):
     def counters(self, link: str) -> dict[str, Any] | None:
         self._link(link)
         return None
+
+    def capture(self, link: str, path: Path) -> None:
+        self._link(link)
+        raise BadInput(
+            f"record.pcap: link {link} runs on the tc backend, whose packets no relay sees; "
+            "captures need the userspace backend for now (links.backend: userspace)"
+        )
+
+    def stop_capture(self, link: str) -> dict[str, Any]:
+        self._link(link)
+        return {}
 
     def realisation(self, link: str) -> dict[str, Any]:
         self._link(link)

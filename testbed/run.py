@@ -61,6 +61,7 @@ class RunResult:
     nodes: dict[str, Any] = field(default_factory=dict)
     link_counters: dict[str, Any] = field(default_factory=dict)
     capacity: CapacityCheck | None = None
+    captures: dict[str, Any] = field(default_factory=dict)  # link -> {path, packets, dropped}
 
     @property
     def ok(self) -> bool:
@@ -84,6 +85,7 @@ class RunResult:
             "nodes": self.nodes,
             "link_counters": self.link_counters,
             "capacity": None if self.capacity is None else self.capacity.to_dict(),
+            "captures": self.captures,
         }
 
 
@@ -150,6 +152,33 @@ def link_counters(net: Net) -> dict[str, Any]:
             out[name] = {"error": str(err)}
             continue
         out[name] = {d: c[d]["total"] for d in ("uplink", "downlink") if d in c}
+    return out
+
+
+def start_captures(net: Net, folder: Path, progress: Progress) -> list[str]:
+    """Start `record.pcap`'s captures into `folder`/pcap (after the link test, so they hold
+    the workload's packets); returns the links captured."""
+    links = net.scenario.record.pcap_links(list(net.links))
+    if not links or net.control is None:
+        return []
+    for name in links:
+        net.control.capture(name, folder / names.PCAP_DIR / f"{name}.pcapng")
+    progress(f"  capturing {', '.join(links)} to {folder / names.PCAP_DIR}/<link>.pcapng")
+    return links
+
+
+def stop_captures(net: Net, links: list[str], folder: Path) -> dict[str, Any]:
+    """Finish the captures: per link its file (relative to the run folder), packets and drops
+    per direction."""
+    out: dict[str, Any] = {}
+    for name in links:
+        try:
+            info = net.control.stop_capture(name) if net.control is not None else {}
+        except Exception as err:  # a dead relay must not hide the run's own result
+            out[name] = {"error": str(err)}
+            continue
+        if info:
+            out[name] = {**info, "path": str(Path(info["path"]).relative_to(folder))}
     return out
 
 
@@ -449,6 +478,7 @@ class _Run:
             return
         nodes = Supervisor(net, result.folder, progress)
         before = link_counters(net)  # the link test's bytes are not the workload's
+        captured = start_captures(net, result.folder, progress)
         try:
             if ros_ok:
                 nodes.start()
@@ -469,6 +499,7 @@ class _Run:
                 result.nodes = nodes.stop()
             if self.recording is not None:
                 self.recording.stop_counters()
+            result.captures = stop_captures(net, captured, result.folder)
             after = link_counters(net)
             result.link_counters = {
                 "since_link_creation": after,

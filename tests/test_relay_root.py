@@ -605,3 +605,48 @@ def test_a_link_attached_to_a_cell_queues_like_its_host(cell_namespaces) -> None
                 sock.close()
                 sink.close()
     assert len(seen) >= 0.995 * count, f"{count - len(seen)} of {count} datagrams lost"
+
+
+def test_capture_holds_what_the_link_delivered_and_counts_its_drops(
+    pair: tuple[str, str], tmp_path
+) -> None:  # type: ignore[no-untyped-def]
+    import shutil
+    import subprocess
+
+    tshark = shutil.which("tshark")
+    if tshark is None:
+        pytest.skip("tshark is not installed (`sudo make test` installs Debian's)")
+    path = tmp_path / "pcap" / "av1-gnb1.pcapng"
+    lossy = LinkProfile(loss=0.3)
+    with link_for(pair, uplink=lossy, seed=7) as link:
+        link.capture(path)
+        rx = udp_socket(pair[1], (ADDR_B, PORT))
+        rx.settimeout(0.5)
+        tx = udp_socket(pair[0])
+        for i in range(200):
+            tx.sendto(struct.pack("!I", i) + bytes(60), (ADDR_B, PORT))
+        got = 0
+        with contextlib.suppress(TimeoutError):
+            while True:
+                rx.recvfrom(2048)
+                got += 1
+        for s in (rx, tx):
+            s.close()
+        assert not path.exists()  # half-written captures never carry the final name
+        info = link.stop_capture()
+        dropped = sum(link.counters()["uplink"]["total"]["dropped_packets"].values())
+    assert path.exists() and info["path"] == str(path)
+    assert info["packets"]["uplink"] == got and info["dropped"]["uplink"] == dropped
+    assert 20 < dropped < 110 and got + dropped == 200
+    rows = subprocess.run(
+        [tshark, "-r", str(path), "-Y", f"udp.dstport == {PORT}", "-T", "fields",
+         "-e", "frame.interface_name", "-e", "ip.src", "-e", "frame.packet_flags_direction"],
+        capture_output=True, text=True, check=True, timeout=60,
+    ).stdout.splitlines()  # fmt: skip
+    assert len(rows) == got
+    assert all(r.split("\t") == ["link uplink", ADDR_A, "0x00000002"] for r in rows), rows[:3]
+    stats = subprocess.run(
+        ["capinfos", "-M", str(path)], capture_output=True, text=True, timeout=60
+    ).stdout
+    assert "Number of interfaces in file: 2" in stats, stats
+    assert stats.count("Number of stat entries = 1") == 2, stats  # each direction's drops

@@ -504,7 +504,11 @@ def _fake_run(folder: Path, outcome: BaseException | None) -> object:
             outcome.run_folder = folder  # type: ignore[attr-defined]
             raise outcome
         return SimpleNamespace(
-            run_id="123456", folder=folder, ok=True, timings_s={"up": 0.2, "down": 0.1}
+            run_id="123456",
+            folder=folder,
+            ok=True,
+            timings_s={"up": 0.2, "down": 0.1},
+            captures={},
         )
 
     return run_scenario
@@ -715,3 +719,21 @@ def test_a_radio_link_test_shows_its_cdfs_beside_the_oracle(tmp_path: Path) -> N
         "![Radio delays against the oracle](plots/radio_cdfs.png)",
     ):
         assert text in md, text
+
+
+def test_the_recording_section_lists_the_runs_captures(tmp_path: Path) -> None:
+    import json
+
+    from reports.build import _captures
+    from reports.document import Section, Table
+
+    (tmp_path / "pcap").mkdir()
+    (tmp_path / "pcap" / "av1-gnb1.pcapng").write_bytes(b"\0" * 2000)
+    (tmp_path / "pcap" / "gnb1-core1.pcapng.part").write_bytes(b"\0")  # unfinished: not listed
+    captures = {"av1-gnb1": {"packets": {"uplink": 7, "downlink": 5},
+                             "dropped": {"uplink": 2, "downlink": 0}}}  # fmt: skip
+    (tmp_path / "run.json").write_text(json.dumps({"captures": captures}))
+    sec = Section("Recording")
+    _captures(sec, tmp_path)
+    (table,) = [b for b in sec.blocks if isinstance(b, Table)]
+    assert table.rows == [["pcap/av1-gnb1.pcapng", "0.00", "7 / 2", "5 / 0"]]

@@ -11,7 +11,9 @@ Each test writes its own short scenario (the default one, 15 s, no link self-tes
 from __future__ import annotations
 
 import os
+import shutil
 import signal
+import subprocess
 import tempfile
 import time
 from pathlib import Path
@@ -43,7 +45,9 @@ def short_scenario(folder: Path, duration_s: int = DURATION_S) -> Path:
     text = text.replace("duration: 90s", f"duration: {duration_s}s")
     text = text.replace("name: default", "name: e2e-short")
     text = text.replace("link_test: true", "link_test: false")
+    text = text.replace("images: false}", "images: false, pcap: [av1-gnb1]}")
     assert f"duration: {duration_s}s" in text and "link_test: false" in text
+    assert "pcap: [av1-gnb1]" in text
     path = folder / "short.yaml"
     path.write_text(text)
     return path
@@ -160,6 +164,27 @@ def test_run_starts_every_node_and_leaves_nothing(
     assert processes_mentioning(str(folder)) == []
     assert cgroups.find_leftovers(result.run_id) == []
     assert (folder / "run.json").is_file() and (folder / "logs" / "av1.fusion.log").is_file()
+
+    # record.pcap: the air link's packets as it delivered them, both directions; tshark reads
+    # the file and finds the DDS (RTPS) traffic of the nodes in it.
+    cap = result.captures["av1-gnb1"]
+    pcap = folder / cap["path"]
+    assert cap["path"] == "pcap/av1-gnb1.pcapng" and pcap.is_file(), cap
+    assert min(cap["packets"].values()) > 100, cap
+    assert any("capturing av1-gnb1" in line for line in lines), lines
+    tshark = shutil.which("tshark")
+    if tshark is not None:
+        counts = subprocess.run(
+            [tshark, "-r", str(pcap), "-T", "fields", "-e", "frame.interface_name"],
+            capture_output=True, text=True, check=True, timeout=120,
+        ).stdout.splitlines()  # fmt: skip
+        assert counts.count("av1-gnb1 uplink") == cap["packets"]["uplink"]
+        assert counts.count("av1-gnb1 downlink") == cap["packets"]["downlink"]
+        rtps = subprocess.run(
+            [tshark, "-r", str(pcap), "-Y", "rtps", "-T", "fields", "-e", "frame.number"],
+            capture_output=True, text=True, check=True, timeout=120,
+        ).stdout.splitlines()  # fmt: skip
+        assert len(rtps) > 10, len(rtps)
 
     span = fusion["last_pose_s"] - fusion["first_pose_s"]
     req_span = inference["end_s"] - inference["start_s"]

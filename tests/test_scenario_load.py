@@ -268,6 +268,15 @@ def test_partial_workload_sections_keep_model_defaults() -> None:
     assert s.workload.dataset == "synthetic"
 
 
+def test_record_pcap_names_links_or_all() -> None:
+    s = loads(BASE + "record: {pcap: [gnb1-core1]}\n")
+    assert s.record.pcap == ("gnb1-core1",)
+    assert s.record.pcap_links(["gnb1-core1", "av1-gnb1"]) == ["gnb1-core1"]
+    every = loads(BASE + "record: {pcap: all}\n").record
+    assert every.pcap_links(["gnb1-core1", "av1-gnb1"]) == ["gnb1-core1", "av1-gnb1"]
+    assert loads(BASE).record.pcap_links(["av1-gnb1"]) == []
+
+
 def test_the_ekf_fusion_is_chosen_by_method_and_reaches_the_replay() -> None:
     from testbed.replay import replay_config
 

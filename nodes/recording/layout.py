@@ -21,6 +21,8 @@ LINKTEST_FILE = "linktest.json"
 LINKS_CONFIG_FILE = "links.json"
 #: One JSON line per timeline event as the player applied it.
 EVENTS_FILE = "events.jsonl"
+#: Folder of a run's packet captures (`record.pcap`): <link>.pcapng each.
+PCAP_DIR = "pcap"
 #: The nodes' settings (`nodes.edgeloc.settings.config_to_dict` of the run's ReplayConfig):
 #: the report replays the drive with them (fixed splits and the oracle beside the learner).
 NODE_CONFIG_FILE = "nodes/config.json"

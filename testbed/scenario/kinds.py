@@ -530,6 +530,10 @@ class Either(Kind):
         return {"anyOf": [a.schema(defs) for a in self.alternatives]}
 
     def to_yaml(self, value: Any) -> Any:
+        if isinstance(value, list | tuple):  # a list value: the list alternative writes it
+            for alt in self.alternatives:
+                if isinstance(alt, ListOf):
+                    return alt.to_yaml(value)
         return self.alternatives[0].to_yaml(value)
 
 

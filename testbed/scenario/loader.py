@@ -283,9 +283,11 @@ class _Builder:
         links = self._links()
         timeline = self._timeline()
         workload = self._workload()
+        record = self.root.get("record")
+        if record is not None:
+            self._check_pcap(record)
         if self.ctx.issues or topology is None or links is None:
             return None
-        record = self.root.get("record")
         report = self.root.get("report")
         return model.Scenario(
             name=self.root["name"],
@@ -399,6 +401,21 @@ class _Builder:
                 "write the scheduler in one place",
             )
         return dataclasses.replace(built, scheduler=radio["scheduler"])
+
+    def _check_pcap(self, record: Section) -> None:
+        """Each link `record.pcap` names is a link of the topology."""
+        names = record.get("pcap")
+        if not isinstance(names, Items) or not self.topology_ok:
+            return
+        for i, name, node in names.good():
+            if name not in self.link_kinds:
+                self.ctx.add(
+                    node,
+                    f"{names.path}[{i}]",
+                    f"the name of a link of this topology ({_listing(list(self.link_kinds))})",
+                    repr(name),
+                    did_you_mean(name, list(self.link_kinds), NAME_CUTOFF),
+                )
 
     def _check_link(self, section: Section, key: str) -> bool:
         """Whether `section[key]` names a link of the topology (reported when it does not)."""

@@ -12,6 +12,7 @@ Link names are `<lower>-<upper>` of their end nodes: `av1-gnb1` for an air link,
 from __future__ import annotations
 
 import ipaddress
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Literal
@@ -229,6 +230,12 @@ class Record:
     enabled: bool = True
     compression: Literal["zstd", "lz4", "none"] = "zstd"
     images: bool = False  # camera frames are large; off unless asked
+    # Links captured to pcapng ("all": every link); see `testbed.run`.
+    pcap: Literal["all"] | tuple[str, ...] = ()
+
+    def pcap_links(self, links: Sequence[str]) -> list[str]:
+        """The captured links of a run with `links`, in the run's order."""
+        return list(links) if self.pcap == "all" else [n for n in links if n in self.pcap]
 
 
 @dataclass(frozen=True)

@@ -614,6 +614,13 @@ RECORD = Obj(
         Field("enabled", Bool(), "Record the run."),
         Field("compression", Enum(("zstd", "lz4", "none")), "MCAP chunk compression."),
         Field("images", Bool(), "Also record camera frames (large)."),
+        Field(
+            "pcap",
+            Either(Enum(("all",)), ListOf(LINK_NAME, unique=True)),
+            "Links whose packets are captured to runs/<id>/pcap/<link>.pcapng (both directions"
+            " as they leave the link, after its impairments; what they dropped is counted in"
+            " the file's interface statistics), or all; userspace backend only.",
+        ),
     ],
     model=model.Record,
 )
