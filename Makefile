@@ -72,19 +72,21 @@ sysdeps: setup
 test-netem: setup sysdeps
 	$(BIN)/python -m pytest -q tests/test_tc_root.py tests/vm/guest_checks.py tests/test_netem_vm_root.py
 
+# $(call debian_tool,NAME,WHAT SKIPS WITHOUT IT): Debian's package NAME (also the command's
+# name) installed when missing, by root; anyone else is told what will skip.
+debian_tool = command -v $(1) >/dev/null 2>&1 || { [ "$$(id -u)" = 0 ] \
+	  && apt-get update -q && DEBIAN_FRONTEND=noninteractive apt-get install -y -q $(1) \
+	  || echo "$(1): not installed (needs root: sudo make $(1)); $(2)"; }
+
 # Debian's headless Chromium: the report test renders report.html in it (root installs it; a
 # user without root gets the test's skip reason instead).
 chromium:
-	@command -v chromium >/dev/null 2>&1 || { [ "$$(id -u)" = 0 ] \
-	  && apt-get update -q && DEBIAN_FRONTEND=noninteractive apt-get install -y -q chromium \
-	  || echo "chromium: not installed (needs root: sudo make chromium); the report browser test will skip"; }
+	@$(call debian_tool,chromium,the report browser test will skip)
 
 # Debian's tshark: the GTP-U tests dissect what crosses N3 with Wireshark's own dissector (root
 # installs it; a user without root gets those tests' skip reason instead).
 tshark:
-	@command -v tshark >/dev/null 2>&1 || { [ "$$(id -u)" = 0 ] \
-	  && apt-get update -q && DEBIAN_FRONTEND=noninteractive apt-get install -y -q tshark \
-	  || echo "tshark: not installed (needs root: sudo make tshark); the GTP-U dissection tests will skip"; }
+	@$(call debian_tool,tshark,the GTP-U dissection tests will skip)
 
 report-screenshot: setup chromium
 	REPORT_SCREENSHOT=$(CURDIR)/report-screenshot.png $(BIN)/python -m pytest -q tests/test_report_browser.py

@@ -28,8 +28,9 @@ from __future__ import annotations
 
 import argparse
 import contextlib
-import ctypes
+import dataclasses
 import errno
+import functools
 import ipaddress
 import json
 import os
@@ -60,13 +61,13 @@ from netem.gtpu import (
     encode_gpdu,
 )
 from netem.netns import in_netns
+from netem.proc import die_with_parent, renice
 from netem.tun import TunConfig, open_tun
 
 Role = Literal["gnb", "upf"]
 #: Outer IPv4 + UDP bytes of each datagram on N3 (the GTP-U header is GPDU_HEADER_LEN more).
 OUTER_IP_UDP = 28
 IP_MTU_DISCOVER, IP_PMTUDISC_DO = 10, 2
-PR_SET_PDEATHSIG = 1
 STATS_INTERVAL_S = 0.5
 _BATCH = 64  # packets read from one fd before the other gets its turn
 SOL_UDP, UDP_SEGMENT, UDP_GRO = 17, 103, 104  # linux/udp.h
@@ -89,8 +90,9 @@ class Session:
     gnb_address: str
     upf_address: str
 
-    @property
+    @functools.cached_property
     def ue_packed(self) -> bytes:
+        """The UE's address as the 4 bytes of an IPv4 header (read per uplink packet)."""
         return ipaddress.IPv4Address(self.ue_address).packed
 
     def __post_init__(self) -> None:
@@ -228,8 +230,7 @@ class Endpoint:
     def __init__(self, config: EndpointConfig, tun_fd: int, sock: socket.socket) -> None:
         self.cfg, self.tun, self.sock = config, tun_fd, sock
         self.uplink_sender = config.role == "gnb"
-        by_ue = {ipaddress.IPv4Address(s.ue_address).packed: s for s in config.sessions}
-        self._by_ue = by_ue
+        self._by_ue = {s.ue_packed: s for s in config.sessions}
         # The TEID this end receives on: the gNB is addressed with DL TEIDs, the UPF with UL.
         self._by_teid = {
             (s.dl_teid if self.uplink_sender else s.ul_teid): s for s in config.sessions
@@ -498,8 +499,7 @@ class GtpEndpoint:
         self.die_with_parent = die_with_parent
         self._dir = tempfile.mkdtemp(prefix=f"gtp-{config.role}-")
         stats = config.stats_path or os.path.join(self._dir, "stats.json")
-        self.config = EndpointConfig(**{**asdict(config), "sessions": config.sessions,
-                                        "rules": config.rules, "stats_path": stats})  # fmt: skip
+        self.config = dataclasses.replace(config, stats_path=stats)
         self.proc: subprocess.Popen[str] | None = None
 
     def start(self, timeout_s: float = 10.0) -> GtpEndpoint:
@@ -577,16 +577,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--die-with-parent", action="store_true", help="exit when the parent dies")
     p.add_argument("--nice", type=int, default=0, help="priority change (-10: as the relays)")
     args = p.parse_args(argv)
-    if args.nice:
-        try:
-            os.nice(args.nice)
-        except OSError as exc:
-            print(f"gtp: warning: cannot change priority by {args.nice}: {exc}", file=sys.stderr)
-    if args.die_with_parent:
-        parent = os.getppid()
-        ctypes.CDLL(None, use_errno=True).prctl(PR_SET_PDEATHSIG, signal.SIGTERM, 0, 0, 0)
-        if os.getppid() != parent:
-            return 1
+    renice("gtp", args.nice)
+    if args.die_with_parent and not die_with_parent():
+        return 1
     try:
         config = EndpointConfig.from_json(Path(args.config).read_text())
         peers = tuple(sorted({s.upf_address if config.role == "gnb" else s.gnb_address

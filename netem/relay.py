@@ -48,7 +48,6 @@ from __future__ import annotations
 
 import argparse
 import contextlib
-import ctypes
 import json
 import os
 import select
@@ -64,6 +63,7 @@ from netem.cell import SCHEDULERS, Cell, CellError
 from netem.errors import NetemError
 from netem.gso import VNET_LEN, Frame
 from netem.pcap import PcapngWriter
+from netem.proc import PR_SET_TIMERSLACK, die_with_parent, prctl, renice
 from netem.profile import PROFILE_FIELDS, LinkProfile, check_profile
 from netem.stages import Pipeline, Slots
 from netem.traces import TRACE_FORMATS, load_trace
@@ -79,9 +79,6 @@ EARLY_MIN_S, EARLY_MAX_S = 0.00002, 0.0003
 #: Share of a core the loop may spend polling, and the most it may save up (seconds).
 SPIN_SHARE, SPIN_BURST_S = 0.1, 0.005
 DIRECTIONS = ("uplink", "downlink")
-
-PR_SET_TIMERSLACK = 29
-PR_SET_PDEATHSIG = 1
 
 
 class ControlError(NetemError, ValueError):
@@ -598,7 +595,7 @@ class Relay:
         """(earliest hand-off or exit, earliest exit) over both directions."""
         soft: float | None = None
         hard: float | None = None
-        for pipeline, *_ in self._outputs:
+        for pipeline, _fd, _port, _direction in self._outputs:
             due, exit_ = pipeline.deadlines()
             if due is not None and (soft is None or due < soft):
                 soft = due
@@ -725,18 +722,10 @@ def _parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> int:
     args = _parser().parse_args(argv)
-    libc = ctypes.CDLL(None, use_errno=True)
-    libc.prctl(PR_SET_TIMERSLACK, 1, 0, 0, 0)  # 1 ns slack: timers fire as asked
-    if args.nice:
-        try:
-            os.nice(args.nice)
-        except OSError as exc:
-            print(f"relay: warning: cannot change priority by {args.nice}: {exc}", file=sys.stderr)
-    if args.die_with_parent:
-        parent = os.getppid()
-        libc.prctl(PR_SET_PDEATHSIG, signal.SIGTERM, 0, 0, 0)
-        if os.getppid() != parent:
-            return 1
+    prctl(PR_SET_TIMERSLACK, 1)  # 1 ns slack: timers fire as asked
+    renice("relay", args.nice)
+    if args.die_with_parent and not die_with_parent():
+        return 1
     try:
         end_a = TunConfig(args.dev_a, args.mtu, args.addr_a, offload=args.offload)
         end_b = TunConfig(args.dev_b, args.mtu, args.addr_b, offload=args.offload)

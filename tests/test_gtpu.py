@@ -17,6 +17,7 @@ from pathlib import Path
 import pytest
 
 from netem import gtpu
+from netem.gso import checksum
 from netem.gtpu import GtpError, decode, echo_request, echo_response, encode_gpdu
 from netem.pcap import PcapngWriter
 
@@ -26,13 +27,6 @@ needs_tshark = pytest.mark.skipif(
 )
 
 
-def _checksum(header: bytes) -> int:
-    s = sum(struct.unpack(f"!{len(header) // 2}H", header))
-    while s >> 16:
-        s = (s & 0xFFFF) + (s >> 16)
-    return ~s & 0xFFFF
-
-
 def ipv4_udp(src: str, dst: str, sport: int, dport: int, payload: bytes, tos: int = 0) -> bytes:
     """An IPv4/UDP packet (UDP checksum 0: none, allowed over IPv4)."""
     udp = struct.pack("!HHHH", sport, dport, 8 + len(payload), 0) + payload
@@ -40,7 +34,7 @@ def ipv4_udp(src: str, dst: str, sport: int, dport: int, payload: bytes, tos: in
         "!BBHHHBBH4s4s", 0x45, tos, 20 + len(udp), 0x1234, 0x4000, 64, 17, 0,
         ipaddress.IPv4Address(src).packed, ipaddress.IPv4Address(dst).packed,
     )  # fmt: skip
-    head = head[:10] + struct.pack("!H", _checksum(head)) + head[12:]
+    head = head[:10] + struct.pack("!H", checksum(head)) + head[12:]
     return head + udp
 
 

@@ -27,7 +27,7 @@ from netem.traces import TraceError, TraceProblem, default_format
 from testbed import units
 from testbed.scenario import model, radios, schema_v1
 from testbed.scenario.issues import ROOT_PATH, Issue, ScenarioError, did_you_mean
-from testbed.scenario.kinds import Context, Invalid, Items, Section
+from testbed.scenario.kinds import Context, Invalid, Items, Section, item
 
 __all__ = ["load", "loads", "profile_changes"]
 
@@ -409,13 +409,24 @@ class _Builder:
             return
         for i, name, node in names.good():
             if name not in self.link_kinds:
-                self.ctx.add(
-                    node,
-                    f"{names.path}[{i}]",
-                    f"the name of a link of this topology ({_listing(list(self.link_kinds))})",
-                    repr(name),
-                    did_you_mean(name, list(self.link_kinds), NAME_CUTOFF),
-                )
+                self._unknown_link(node, item(names.path, i), name)
+
+    def _unknown_link(self, node: Node, path: str, name: str) -> None:
+        """Report `name` as no link of the topology, with the likeliest one it meant."""
+        lower, _, upper = name.partition("-")
+        reversed_name = f"{upper}-{lower}"
+        hint = (
+            f"links are named lower-upper (vehicle-gnb, gnb-core): {reversed_name}"
+            if reversed_name in self.link_kinds
+            else did_you_mean(name, list(self.link_kinds), NAME_CUTOFF)
+        )
+        self.ctx.add(
+            node,
+            path,
+            f"the name of a link of this topology ({_listing(list(self.link_kinds))})",
+            repr(name),
+            hint,
+        )
 
     def _check_link(self, section: Section, key: str) -> bool:
         """Whether `section[key]` names a link of the topology (reported when it does not)."""
@@ -425,20 +436,7 @@ class _Builder:
         if name in self.link_kinds:
             return True
         if self.topology_ok:
-            lower, _, upper = name.partition("-")
-            reversed_name = f"{upper}-{lower}"
-            hint = (
-                f"links are named lower-upper (vehicle-gnb, gnb-core): {reversed_name}"
-                if reversed_name in self.link_kinds
-                else did_you_mean(name, list(self.link_kinds), NAME_CUTOFF)
-            )
-            self.ctx.add(
-                section.at(key),
-                section.path_of(key),
-                f"the name of a link of this topology ({_listing(list(self.link_kinds))})",
-                repr(name),
-                hint,
-            )
+            self._unknown_link(section.at(key), section.path_of(key), name)
         return False
 
     def _check_node(self, section: Section, key: str) -> None:
@@ -654,7 +652,7 @@ class _Builder:
         now = {(s.name, d): s.profile(d).radio for s in self.link_specs.values() for d in DIRS}
         out: list[model.Event] = []
         for event, section in sorted(sets, key=lambda p: (p[0].at_s, p[0].line)):
-            if (event.link, DIRS[0]) not in now:
+            if event.link not in self.link_specs:
                 continue  # an unknown link: the event's own check reported it
             directions = DIRS if event.direction == "both" else (event.direction,)
             built: dict[str, Radio | None] = {}
