@@ -15,12 +15,13 @@ move ~44 wire packets. The pipeline splits them only where an effect is per wire
 `Segment` stage). `--no-offload` reads and writes one MTU-sized packet at a time (the data
 plane before offloads; kept to measure against and for kernels without TUN offloads).
 
-Timing: `select` oversleeps by ~0.1 ms in this VM (more with the default 50 µs timer slack,
-which the relay sets to 1 ns). So the loop wakes a little before a packet is due (by the
-oversleep it has measured lately, at most 0.3 ms) and polls the last stretch; farther
-deadlines are pure sleeps, so an idle link costs no CPU. Polling has a CPU budget (10% of a
-core); past it, on a busy link, a packet due within the oversleep leaves that much early
-instead, so the error stays centred on zero.
+Timing: `select` oversleeps, by ~0.1 ms plus, on some VMs, a share of the sleep itself (a
+guest timer running a few per cent slow: 0.5 ms late after 10 ms). The relay sets its timer
+slack to 1 ns and learns both parts, so it sleeps short of a packet's departure (at most
+0.3 ms plus the learnt share), sleeps again for what is left, and polls the last stretch;
+deadlines farther away are pure sleeps, so an idle link costs no CPU. Polling has a CPU budget
+(10% of a core); past it, on a busy link, a packet due within the oversleep leaves that much
+early instead, so the error stays centred on zero.
 
 Control: a unix stream socket; one JSON object per line in, one JSON reply per line out:
     {"op": "ping"}                                             -> {"ok": true, "pid": ...}
@@ -76,6 +77,9 @@ READ_SLACK_S = 0.0001
 #: Bounds of the early wake-up, which tracks the measured timer oversleep. The loop polls
 #: (spins) only for a packet due within the early wake-up, so never for more than the maximum.
 EARLY_MIN_S, EARLY_MAX_S = 0.00002, 0.0003
+#: A sleep longer than this also teaches the timer's stretch (oversleep per second asked),
+#: which is capped: a host 25% slow is broken, not slow.
+STRETCH_FROM_S, STRETCH_MAX = 0.001, 0.25
 #: Share of a core the loop may spend polling, and the most it may save up (seconds).
 SPIN_SHARE, SPIN_BURST_S = 0.1, 0.005
 DIRECTIONS = ("uplink", "downlink")
@@ -97,6 +101,7 @@ class WakeTimer:
 
     def __init__(self, spin_share: float = SPIN_SHARE) -> None:
         self.early_s = 0.0001  # the VM's median oversleep, refined as we go
+        self.stretch = 0.0  # extra oversleep per second of sleep asked (a slow guest timer)
         self.spin_share = spin_share
         self.spin_budget_s = SPIN_BURST_S
         self.ahead_s = 0.0  # how early a packet may leave after this plan
@@ -136,16 +141,28 @@ class WakeTimer:
                     self.ahead_s = self.early_s
                     self.early_releases += 1
                 return 0.0
-            if timeout is None or wait - self.early_s < timeout:
-                timeout = wait - self.early_s
+            # Twice the learnt stretch: its wake-ups scatter about as much again, and one
+            # short sleep more (for what is left) costs far less than a late packet.
+            sleep = (wait - self.early_s) / (1.0 + 2.0 * self.stretch)
+            if timeout is None or sleep < timeout:
+                timeout = sleep
         return timeout
 
     def observe(self, asked: float, slept: float) -> None:
-        """Feed back a sleep that ended by timeout, to track the oversleep (EWMA)."""
+        """Feed back a sleep that ended by timeout, to track the oversleep (EWMAs).
+
+        A short sleep's oversleep is the fixed part (`early_s`); what a long one oversleeps
+        beyond that, per second asked, is the stretch.
+        """
         if asked <= 0:
             return
         self.sleeps += 1
-        over = min(max(slept - asked, 0.0), 0.002)
+        over = max(slept - asked, 0.0)
+        if asked > STRETCH_FROM_S:
+            share = min(max(over - self.early_s, 0.0) / asked, STRETCH_MAX)
+            self.stretch = 0.9 * self.stretch + 0.1 * share
+            over -= self.stretch * asked
+        over = min(max(over, 0.0), 0.002)
         early = 0.95 * self.early_s + 0.05 * over
         self.early_s = min(max(early, EARLY_MIN_S), EARLY_MAX_S)
 
@@ -538,6 +555,7 @@ class Relay:
                 "offload": self.offload,
                 "cpu_s": times.user + times.system,
                 "early_wake_s": self.timer.early_s,
+                "timer_stretch": self.timer.stretch,
                 "timed_sleeps": self.timer.sleeps,
                 "spins": self.timer.spins,
                 "early_releases": self.timer.early_releases,

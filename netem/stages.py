@@ -1305,18 +1305,20 @@ class Pipeline(Stage):
         return self._deadlines
 
     def next_exit(self) -> float | None:
-        """When the next packet leaves the pipeline, as far as known now.
+        """The earliest time a packet may leave the pipeline, as far as known now.
 
         `next_due` also counts hand-offs between stages; those are exact even if handled
-        late, so a caller may wake for them lazily and precisely only for `next_exit`. A
-        hand-off that no later stage holds a packet past (a radio's slot end on a link
-        without delay) is a departure too: waking late for it would send late.
+        late, so a caller may wake for them lazily and precisely only for `next_exit`. But a
+        hand-off due at `t` whose later stages hold a packet `hold` at least can make that
+        packet leave at `t + hold` (a fixed delay holds it exactly that long): that is a
+        departure too, and waking late for it would send late.
         """
         best = self.stages[-1].next_due()
         for stage, hold in self._handoffs:
-            if hold <= 0.0:
-                due = stage.next_due()
-                if due is not None and (best is None or due < best):
+            due = stage.next_due()
+            if due is not None:
+                due += hold
+                if best is None or due < best:
                     best = due
         return best
 

@@ -411,7 +411,7 @@ def replay(
 
     if against is not None:
         try:
-            rows = latency_against_run(load(file), against)
+            agreement = latency_against_run(load(file), against)
         except KNOWN_ERRORS as err:
             raise _fail(err) from None
         con.table(
@@ -424,10 +424,14 @@ def replay(
                     f"{a.model_s * 1000:.1f}",
                     f"{a.ratio:.2f}",
                 ]
-                for a in rows
+                for a in agreement.rows
             ],
         )
-        worst = max((abs(a.ratio - 1) for a in rows), default=0.0)
+        con.plain(
+            f"fixed overhead per request: {agreement.overhead_s * 1000:.1f} ms, from "
+            f"{agreement.overhead_from}"
+        )
+        worst = agreement.worst()
         con.plain(f"largest disagreement: {worst * 100:.0f}% (the model's requests are the run's)")
         return
 

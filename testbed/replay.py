@@ -28,6 +28,7 @@ import json
 import math
 import secrets
 import shutil
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -430,14 +431,74 @@ class SplitAgreement:
         return self.measured_s / self.model_s if self.model_s > 0 else math.inf
 
 
-def latency_against_run(
-    scenario: Scenario, run_folder: Path, seed: int = 0
-) -> list[SplitAgreement]:
+def run_compute(
+    base: ComputeProfile, requests: Sequence[Any], plan: _PathPlan, folder: Path
+) -> ComputeProfile:
+    """The compute a run's own requests took: each split's mean head and edge time as the
+    nodes measured them (wall time under their budgets, so turned back into one core's
+    seconds, which the model stretches again), and `base`'s for a split the run never
+    answered. The model then differs from the run only by the network and the exchange: a
+    machine several times slower than the reference profile's does not read as a slot model
+    that is off."""
+    heads: dict[str, list[float]] = {}
+    tails: dict[str, list[float]] = {}
+    for r in requests:
+        if r.ok and math.isfinite(r.head_s) and math.isfinite(r.edge_compute_s):
+            heads.setdefault(r.split, []).append(r.head_s)
+            tails.setdefault(r.split, []).append(r.edge_compute_s)
+    vehicle = ComputeProfile.stretch(plan.vehicle.cpu)
+    edge = ComputeProfile.stretch(plan.cell.core_cpu)
+    head_core, tail_core = [], []
+    for k, split in enumerate(base.splits):
+        head_core.append(
+            float(np.mean(heads[split])) / vehicle if split in heads else base.head_core_s[k]
+        )
+        tail_core.append(
+            float(np.mean(tails[split])) / edge if split in tails else base.tail_core_s[k]
+        )
+    return ComputeProfile(
+        base.splits,
+        tuple(head_core),
+        tuple(tail_core),
+        source=f"the mean head and edge times of the run {folder.name}'s requests",
+    )
+
+
+@dataclass(frozen=True)
+class RunAgreement:
+    """`latency_against_run`'s answer: the splits, and the fixed overhead the model used."""
+
+    rows: list[SplitAgreement]
+    overhead_s: float
+    overhead_from: str  # where that overhead came from
+    calibrated: str | None  # the split it was measured on (which then agrees by construction)
+
+    def tested(self) -> list[SplitAgreement]:
+        """The rows that test the model: all but the split the overhead came from."""
+        return [a for a in self.rows if a.split != self.calibrated]
+
+    def worst(self) -> float:
+        """The largest |measured / model - 1| over the tested splits."""
+        return max((abs(a.ratio - 1) for a in self.tested()), default=0.0)
+
+
+#: The split whose requests carry no activation: its latency beyond the model's network and
+#: compute is the fixed overhead of the machine the run was on (how `ACTION_EXCHANGE`'s was
+#: found), measured from a run with at least this many answers of it.
+OVERHEAD_SPLIT, OVERHEAD_MIN_REQUESTS = "vehicle", 5
+
+
+def latency_against_run(scenario: Scenario, run_folder: Path, seed: int = 0) -> RunAgreement:
     """How the replay's latency model agrees with a real run of `scenario`, split by split.
 
     Each answered request of the run's first vehicle is played again through the model at
-    the same run time with its split's mean payload (as the run measured it); the means per
-    split are compared. Raises `BadInput` when the folder is not a recorded run.
+    the same run time with its split's mean payload and compute (as the run measured them,
+    `run_compute`); the means per split are compared. The model's fixed overhead per request
+    (`ACTION_EXCHANGE`, 7 ms on the machine it was measured on) is the run's own where it
+    answered enough requests of the split without payload (`OVERHEAD_SPLIT`): a 2-vCPU VM
+    whose halted vCPUs wake slowly adds 15-20 ms more to the four messages of an action. That
+    split then agrees by construction; the others test the network model. Raises `BadInput`
+    when the folder is not a recorded run.
     """
     from reports.mcapread import read_run
     from reports.splits import measured_requests
@@ -455,18 +516,33 @@ def latency_against_run(
     vd = next((v for v in data.vehicles.values() if v.inference), None)
     if vd is None:
         raise BadInput(f"{folder}: the run recorded no inference request")
-    model = latency_model(scenario, vehicle=vd.name)
+    w = scenario.workload
+    reference = compute_profile(w.codec, None if w.weights is None else str(w.weights))
+    compute = run_compute(reference, vd.inference, _PathPlan(scenario, vd.name), folder)
+    bare = Exchange(handshakes=ACTION_EXCHANGE.handshakes, overhead_s=0.0)
+    model = latency_model(scenario, compute=compute, vehicle=vd.name, exchange=bare)
     rng = np.random.default_rng(seed)
-    sums: dict[str, list[float]] = {}
+    pairs: dict[str, list[tuple[float, float]]] = {}
     for r in measured_requests(vd, data.t0, model.timeout_s):
         if r.lost or r.split not in payloads:
             continue
         modelled = model.timing(r.split, r.t_s, payloads[r.split], rng).latency_s
-        sums.setdefault(r.split, []).extend((r.latency_s, modelled))
-    out = []
-    for split, values in sums.items():
-        measured, modelled = values[0::2], values[1::2]
-        out.append(
-            SplitAgreement(split, len(measured), float(np.mean(measured)), float(np.mean(modelled)))
+        pairs.setdefault(r.split, []).append((r.latency_s, modelled))
+    calibration = pairs.get(OVERHEAD_SPLIT, [])
+    if len(calibration) >= OVERHEAD_MIN_REQUESTS:
+        overhead = max(0.0, float(np.mean([m - b for m, b in calibration])))
+        source = f"the run's {len(calibration)} {OVERHEAD_SPLIT}-split requests"
+        calibrated: str | None = OVERHEAD_SPLIT
+    else:
+        overhead, calibrated = ACTION_EXCHANGE.overhead_s, None
+        source = "the reference machine's (too few requests without payload in the run)"
+    rows = [
+        SplitAgreement(
+            split,
+            len(values),
+            float(np.mean([m for m, _ in values])),
+            float(np.mean([b for _, b in values])) + overhead,
         )
-    return out
+        for split, values in pairs.items()
+    ]
+    return RunAgreement(rows, overhead, source, calibrated)

@@ -7,6 +7,7 @@ relay is stopped by its `UserspaceLink` context manager, also when a test fails.
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import os
 import secrets
 import signal
@@ -130,25 +131,35 @@ def rtts(
     return out
 
 
+def floor_rtt(pair, delay_s: float, count: int = 30) -> float:
+    """Median RTT of the echo path without delay when its ends idle as long as they will
+    with `delay_s` more: this host's wake-ups, which on a VM with halted vCPUs cost 0.5-2 ms
+    and grow with the idle time before them."""
+    return statistics.median(rtts(pair[0], count=count, gap_s=0.01 + delay_s))
+
+
 def test_udp_rtt_is_twice_the_delay(pair, echo) -> None:
-    profile = LinkProfile(delay_s=0.010)
-    with link_for(pair, uplink=profile, downlink=profile):
+    with link_for(pair) as link:
+        floor = floor_rtt(pair, 0.020)
+        link.set("both", {"delay_s": 0.010})
         got = rtts(pair[0])
     assert len(got) == 30
-    assert statistics.median(got) == pytest.approx(0.020, abs=0.0015)
+    assert statistics.median(got) - floor == pytest.approx(0.020, abs=0.0015)
     assert min(got) >= 0.020
 
 
 def test_live_set_changes_the_delay(pair, echo) -> None:
-    with link_for(pair, uplink=LinkProfile(delay_s=0.005)) as link:
+    with link_for(pair) as link:
+        floors = {d: floor_rtt(pair, d, count=15) for d in (0.005, 0.030)}
+        link.set("uplink", {"delay_s": 0.005})
         before = statistics.median(rtts(pair[0], count=15))
         link.set("uplink", {"delay_s": 0.030})
         after = statistics.median(rtts(pair[0], count=15))
         assert link.profiles["uplink"].delay_s == 0.030
         counters = link.counters()
-    assert before == pytest.approx(0.005, abs=0.0015)
-    assert after == pytest.approx(0.030, abs=0.0015)
-    assert counters["uplink"]["total"]["packets_out"] >= 30
+    assert before - floors[0.005] == pytest.approx(0.005, abs=0.0015)
+    assert after - floors[0.030] == pytest.approx(0.030, abs=0.0015)
+    assert counters["uplink"]["total"]["packets_out"] >= 60
 
 
 def test_udp_goodput_matches_the_rate(pair) -> None:
@@ -386,24 +397,43 @@ def test_udp_gso_datagrams_cross_whole_or_split_for_loss(pair) -> None:
 # -- an NR radio on the link ------------------------------------------------------------------
 
 
-def _radio_probes(pair, radio, times: list[float], size: int = 92) -> list[tuple[float, float]]:
+SO_TIMESTAMPNS = 35  # <asm-generic/socket.h>
+
+
+def _radio_probes(
+    pair, radio, times: list[float], size: int = 92, delay_s: float = 0.0
+) -> list[tuple[float, float]]:
     """(sent, received) monotonic times of UDP datagrams sent at `times` (s from now) up a
-    link whose uplink is `radio` (None: a plain link); 8 bytes of the payload are the send
-    time."""
+    link whose uplink is `radio` (None: a plain link) and `delay_s`; 8 bytes of the payload
+    are the send time. "Received" is the kernel's receive timestamp, when the relay's write
+    delivered it: how late the receiving thread then wakes is this host's, not the link's."""
     got: list[tuple[float, float]] = []
-    with link_for(pair, uplink=LinkProfile(radio=radio)):
+    with link_for(pair, uplink=LinkProfile(radio=radio, delay_s=delay_s)):
         receiver = udp_socket(pair[1], (ADDR_B, PORT))
+        receiver.setsockopt(socket.SOL_SOCKET, SO_TIMESTAMPNS, 1)
         receiver.settimeout(0.5)
         sender = udp_socket(pair[0])
         done = threading.Event()
+        # The stamp is wall-clock time; the payload's is monotonic.
+        offset = time.time() - time.monotonic()
 
         def receive() -> None:
             while not done.is_set():
                 try:
-                    data = receiver.recv(2048)
+                    data, ancillary, _flags, _peer = receiver.recvmsg(2048, 64)
                 except TimeoutError:
                     continue
-                got.append((struct.unpack("!d", data[:8])[0], time.monotonic()))
+                stamp = next(
+                    (
+                        struct.unpack("qq", d[:16])
+                        for level, kind, d in ancillary
+                        if level == socket.SOL_SOCKET and kind == SO_TIMESTAMPNS
+                    ),
+                    None,
+                )
+                assert stamp is not None, "the kernel gave no receive timestamp"
+                received = stamp[0] + stamp[1] * 1e-9 - offset
+                got.append((struct.unpack("!d", data[:8])[0], received))
 
         thread = threading.Thread(target=receive, daemon=True)
         thread.start()
@@ -417,6 +447,28 @@ def _radio_probes(pair, radio, times: list[float], size: int = 92) -> list[tuple
         sender.close()
         receiver.close()
     return got
+
+
+@dataclasses.dataclass(frozen=True)
+class PlainPath:
+    """What a link adds beyond a fixed 3 ms delay, at a test's spacing: the TUN ends and this
+    host's wake-ups (0.1 ms on a quiet machine, 1-2 ms on a VM whose halted vCPUs wake
+    slowly). Like a radio's, its packets wait for a timer, so the relay's own work is done
+    before they are due."""
+
+    median: float
+    iqr: float  # how much that varies
+    tail: float  # p99 less the median
+
+    @classmethod
+    def measure(cls, pair, times: list[float]) -> PlainPath:
+        fixed = 0.003
+        extra = sorted(r - s - fixed for s, r in _radio_probes(pair, None, times, delay_s=fixed))
+        q1, median, q3 = statistics.quantiles(extra, n=4)
+        return cls(median, q3 - q1, extra[int(0.99 * (len(extra) - 1))] - median)
+
+    def __str__(self) -> str:
+        return f"plain path {self.median * 1e3:.3f} ms, IQR {self.iqr * 1e3:.3f} ms"
 
 
 def test_a_radio_uplink_sends_in_uplink_slots_with_the_oracles_delays(pair) -> None:
@@ -440,17 +492,20 @@ def test_a_radio_uplink_sends_in_uplink_slots_with_the_oracles_delays(pair) -> N
     def after_an_end(t: float) -> float:
         return min((t - e) % period for e in ends)
 
+    plain = PlainPath.measure(pair, times[:200])
     late = sorted(after_an_end(r) for _, r in got)
-    assert late[int(0.99 * len(late))] < 0.0006, late[-10:]
-    # One-way delays against the closed form, within what this host's timers allow.
+    assert late[int(0.95 * len(late))] < 0.0006, late[-10:]
+    assert late[int(0.99 * len(late))] < 0.0006 + plain.tail, late[-10:]
+    # One-way delays against the closed form, less the path without the radio, within what
+    # this host's wake-ups allow: a slot (0.5 ms) more or less of grant lead would be off by
+    # more than the tolerance on a quiet host; a period (5 ms) is off on any.
     oracle = radio.oracle("uplink")
-    delays = sorted(r - s for s, r in got)
+    delays = sorted(r - s - plain.median for s, r in got)
     n = len(delays)
     shift = [delays[i] - oracle.quantile((i + 0.5) / n) for i in range(n)]
-    # The path without the radio (TUN, relay, receiving stack) adds 0.1-0.3 ms here; a slot
-    # (0.5 ms) more or less of grant lead would be off by more than the tolerance.
-    assert statistics.median(shift) == pytest.approx(0.0, abs=0.0005)
-    assert statistics.fmean(abs(x) for x in shift) < 0.0006  # Wasserstein-1 distance
+    print(f"{plain}; oracle shift {statistics.median(shift) * 1e3:.3f} ms")
+    assert statistics.median(shift) == pytest.approx(0.0, abs=0.0005 + plain.iqr)
+    assert statistics.fmean(abs(x) for x in shift) < 0.0006 + plain.iqr  # Wasserstein-1 distance
 
 
 def test_a_radio_uplink_that_asks_for_grants_has_the_oracles_delays(pair) -> None:
@@ -465,14 +520,15 @@ def test_a_radio_uplink_that_asks_for_grants_has_the_oracles_delays(pair) -> Non
     got = _radio_probes(pair, radio, times, size=100)
     assert len(got) >= 198
     # The path without the radio at the same spacing (a host idle for 30 ms wakes later).
-    base = statistics.median(r - s for s, r in _radio_probes(pair, None, times[:60], size=100))
+    plain = PlainPath.measure(pair, times[:60])
     oracle = radio.oracle("uplink", size_bytes=100 + 28)  # the datagram's IP packet
-    delays = sorted(r - s - base for s, r in got)
+    delays = sorted(r - s - plain.median for s, r in got)
     n = len(delays)
     shift = [delays[i] - oracle.quantile((i + 0.5) / n) for i in range(n)]
+    print(f"{plain}; oracle shift {statistics.median(shift) * 1e3:.3f} ms")
     # Two rounds of a period (SR, then the buffer status report) put the median near 13 ms.
-    assert statistics.median(shift) == pytest.approx(0.0, abs=0.0005)
-    assert statistics.fmean(abs(x) for x in shift) < 0.0006  # Wasserstein-1 distance
+    assert statistics.median(shift) == pytest.approx(0.0, abs=0.0005 + plain.iqr)
+    assert statistics.fmean(abs(x) for x in shift) < 0.0006 + plain.iqr  # Wasserstein-1 distance
     assert oracle.quantile(0.5) > 0.01
 
 

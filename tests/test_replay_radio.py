@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from netem.nr import Radio
-from testbed.replay import RadioHop, latency_model
+from testbed.replay import ACTION_EXCHANGE, RadioHop, latency_model
 from testbed.scenario import load
 
 SCENARIOS = Path(__file__).resolve().parents[1] / "scenarios"
@@ -55,11 +55,42 @@ def test_a_real_runs_latencies_are_set_beside_the_models_for_the_same_requests(
 
     folder = write(tmp_path, run_with_splits())
     build_report(folder, formats=("json",), plots=False, splits=False)  # its summary.json
-    rows = {a.split: a for a in latency_against_run(load(SCENARIOS / "nr_cell.yaml"), folder)}
+    agreement = latency_against_run(load(SCENARIOS / "nr_cell.yaml"), folder)
+    rows = {a.split: a for a in agreement.rows}
     assert set(rows) == {"image", "conv3"}  # the splits the run played (lost ones left out)
+    # No request without payload: the reference machine's overhead, and every split tested.
+    assert agreement.calibrated is None and agreement.overhead_s == ACTION_EXCHANGE.overhead_s
+    assert agreement.tested() == agreement.rows
     # The synthetic run answered image in 40 then 150 ms, and conv3 in 80 ms.
     assert 0.04 <= rows["image"].measured_s <= 0.15
     assert rows["conv3"].measured_s == pytest.approx(0.08, abs=1e-5)
     for a in rows.values():
         assert a.model_s > 0.03  # the radio's SR and grant rounds, in the model too
         assert a.ratio == pytest.approx(a.measured_s / a.model_s)
+
+
+def test_the_runs_compute_replaces_the_reference_where_the_run_answered() -> None:
+    from types import SimpleNamespace
+
+    from nodes.edgeloc.latency import ComputeProfile
+    from testbed.replay import _PathPlan, run_compute
+
+    base = ComputeProfile(("image", "conv3"), (0.001, 0.002), (0.003, 0.004))
+    scenario = load(SCENARIOS / "nr_cell.yaml")
+    plan = _PathPlan(scenario, "av1")
+    stretch = ComputeProfile.stretch(plan.vehicle.cpu), ComputeProfile.stretch(plan.cell.core_cpu)
+
+    def answer(head: float, edge: float, ok: bool = True) -> SimpleNamespace:
+        return SimpleNamespace(split="conv3", ok=ok, head_s=head, edge_compute_s=edge)
+
+    requests = [answer(0.010, 0.020), answer(0.030, 0.040), answer(5.0, 5.0, ok=False)]
+    got = run_compute(base, requests, plan, Path("runs/abc"))
+    # conv3 as the run measured it (lost requests left out), back in one core's seconds
+    assert got.head_core_s[1] * stretch[0] == pytest.approx(0.020)
+    assert got.tail_core_s[1] * stretch[1] == pytest.approx(0.030)
+    assert got.with_budgets(plan.vehicle.cpu, plan.cell.core_cpu).head_s("conv3") == pytest.approx(
+        0.020
+    )
+    # image was never answered: the reference's
+    assert (got.head_core_s[0], got.tail_core_s[0]) == (0.001, 0.003)
+    assert "abc" in got.source

@@ -303,3 +303,26 @@ def test_heap_tracer_logs_where_the_python_heap_grew(
     grown = float(err.split("python heap since 0.1 s: ")[1].split(" kB")[0])
     assert grown > 400, err
     assert "test_ros_nodes.py" in err  # the allocating line is named
+
+
+def test_a_node_that_hangs_after_sigterm_writes_its_stacks_before_the_kill() -> None:
+    import subprocess
+    import sys
+
+    code = (
+        "import signal, os, threading, time\n"
+        "from nodes.ros import common\n"
+        "common.STOP_DUMP_S = 0.3\n"
+        "stop = common.Stop()\n"
+        "os.kill(os.getpid(), signal.SIGTERM)\n"
+        "def stuck_in_shutdown():\n"
+        "    time.sleep(5)\n"
+        "threading.Thread(target=stuck_in_shutdown, daemon=True).start()\n"
+        "assert stop\n"
+        "time.sleep(1.0)\n"
+    )
+    out = subprocess.run(
+        [sys.executable, "-c", code], capture_output=True, text=True, timeout=30, check=True
+    )
+    assert "stuck_in_shutdown" in out.stderr, out.stderr
+    assert "Thread 0x" in out.stderr

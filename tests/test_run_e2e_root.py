@@ -266,7 +266,8 @@ def test_vehicle_keeps_publishing_fused_poses_when_the_edge_dies(
         assert procs[name]["exit_code"] == 0, (name, (folder / procs[name]["log"]).read_text())
     assert procs["core1.edge"]["exit_code"] == -signal.SIGKILL
     # Before the kill the edge answered; after it, requests timed out and were charged.
-    assert inference["answers"] >= 10, inference
+    # (A 2-vCPU VM answers about one request a second here: 7-11 before the kill.)
+    assert inference["answers"] >= 4, inference
     assert inference["lost"] >= 1, inference
     # The real-time thread never waited on the network: after the kill (from the next whole
     # second on) the fused pose kept its frame rate, second by second.

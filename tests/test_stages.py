@@ -67,11 +67,21 @@ def test_pipeline_hands_packets_on_at_their_due_time_not_when_polled() -> None:
     pipe.push(packet(1, 1250), 0.0)  # 10 ms on the wire at 1 Mbit/s
     assert pipe.pop_ready(0.0) == []
     assert pipe.next_due() == pytest.approx(0.010)
-    assert pipe.next_exit() is None  # not yet in the last stage
+    # Not yet in the last stage, but it may leave 20 ms after the hand-off: a departure
+    # the relay must wake for on time, not lazily.
+    assert pipe.next_exit() == pytest.approx(0.030, abs=1e-12)
     # Polled 5 ms late: the packet still entered the delay stage at 10 ms.
     assert pipe.pop_ready(0.015) == []
     assert pipe.next_due() == pytest.approx(0.030, abs=1e-12)
+    assert pipe.next_exit() == pytest.approx(0.030, abs=1e-12)
     assert len(pipe.pop_ready(0.030)) == 1
+
+
+def test_a_delayed_packet_s_departure_is_a_deadline_from_the_moment_it_arrives() -> None:
+    pipe = Pipeline.from_profile(LinkProfile(delay_s=0.010))
+    pipe.push(packet(1), 1.0)
+    assert pipe.next_exit() == pytest.approx(1.010, abs=1e-12)
+    assert pipe.deadlines()[1] == pytest.approx(1.010, abs=1e-12)
 
 
 @pytest.mark.parametrize("distribution", ["normal", "uniform", "pareto"])
@@ -432,3 +442,34 @@ def test_one_profile_check_for_both_backends() -> None:
         for backend in ("tc", "userspace"):
             with pytest.raises(ProfileError):
                 check_profile(bad, backend)  # type: ignore[arg-type]
+
+
+# -- the relay's wake-up timer ----------------------------------------------------------------
+
+
+def test_wake_timer_learns_a_slow_guest_timer_and_sleeps_short_of_the_departure() -> None:
+    from netem.relay import EARLY_MAX_S, WakeTimer
+
+    timer = WakeTimer()
+
+    # A guest timer 5% slow plus a fixed 0.1 ms: a 10 ms select ends 0.6 ms late.
+    def sleep(asked: float) -> float:
+        return asked * 1.05 + 0.0001
+
+    for _ in range(200):
+        timer.observe(0.0001, sleep(0.0001))  # short sleeps teach the fixed part
+        timer.observe(0.010, sleep(0.010))  # long ones the stretch
+    assert timer.early_s == pytest.approx(0.0001, abs=0.00003)
+    assert timer.stretch == pytest.approx(0.05, abs=0.005)
+    # A packet due in 10 ms: the first sleep ends before it is due, with room to spin.
+    now, due = 100.0, 100.010
+    first = timer.timeout(None, due, now)
+    assert first is not None and now + sleep(first) < due - 0.0002
+    # What is left is slept again, then polled; never slept past.
+    now += sleep(first)
+    second = timer.timeout(None, due, now)
+    assert second is not None and (second == 0.0 or now + sleep(second) < due)
+    # Without a stretch (a host whose timers keep time) the plan is the plain early wake.
+    plain = WakeTimer()
+    assert plain.timeout(None, 1.010, 1.0) == pytest.approx(0.010 - plain.early_s)
+    assert plain.early_s <= EARLY_MAX_S

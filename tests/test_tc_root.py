@@ -519,6 +519,15 @@ def netem_rtt(samples: list[float], floor: float) -> float:
     return statistics.quantiles(samples, n=10)[0] - floor
 
 
+def rtt_tolerance(delay_s: float) -> float:
+    """How far `netem_rtt` may be from a netem delay of `delay_s`: 1.5 ms on a host; in the
+    VM guest a tenth of the delay more, as its timers fire late in proportion to how far
+    ahead they were set (a 2-vCPU CI host's own run ~4% late; CI's guest measured 22.6 ms
+    for 20 ms and 11.7 ms for 10 ms). A delay not applied, doubled or left unchanged after
+    a `change` is still far outside."""
+    return 0.0015 + (0.1 * delay_s if IN_VM else 0.0)
+
+
 def udp_received(pair: Pair, n: int, pps: float) -> list[int]:
     rx = _start(pair.b, UDP_COUNT, 5302)
     subprocess.run(_in(pair.a, UDP_BLAST, "10.9.0.2", 5302, n, pps), check=True, timeout=120)
@@ -540,8 +549,8 @@ def test_netem_delay_rtt_and_in_place_change(pair: Pair) -> None:
         assert state is not None and state.leaf_handle == 0x100000  # changed, not grafted
         second = netem_rtt(rtts(pair), floor)
     print(f"netem delay 20 ms -> median RTT {first * 1e3:.2f} ms; 35 ms -> {second * 1e3:.2f} ms")
-    assert first == pytest.approx(0.020, abs=0.0015)
-    assert second == pytest.approx(0.035, abs=0.0015)
+    assert first == pytest.approx(0.020, abs=rtt_tolerance(0.020))
+    assert second == pytest.approx(0.035, abs=rtt_tolerance(0.035))
 
 
 @needs_netem
@@ -605,4 +614,4 @@ def test_ingress_netem(pair: Pair) -> None:
         ingress.apply(LinkProfile(delay_s=0.015))
         median = netem_rtt(rtts(pair, 60), floor)
         ingress.clear()
-    assert median == pytest.approx(0.015, abs=0.0015)
+    assert median == pytest.approx(0.015, abs=rtt_tolerance(0.015))

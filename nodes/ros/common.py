@@ -15,6 +15,7 @@ from __future__ import annotations
 import argparse
 import concurrent.futures
 import contextlib
+import faulthandler
 import json
 import math
 import os
@@ -37,6 +38,9 @@ DATASET_MARGIN_S = 60.0
 READY = "ready"
 #: Exit status of a node whose recording failed (the supervisor then fails the run).
 RECORDING_FAILED = 3
+#: Seconds after SIGTERM at which a node still running dumps its threads' stacks: before the
+#: supervisor's SIGKILL at 10 s (`testbed.supervisor.STOP_GRACE_S`).
+STOP_DUMP_S = 8.0
 
 T = TypeVar("T")
 
@@ -213,6 +217,9 @@ class Stop:
     def _on_signal(self, signum: int, frame: object) -> None:
         if not self.event.is_set():
             self.since = time.monotonic()
+            # A node still here just before the supervisor's SIGKILL writes where each of its
+            # threads waits into its log: the only trace a hang at exit would leave.
+            faulthandler.dump_traceback_later(STOP_DUMP_S, exit=False)
         self.event.set()
 
     def __bool__(self) -> bool:
