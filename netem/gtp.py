@@ -492,12 +492,20 @@ class GtpEndpoint:
         echo_interval_s: float = 0.0,
         die_with_parent: bool = True,
         nice: int = -10,
+        workdir: str | os.PathLike[str] | None = None,
     ) -> None:
         self.config = config
         self.nice = nice
         self.echo_interval_s = echo_interval_s
         self.die_with_parent = die_with_parent
-        self._dir = tempfile.mkdtemp(prefix=f"gtp-{config.role}-")
+        # Its config, counters and log: in `workdir` (a run's state folder, which outlives a
+        # detached `testbed up`), else in a temporary folder of its own, removed on close.
+        self._own_dir = workdir is None
+        if workdir is None:
+            self._dir = tempfile.mkdtemp(prefix=f"gtp-{config.role}-")
+        else:
+            self._dir = str(workdir)
+            os.makedirs(self._dir, exist_ok=True)
         stats = config.stats_path or os.path.join(self._dir, "stats.json")
         self.config = dataclasses.replace(config, stats_path=stats)
         self.proc: subprocess.Popen[str] | None = None
@@ -513,10 +521,14 @@ class GtpEndpoint:
         if self.nice and os.geteuid() == 0:
             # Like the relays: on a busy 2-core host an endpoint waiting for a CPU adds delay.
             cmd += ["--nice", str(self.nice)]
-        self.proc = subprocess.Popen(
-            cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-            cwd=Path(__file__).resolve().parents[1],
-        )  # fmt: skip
+        # Errors go to a file: a pipe nobody reads once a detached `testbed up` has exited
+        # would fail the process's next write.
+        log = open(Path(self._dir) / "gtp.log", "w")  # noqa: SIM115 - the child holds it
+        with log:
+            self.proc = subprocess.Popen(
+                cmd, stdout=subprocess.PIPE, stderr=log, text=True,
+                cwd=Path(__file__).resolve().parents[1],
+            )  # fmt: skip
         assert self.proc.stdout is not None
         sel = selectors.DefaultSelector()
         sel.register(self.proc.stdout, selectors.EVENT_READ)
@@ -525,7 +537,9 @@ class GtpEndpoint:
             raise GtpEndpointError(f"GTP-U {self.config.role} did not start within {timeout_s} s")
         line = self.proc.stdout.readline()
         if not line.startswith('{"event": "ready"'):
-            err = self.proc.stderr.read() if self.proc.stderr else ""
+            with contextlib.suppress(subprocess.TimeoutExpired):
+                self.proc.wait(2)
+            err = (Path(self._dir) / "gtp.log").read_text(errors="replace")
             self.close()
             raise GtpEndpointError(
                 f"GTP-U {self.config.role} failed to start: {err.strip() or line}"
@@ -557,10 +571,11 @@ class GtpEndpoint:
                 if stream:
                     stream.close()
         self.proc = None
-        with contextlib.suppress(OSError):
-            for p in Path(self._dir).iterdir():
-                p.unlink()
-            os.rmdir(self._dir)
+        if self._own_dir:
+            with contextlib.suppress(OSError):
+                for p in Path(self._dir).iterdir():
+                    p.unlink()
+                os.rmdir(self._dir)
         return stats
 
     def __enter__(self) -> GtpEndpoint:

@@ -390,11 +390,12 @@ class IngressShaper:
             self._drop_redirect()
 
 
-def shaping_end(kind: Literal["air", "backhaul"]) -> Literal["lower", "upper"]:
-    """Which end of a link the tc backend shapes from: the gNB's (a router: real drops).
+def shaping_end(kind: str) -> Literal["lower", "upper"]:
+    """Which end of a link the tc backend shapes from: the router's (real drops there).
 
-    Air links are `<vehicle>-<gnb>` (the gNB is the upper end), backhauls `<gnb>-<core>`
-    (the gNB is the lower end).
+    Air links are `<vehicle>-<gnb>` (the gNB is the upper end); the wired ones have their
+    router as the lower end: backhauls `<gnb>-<core>` and N3 `<gnb>-<upf>` the gNB, N6
+    `<upf>-<edge>` the UPF (or `<gnb>-<edge>` the gNB).
     """
     return "upper" if kind == "air" else "lower"
 

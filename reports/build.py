@@ -774,6 +774,65 @@ def _captures(sec: Section, folder: Path) -> None:
     )
 
 
+def _paths(folder: Path) -> Section | None:
+    """Each vehicle's path to its edge (run.json `paths`): addresses, the N3 tunnel, the edge's
+    placement and each hop's delay; with a UPF, what GTP-U added on N3."""
+    try:
+        run = json.loads((folder / "run.json").read_text())
+    except (OSError, ValueError):
+        return None
+    paths, core = run.get("paths") or [], run.get("core_path")
+    if not paths:
+        return None
+    sec = Section("Path to the edge")
+    rows = []
+    for p in paths:
+        tunnel = p.get("tunnel") or {}
+        hops = " + ".join(
+            f"{h['link']} ({h['kind']}, {_f(h.get('uplink_delay_ms'), '{:g}')}/"
+            f"{_f(h.get('downlink_delay_ms'), '{:g}')} ms)"
+            for h in p.get("hops", [])
+        )
+        rows.append(
+            [
+                p["vehicle"],
+                p["address"],
+                p["gnb"],
+                p.get("upf") or "-",
+                f"UL {tunnel['ul_teid']} / DL {tunnel['dl_teid']}" if tunnel else "-",
+                f"{p['edge']} {p['edge_address']} ({p['placement']})",
+                hops,
+            ]
+        )
+    sec.add(
+        Table(
+            [
+                "vehicle",
+                "address",
+                "gNB",
+                "UPF",
+                "N3 TEIDs",
+                "edge (placement)",
+                "hops (up/down delay)",
+            ],
+            rows,
+        )
+    )
+    if core:
+        share = core.get("gtp_overhead_share")
+        sec.add(
+            Para(
+                f"GTP-U on N3: {core.get('gtp_overhead_bytes_per_packet')} bytes per packet "
+                f"(outer IPv4, UDP, GTP-U with its PDU Session Container); "
+                f"{core.get('gtp_overhead_bytes', 0) / 1e6:.2f} MB of the "
+                f"{core.get('n3_bytes', 0) / 1e6:.2f} MB on N3"
+                + (f" ({share * 100:.1f}%)" if share is not None else "")
+                + f"; UE pool {core.get('ue_pool')}."
+            )
+        )
+    return sec
+
+
 def document(
     data: RunData, s: dict[str, Any], plots: dict[str, Plot | None], tum: list[Path]
 ) -> Document:
@@ -786,6 +845,7 @@ def document(
     sections += [_trajectories(data, plots, tum), _learner(data, s, plots), _splits(s, plots)]
     sections += [_latency(s, plots)]
     sections += [_acc_lat(s, plots), _realtime(s, plots), _gaps(s), _links(s, plots)]
+    sections += [_paths(data.path.parent)]
     sections += [_nodes(s), _recording(data, s)]
     return Document(title, s["headline"], [x for x in sections if x is not None])
 

@@ -159,6 +159,25 @@ def period_for(cores: float) -> int:
     return max(DEFAULT_PERIOD_US, min(MAX_PERIOD_US, math.ceil(MIN_QUOTA_US / cores)))
 
 
+#: The quota a DNN stage's group gets per period at least: a whole head or tail call (up to
+#: ~20 ms of a slow host's CPU, cold), so the kernel rarely stops one midway.
+COMPUTE_QUOTA_US = 25_000
+
+
+def compute_period_for(cores: float) -> int:
+    """The CFS period (us) of a DNN stage's group: long enough for `COMPUTE_QUOTA_US` of quota,
+    from 100 ms up to 1 s (0.025 cores: 25 ms per 1 s).
+
+    Why not `period_for`'s shortest period: the node paces each job to the budget's speed
+    anyway (`nodes.ros.common.ComputeThread`), so the quota only caps throughput, and a thread
+    throttled in the middle of a torch call can make almost no progress: on a 2-vCPU VM with
+    Linux 6.18 a 4 ms conv3 head, throttled at 2.5 ms per 100 ms, had not finished after 90 s
+    (its thread burning its quota all the while); at 25 ms per 1 s it ran at full speed.
+    """
+    quota_us(cores, MAX_PERIOD_US)
+    return max(DEFAULT_PERIOD_US, min(MAX_PERIOD_US, math.ceil(COMPUTE_QUOTA_US / cores)))
+
+
 def _oserror_text(err: OSError) -> str:
     name = errno.errorcode.get(err.errno or 0, "")
     return f"{err.strerror or err}" + (f" ({name})" if name else "")

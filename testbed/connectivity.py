@@ -91,11 +91,12 @@ def udp_echo(
 
 
 def vehicles_reach_cores(net: Net, count: int = 5) -> list[EchoResult]:
-    """Echo from every vehicle to the core/edge server of its cell, through its gNB."""
+    """Echo from every vehicle to the edge server of its cell, through its gNB (and, behind a
+    UPF, the GTP-U tunnel on N3)."""
     results = []
     for vehicle in net.scenario.topology.vehicles:
         cell = net.scenario.topology.cell_of_gnb(vehicle.gnb)
-        core = net[cell.core]
-        addr = str(core.address_towards(cell.gnb))
-        results.append(udp_echo(net[vehicle.name], core, addr, count=count))
+        server = net[cell.server]
+        addr = str(net.server_address(cell))
+        results.append(udp_echo(net[vehicle.name], server, addr, count=count))
     return results

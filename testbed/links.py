@@ -49,6 +49,7 @@ from testbed.namespaces import EndNames, VethEnds
 from testbed.scenario.model import (
     ClearEvent,
     Event,
+    LinkKind,
     Links,
     LinkSpec,
     OutageEvent,
@@ -75,7 +76,7 @@ class Link(Protocol):
     @property
     def name(self) -> str: ...
     @property
-    def kind(self) -> Literal["air", "backhaul"]: ...
+    def kind(self) -> LinkKind: ...
     @property
     def lower(self) -> Node: ...
     @property
@@ -434,7 +435,8 @@ class LinkController(Protocol):
 
 def shaped_interface(net: Net, node_name: str) -> tuple[Node, str]:
     """The node and its interface that `shape` caps: a vehicle's or core's interface towards its
-    gNB, a gNB's towards its core (its backhaul)."""
+    gNB, a gNB's towards its core or UPF, a UPF's towards its (first) gNB, an edge server's
+    N6."""
     if node_name not in net.nodes:
         raise BadInput(f"shape: no node {node_name!r} in this run ({', '.join(net.nodes)})")
     node = net.nodes[node_name]
@@ -442,9 +444,14 @@ def shaped_interface(net: Net, node_name: str) -> tuple[Node, str]:
     if node.role == "vehicle":
         peer = next(v.gnb for v in topo.vehicles if v.name == node_name)
     elif node.role == "gnb":
-        peer = topo.cell_of_gnb(node_name).core
-    else:
+        peer = topo.cell_of_gnb(node_name).uplink_peer
+    elif node.role == "core":
         peer = next(c.gnb for c in topo.cells if c.core == node_name)
+    elif node.role == "upf":
+        peer = next(c.gnb for c in topo.cells if c.upf == node_name)
+    else:  # an edge server: its N6 link, towards the UPF or the gNB of a cell it sits at
+        cell = next(c for c in topo.cells if c.edge == node_name)
+        peer = cell.gnb if cell.placement == "cell" else cell.uplink_peer
     return node, peer
 
 

@@ -45,6 +45,7 @@ from testbed.scenario.model import Scenario, TraceEvent
 from testbed.supervisor import Supervisor, ros_available
 from testbed.timeline import AppliedEvent, TimelinePlayer
 from testbed.topology import Net, build
+from testbed.topology.corepath import vehicle_paths
 
 Progress = Callable[[str], None]
 
@@ -62,6 +63,8 @@ class RunResult:
     link_counters: dict[str, Any] = field(default_factory=dict)
     capacity: CapacityCheck | None = None
     captures: dict[str, Any] = field(default_factory=dict)  # link -> {path, packets, dropped}
+    paths: list[dict[str, Any]] = field(default_factory=list)  # `corepath.vehicle_paths`
+    core_path: dict[str, Any] | None = None  # `CorePath.describe()`, with a UPF
 
     @property
     def ok(self) -> bool:
@@ -86,6 +89,8 @@ class RunResult:
             "link_counters": self.link_counters,
             "capacity": None if self.capacity is None else self.capacity.to_dict(),
             "captures": self.captures,
+            "paths": self.paths,
+            "core_path": self.core_path,
         }
 
 
@@ -500,6 +505,9 @@ class _Run:
             if self.recording is not None:
                 self.recording.stop_counters()
             result.captures = stop_captures(net, captured, result.folder)
+            result.paths = vehicle_paths(net)
+            if net.core is not None:
+                result.core_path = net.core.describe()
             after = link_counters(net)
             result.link_counters = {
                 "since_link_creation": after,

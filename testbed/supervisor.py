@@ -150,7 +150,7 @@ class Budget:
             return
         cores = self.requested
         try:
-            period = cgroups.period_for(cores)
+            period = cgroups.compute_period_for(cores)
         except BadInput as err:
             cores = MIN_COMPUTE_CORES
             period = cgroups.MAX_PERIOD_US
@@ -223,22 +223,24 @@ class Supervisor:
                 )
             )
 
-        for cell in topo.cells:
-            mine = [v.name for v in topo.vehicles if v.gnb == cell.gnb]
-            vehicle_ips = [str(self.net[v].address_towards(cell.gnb)) for v in mine]
+        # One edge server per node that hosts one (cells may share an edge behind a UPF).
+        for server in topo.servers():
+            cells = [c for c in topo.cells if c.server == server]
+            mine = [v.name for v in topo.vehicles if any(v.gnb == c.gnb for c in cells)]
+            vehicle_ips = [str(self.net.vehicle_address(v)) for v in mine]
             if self.edge:
-                add(cell.core, "edge", "edge_inference", ["--edge", cell.core], vehicle_ips)
+                add(server, "edge", "edge_inference", ["--edge", server], vehicle_ips)
         for v in topo.vehicles:
-            core = topo.cell_of_gnb(v.gnb).core
-            core_ip = [str(self.net[core].address_towards(v.gnb))]
-            who = ["--vehicle", v.name, "--edge", core]
-            add(v.name, "fusion", "fusion_node", who, core_ip)
-            add(v.name, "inference", "inference_request", who, core_ip)
-            add(v.name, "sensor", "vehicle_sensor", who, core_ip)
+            cell = topo.cell_of_gnb(v.gnb)
+            server_ip = [str(self.net.server_address(cell))]
+            who = ["--vehicle", v.name, "--edge", cell.server]
+            add(v.name, "fusion", "fusion_node", who, server_ip)
+            add(v.name, "inference", "inference_request", who, server_ip)
+            add(v.name, "sensor", "vehicle_sensor", who, server_ip)
         if topo.cells:
             gnb = topo.cells[0].gnb
-            peers = [str(self.net[v.name].address_towards(v.gnb)) for v in topo.vehicles]
-            peers += [str(self.net[c.core].address_towards(c.gnb)) for c in topo.cells]
+            peers = [str(self.net.vehicle_address(v.name)) for v in topo.vehicles]
+            peers += [str(self.net.server_address(c)) for c in topo.cells]
             events = ["--events", str(self.folder / names.EVENTS_FILE)]
             add(gnb, "link_events", "link_events", events, peers)
         return out
@@ -249,7 +251,7 @@ class Supervisor:
         """One unlimited cgroup per vehicle/core namespace that runs nodes; limits come later."""
         topo = self.net.scenario.topology
         requests = {v.name: v.cpu for v in topo.vehicles}
-        requests.update({c.core: c.core_cpu for c in topo.cells})
+        requests.update({c.server: c.core_cpu for c in topo.cells})
         ok, why = cgroups.available()
         ctl = cgroups.find_controller() if ok else None
         for host, cpu in requests.items():

@@ -737,3 +737,33 @@ def test_the_recording_section_lists_the_runs_captures(tmp_path: Path) -> None:
     _captures(sec, tmp_path)
     (table,) = [b for b in sec.blocks if isinstance(b, Table)]
     assert table.rows == [["pcap/av1-gnb1.pcapng", "0.00", "7 / 2", "5 / 0"]]
+
+
+def test_the_path_section_shows_each_vehicles_tunnel_edge_and_hops(tmp_path: Path) -> None:
+    import json
+
+    from reports.build import _paths
+    from reports.document import Para, Table
+
+    hops = [
+        {"link": "av1-gnb1", "kind": "air", "uplink_delay_ms": 8.0, "downlink_delay_ms": 8.0},
+        {"link": "gnb1-upf1", "kind": "n3", "uplink_delay_ms": 1.0, "downlink_delay_ms": 1.0},
+        {"link": "upf1-edge1", "kind": "n6", "uplink_delay_ms": 5.0, "downlink_delay_ms": 5.0},
+    ]
+    path = {"vehicle": "av1", "address": "10.45.0.2", "gnb": "gnb1", "upf": "upf1",
+            "edge": "edge1", "edge_address": "10.200.0.6", "placement": "core",
+            "tunnel": {"ul_teid": "0x00001001", "dl_teid": "0x00002001"}, "hops": hops}  # fmt: skip
+    core = {"gtp_overhead_bytes_per_packet": 44, "gtp_overhead_bytes": 440_000,
+            "n3_bytes": 4_400_000, "gtp_overhead_share": 0.1,
+            "ue_pool": "10.45.0.0/16"}  # fmt: skip
+    assert _paths(tmp_path) is None  # no run.json: no section
+    (tmp_path / "run.json").write_text(json.dumps({"paths": [path], "core_path": core}))
+    sec = _paths(tmp_path)
+    assert sec is not None
+    (table,) = [b for b in sec.blocks if isinstance(b, Table)]
+    (row,) = table.rows
+    assert row[:5] == ["av1", "10.45.0.2", "gnb1", "upf1", "UL 0x00001001 / DL 0x00002001"]
+    assert row[5] == "edge1 10.200.0.6 (core)"
+    assert row[6] == "av1-gnb1 (air, 8/8 ms) + gnb1-upf1 (n3, 1/1 ms) + upf1-edge1 (n6, 5/5 ms)"
+    (para,) = [b for b in sec.blocks if isinstance(b, Para)]
+    assert "44 bytes per packet" in para.text and "(10.0%)" in para.text

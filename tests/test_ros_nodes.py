@@ -246,6 +246,11 @@ def test_compute_period_gives_every_budget_at_least_the_kernels_minimum_quota() 
     assert cgroups.period_for(0.01) == 100_000  # 1 ms per 100 ms
     assert cgroups.period_for(0.005) == 200_000
     assert cgroups.quota_us(0.005, cgroups.period_for(0.005)) == cgroups.MIN_QUOTA_US
+    # A DNN stage's group: a whole call's quota per period, up to 1 s.
+    assert cgroups.compute_period_for(0.5) == 100_000
+    assert cgroups.compute_period_for(0.1) == 250_000
+    assert cgroups.compute_period_for(0.025) == 1_000_000
+    assert cgroups.compute_period_for(0.005) == 1_000_000
     with pytest.raises(BadInput, match="below the kernel's minimum"):
         cgroups.period_for(0.0005)
 

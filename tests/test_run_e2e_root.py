@@ -147,9 +147,9 @@ def test_run_starts_every_node_and_leaves_nothing(
     # vehicle's compute group (cores x period of quota, at least the kernel's 1 ms), which
     # the kernel then throttled, and its jobs were paced to that speed.
     assert budgets["av1"]["compute_cores"] == cores, budgets["av1"]
-    assert budgets["av1"]["compute_period_us"] == cgroups.period_for(cores)
+    assert budgets["av1"]["compute_period_us"] == cgroups.compute_period_for(cores)
     assert inference["compute_budget"]["joined"], inference["compute_budget"]
-    period = cgroups.period_for(cores)
+    period = cgroups.compute_period_for(cores)
     assert inference["compute_budget"]["cpu.cfs_quota_us"] == cgroups.quota_us(cores, period)
     assert inference["compute_budget"]["paced_cores"] == pytest.approx(cores, rel=0.01)
     assert budgets["av1"]["compute_cpu_stat"]["nr_periods"] > 0, budgets["av1"]

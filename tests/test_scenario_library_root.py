@@ -52,7 +52,8 @@ def test_up_and_down_of_every_library_scenario(file: Path, state_dir: Path) -> N
         nodes = scenario.topology.node_names()
         assert sorted(_ours(run_id)) == sorted(f"el-{run_id}-{n}" for n in nodes)
         assert f"{len(nodes)} namespaces, {len(scenario.links.links)} links" in up.stdout
-        assert re.search(r"link backend: (userspace|tc) \(auto: ", up.stdout), up.stdout
+        backend = r"link backend: (userspace|tc) \((auto: |asked for by)"
+        assert re.search(backend, up.stdout), up.stdout
         assert os.listdir("/sys/class/net") == links_before  # nothing in the host namespace
     finally:
         down = testbed_cli("down", run_id)

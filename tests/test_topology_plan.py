@@ -216,3 +216,124 @@ def test_without_root_building_and_removing_say_so(monkeypatch: pytest.MonkeyPat
         with pytest.raises(HostError, match="needs root"):
             call()
     assert build(example_scenario(), dry_run=True).commands(), "a dry run needs no root"
+
+
+# ---- the 5G core path: UPF, edge, N3/N6, UE pool ----------------------------------------------
+
+CORE5G = """
+version: 1
+name: core5g
+duration: 20s
+topology:
+  cells:
+    - {gnb: gnb1, upf: upf1, edge: edge1}
+    - {gnb: gnb2, upf: upf1, edge: {name: rsu2, placement: cell}}
+  vehicles:
+    - {name: av1, gnb: gnb1}
+    - {name: av2, gnb: gnb2}
+    - {name: av3, gnb: gnb1}
+links:
+  n3: {uplink: {delay: 1ms}, downlink: {delay: 1ms}}
+  n6: {uplink: {delay: 3ms}, downlink: {delay: 3ms}}
+  overrides:
+    - {link: gnb2-rsu2, uplink: {delay: 0ms}, downlink: {delay: 0ms}}
+"""
+
+
+def _core5g(tmp_path: Path) -> Net:
+    from testbed.scenario import load
+
+    (tmp_path / "core5g.yaml").write_text(CORE5G)
+    return plan(load(tmp_path / "core5g.yaml"), "abc123", POOL)
+
+
+def test_cells_with_a_upf_get_n3_n6_and_a_shared_upf(tmp_path: Path) -> None:
+    net = _core5g(tmp_path)
+    kinds = {name: link.kind for name, link in net.links.items()}
+    assert kinds == {
+        "gnb1-upf1": "n3", "upf1-edge1": "n6", "gnb2-upf1": "n3", "gnb2-rsu2": "n6",
+        "av1-gnb1": "air", "av2-gnb2": "air", "av3-gnb1": "air",
+    }  # fmt: skip
+    assert [n.role for n in net.nodes.values()].count("upf") == 1  # gnb1 and gnb2 share it
+    assert net.links["gnb1-upf1"].spec.uplink.delay_s == 0.001  # links.n3
+    assert net.links["gnb2-rsu2"].spec.uplink.delay_s == 0.0  # the override
+    topo = net.scenario.topology
+    assert [topo.cell_of_gnb(g).path() for g in ("gnb1", "gnb2")] == [
+        ["gnb1-upf1", "upf1-edge1"], ["gnb2-rsu2"]
+    ]  # fmt: skip
+
+
+def test_vehicles_behind_a_upf_use_the_ue_pool_with_room_for_the_tunnel(tmp_path: Path) -> None:
+    from ipaddress import IPv4Address
+
+    net = _core5g(tmp_path)
+    # Open5GS's pool; .1 is the UPF's own, so the UEs start at .2, in the order written.
+    assert [str(net[v].ue_address) for v in ("av1", "av2", "av3")] == [
+        "10.45.0.2", "10.45.0.3", "10.45.0.4"
+    ]  # fmt: skip
+    av1 = net["av1"]
+    assert av1.mtus == {"gnb1": 1456}
+    (default,) = av1.routes
+    assert default.dst == "default" and default.src == IPv4Address("10.45.0.2")
+    assert default.via == net.links["av1-gnb1"].addresses.upper.ip
+    # The applications' addresses: the UE's, and the edge's on its N6 (towards the UPF, or
+    # towards the gNB for the edge at the cell).
+    assert net.vehicle_address("av1") == IPv4Address("10.45.0.2")
+    cells = net.scenario.topology.cells
+    assert net.server_address(cells[0]) == net.links["upf1-edge1"].addresses.upper.ip
+    assert net.server_address(cells[1]) == net.links["gnb2-rsu2"].addresses.upper.ip
+    # The edges route the pool back the way their traffic came; the UPF forwards.
+    assert [r.dst for r in net["edge1"].routes] == ["10.45.0.0/16"]
+    assert net["edge1"].routes[0].via == net.links["upf1-edge1"].addresses.lower.ip
+    assert net["rsu2"].routes[0].via == net.links["gnb2-rsu2"].addresses.lower.ip
+    assert net["upf1"].forwarding and net["gnb1"].forwarding
+
+
+def test_sessions_number_teids_and_the_dry_run_shows_the_tunnels(tmp_path: Path) -> None:
+    from testbed.topology.corepath import CorePath, sessions
+
+    net = _core5g(tmp_path)
+    got = [(s.vehicle, s.gnb, s.upf, hex(s.ul_teid), hex(s.dl_teid)) for s in sessions(net)]
+    assert got == [
+        ("av1", "gnb1", "upf1", "0x1001", "0x2001"),
+        ("av2", "gnb2", "upf1", "0x1002", "0x2002"),
+        ("av3", "gnb1", "upf1", "0x1003", "0x2003"),
+    ]
+    s = sessions(net)[0]
+    n3 = net.links["gnb1-upf1"].addresses
+    assert (s.gnb_n3, s.upf_n3) == (n3.lower.ip, n3.upper.ip)
+    lines = CorePath(net, die_with_parent=False).commands()
+    text = "\n".join(lines)
+    assert "rule add from 10.45.0.0/16 lookup 100" in text
+    assert "route add 10.45.0.3/32 dev gtp-gnb2" in text  # the UPF: each UE into its tunnel
+    # The edge at the cell is reached before the tunnel: its N6 comes first in the UE table.
+    breakout = net.links["gnb2-rsu2"].addresses.subnet
+    assert text.index(f"route add {breakout} dev rsu2 table 100") < text.index(
+        "route add default dev gtp0 table 100", text.index("gnb2 on")
+    )
+    assert net.state is None  # nothing created
+
+
+def test_the_old_core_form_keeps_its_plain_backhaul() -> None:
+    net = _plan()
+    assert {link.kind for link in net.links.values()} == {"air", "backhaul"}
+    assert net["av1"].ue_address is None and net["av1"].mtus == {}
+    assert net.vehicle_address("av1") == net["av1"].address_towards("gnb1")
+
+
+def test_each_vehicles_path_names_its_hops_and_delays(tmp_path: Path) -> None:
+    from testbed.topology.corepath import CorePath, vehicle_paths
+
+    net = _core5g(tmp_path)
+    net.core = CorePath(net, die_with_parent=False)  # planned, not started: its sessions
+    paths = {p["vehicle"]: p for p in vehicle_paths(net)}
+    av1, av2 = paths["av1"], paths["av2"]
+    assert (av1["address"], av1["upf"], av1["edge"], av1["placement"]) == (
+        "10.45.0.2", "upf1", "edge1", "core"
+    )  # fmt: skip
+    assert av1["tunnel"]["ul_teid"] == "0x00001001"
+    assert [(h["link"], h["uplink_delay_ms"]) for h in av1["hops"]] == [
+        ("av1-gnb1", 0.0), ("gnb1-upf1", 1.0), ("upf1-edge1", 3.0)
+    ]  # fmt: skip
+    assert [h["link"] for h in av2["hops"]] == ["av2-gnb2", "gnb2-rsu2"]  # not over N3
+    assert av2["placement"] == "cell"

@@ -36,7 +36,7 @@ import torch
 from nodes.edgeloc.bandit import AdaptiveSplitLearner
 from nodes.edgeloc.codec import encode
 from nodes.edgeloc.detector import ChangeEvent, KLChangeDetector
-from nodes.edgeloc.model import SPLITS, split_index
+from nodes.edgeloc.model import IMAGE_SHAPE, SPLITS, split_index
 from nodes.edgeloc.settings import ReplayConfig
 from nodes.edgeloc.train import load_model
 from nodes.recording.layout import vehicle_topic
@@ -331,9 +331,16 @@ def main() -> int:
     from sensor_msgs.msg import Image
 
     latest = LatestFrame()
+
     # The head (and its encoding) runs on its own thread, which joins the vehicle's compute
     # cgroup: the scenario's vehicle `cpu` throttles exactly the work a slow board would do.
-    compute = ComputeThread(args.compute_cgroup, name="dnn-head")
+    def warmup() -> None:
+        blank = torch.zeros((1, *IMAGE_SHAPE), dtype=torch.uint8)
+        with torch.no_grad():
+            for split in cfg.splits:
+                encode(model.head(split, blank), cfg.codec)
+
+    compute = ComputeThread(args.compute_cgroup, name="dnn-head", warmup=warmup)
     loop = RequestLoop(cfg, args.vehicle, args.edge, args.timeout_s, compute.budget)
     learner = loop.learner
     with ros_node(f"{args.vehicle}_inference_request", record=args.record) as ros:

@@ -16,7 +16,7 @@ from __future__ import annotations
 import dataclasses
 import re
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
 import yaml
 from yaml.nodes import Node
@@ -261,6 +261,22 @@ def _listing(names: list[str], limit: int = 8) -> str:
     return ", ".join(shown) if shown else "none"
 
 
+ROLE_TEXT = {"core": "a core", "upf": "a UPF", "edge": "an edge server", "vehicle": "a vehicle"}
+#: The link kinds with defaults in `links` (`model.LinkKind`).
+LINK_KINDS = ("air", "backhaul", "n3", "n6")
+
+
+def _edge_name(cell: Section) -> str | None:
+    """A cell's edge server, written as a name or as {name, placement}."""
+    edge = cell.get("edge")
+    return edge.get("name") if isinstance(edge, Section) else edge
+
+
+def _placement(cell: Section) -> Literal["core", "cell"]:
+    edge = cell.get("edge")
+    return edge.get("placement", "core") if isinstance(edge, Section) else "core"
+
+
 # ---- rules that join fields -----------------------------------------------------------------
 
 
@@ -313,10 +329,12 @@ class _Builder:
         vehicles: Items | None = topo.get("vehicles")
         first: dict[str, tuple[str, Node]] = {}  # name -> (path, node) where first defined
 
-        def define(section: Section, key: str, role: str) -> None:
-            name = section.get(key)
+        def define(section: Section, key: str, role: str, name: str | None = None) -> None:
+            name = section.get(key) if name is None else name
             if name is None:
                 return
+            if name in first and role in ("upf", "edge") and self.roles.get(name) == role:
+                return  # cells may share one UPF and one edge server
             if name in first:
                 where, node = first[name]
                 self.ctx.add(
@@ -334,6 +352,10 @@ class _Builder:
         for _, cell, _ in cells.good() if cells else ():
             define(cell, "gnb", "gnb")
             define(cell, "core", "core")
+            define(cell, "upf", "upf")
+            define(cell, "edge", "edge", _edge_name(cell))
+            self._check_cell_form(cell)
+        self._check_shared_edges(cells)
         for _, vehicle, _ in vehicles.good() if vehicles else ():
             define(vehicle, "name", "vehicle")
         gnbs = [n for n, r in self.roles.items() if r == "gnb"]
@@ -344,7 +366,7 @@ class _Builder:
                     continue
                 role = self.roles.get(gnb)
                 hint = (
-                    f"{gnb!r} is a {role}, not a gNB"
+                    f"{gnb!r} is {ROLE_TEXT.get(role, role)}, not a gNB"
                     if role
                     else did_you_mean(gnb, gnbs, NAME_CUTOFF)
                 )
@@ -361,11 +383,32 @@ class _Builder:
             if vehicle.get("name") and vehicle.get("gnb") in gnbs:
                 self.link_kinds[f"{vehicle['name']}-{vehicle['gnb']}"] = "air"
         for _, cell, _ in cells.good() if cells else ():
-            if cell.get("gnb") and cell.get("core"):
-                self.link_kinds[f"{cell['gnb']}-{cell['core']}"] = "backhaul"
+            gnb, core, upf, edge = (
+                cell.get("gnb"),
+                cell.get("core"),
+                cell.get("upf"),
+                _edge_name(cell),
+            )
+            if gnb and core:
+                self.link_kinds[f"{gnb}-{core}"] = "backhaul"
+            elif gnb and upf and edge:
+                self.link_kinds[f"{gnb}-{upf}"] = "n3"
+                lower = gnb if _placement(cell) == "cell" else upf
+                self.link_kinds[f"{lower}-{edge}"] = "n6"
         pool = topo.get("address_pool")
+        ue_pool = topo.get("ue_pool") or model.DEFAULT_UE_POOL
+        if pool is not None and ue_pool.overlaps(pool):
+            self.ctx.add(
+                topo.at("ue_pool") if topo.written("ue_pool") else topo.at("address_pool"),
+                topo.path_of("ue_pool")
+                if topo.written("ue_pool")
+                else topo.path_of("address_pool"),
+                f"a UE pool apart from the link addresses (address_pool {pool})",
+                f"'{ue_pool}'",
+                "a packet to a vehicle would match a link's route; pick another private range",
+            )
         if pool is not None and cells is not None and vehicles is not None:
-            needed = len(cells) + len(vehicles)
+            needed = len(self.link_kinds)
             room = 2 ** max(0, 30 - pool.prefixlen) if pool.prefixlen <= 30 else 0
             if room < needed:
                 prefix = 30 - max(0, (needed - 1).bit_length())
@@ -383,11 +426,68 @@ class _Builder:
             vehicles=tuple(schema_v1.VEHICLE.build(v) for _, v, _ in vehicles.good()),
             cells=tuple(self._cell(c) for _, c, _ in cells.good()),
             address_pool=pool,
+            ue_pool=ue_pool,
         )
+
+    def _check_cell_form(self, cell: Section) -> None:
+        """A cell has a core, or a UPF and an edge (see `model.Cell`), never a mix."""
+        has = {k: cell.written(k) for k in ("core", "upf", "edge")}
+        if has["core"] and (has["upf"] or has["edge"]):
+            key = "upf" if has["upf"] else "edge"
+            self.ctx.add(
+                cell.at(key),
+                cell.path_of(key),
+                "either core (a router hosting the edge server) or upf and edge (the 5G core "
+                "path), not both",
+                f"{key} beside core {cell['core']!r}",
+                "drop core to tunnel this cell's traffic over N3 to the UPF",
+            )
+        elif has["upf"] != has["edge"]:
+            there, missing = ("upf", "edge") if has["upf"] else ("edge", "upf")
+            self.ctx.add(
+                cell.at(there),
+                cell.path_of(there),
+                f"{there} together with {missing}",
+                f"{there} without {missing}",
+                "the UPF sends the cell's traffic over N6 to an edge server; name both",
+            )
+        elif not has["core"] and not has["upf"]:
+            self.ctx.add(
+                cell.node,
+                cell.path,
+                "a cell with core, or with upf and edge",
+                "neither",
+                "e.g. {gnb: gnb1, upf: upf1, edge: edge1}",
+            )
+
+    def _check_shared_edges(self, cells: Items | None) -> None:
+        """An edge server shared by cells sits in one place (behind one UPF, or at cells)."""
+        seen: dict[str, tuple[str, str | None, str]] = {}  # edge -> (placement, upf, path)
+        for _, cell, _ in cells.good() if cells else ():
+            edge = _edge_name(cell)
+            if edge is None or not cell.written("upf"):
+                continue
+            where = (_placement(cell), cell["upf"] if _placement(cell) == "core" else None)
+            if edge not in seen:
+                seen[edge] = (*where, cell.path_of("edge"))
+                continue
+            if (seen[edge][0], seen[edge][1]) != where:
+                first = seen[edge]
+                self.ctx.add(
+                    cell.at("edge"),
+                    cell.path_of("edge"),
+                    f"edge {edge!r} where {first[2]} puts it (placement {first[0]}"
+                    + (f", behind {first[1]}" if first[1] else "")
+                    + ")",
+                    f"placement {where[0]}" + (f" behind {where[1]}" if where[1] else ""),
+                    "an edge server has one place; give this cell an edge of its own",
+                )
 
     def _cell(self, cell: Section) -> model.Cell:
         """A cell, its scheduler written as its own field or in its `radio` (not both)."""
         built: model.Cell = schema_v1.CELL.build(cell)
+        if cell.written("edge"):
+            built = dataclasses.replace(built, edge=_edge_name(cell), placement=_placement(cell))
         radio = cell.get("radio")
         if not isinstance(radio, Section) or "scheduler" not in radio:
             return built
@@ -456,15 +556,17 @@ class _Builder:
     def _links(self) -> model.Links | None:
         links: Section | None = self.root.get("links")
         defaults: dict[str, dict[str, dict[str, object]]] = {
-            kind: {"uplink": {}, "downlink": {}} for kind in ("air", "backhaul")
+            kind: {"uplink": {}, "downlink": {}} for kind in LINK_KINDS
         }
         merged: dict[str, dict[str, dict[str, object]]] = {}
         # Where each radio was written last (the section holding its `radio` key): the air
         # defaults by direction, the overrides by link and direction.
         where: dict[tuple[str, str], Section] = {}
         if links is not None:
-            for kind in ("air", "backhaul"):
+            for kind in LINK_KINDS:
                 pair: Section | None = links.get(kind)
+                if kind == "n3" and pair is None:
+                    pair = links.get("backhaul")  # the gNB's wired link, whatever its far end
                 both = _radio(pair.get("radio"), pair, self.ctx, check=False) if pair else None
                 for direction in ("uplink", "downlink"):
                     profile = pair.get(direction) if pair else None

@@ -1,12 +1,21 @@
 """Typed scenario (schema v1): what the loader produces and everything else consumes.
 
-A scenario names its nodes (vehicles, gNBs, cores), says which links join them and what each
-link direction does (`LinkProfile`), lists timeline events, and sets the workload, recording
-and report knobs. All values are in SI units (seconds, bit/s, fractions); the loader turns the
+A scenario names its nodes (vehicles, gNBs, and behind each gNB either a core, or a UPF and
+an edge server), says which links join them and what each link direction does
+(`LinkProfile`), lists timeline events, and sets the workload, recording and report knobs.
+All values are in SI units (seconds, bit/s, fractions); the loader turns the
 strings people write (`20mbit`, `8ms`, `0.5%`) into these.
 
 Link names are `<lower>-<upper>` of their end nodes: `av1-gnb1` for an air link,
-`gnb1-core1` for a backhaul. "uplink" is the direction towards the core.
+`gnb1-core1` for a backhaul, `gnb1-upf1` for N3 and `upf1-edge1` (or, with the edge at the
+cell, `gnb1-edge1`) for N6. "uplink" is the direction towards the core.
+
+Two forms of a cell. `core:` (the first form): the gNB's backhaul reaches one node that routes
+and hosts the edge server; packets cross it as plain IP. `upf:` + `edge:` (the 5G core path):
+the gNB tunnels its UEs' packets in GTP-U over N3 to the UPF, which sends them over N6 to the
+edge server; `placement: cell` puts the edge at the cell site instead (local breakout), reached
+from the gNB over its own N6 link without crossing N3. Vehicles of such cells get addresses from
+the topology's UE pool.
 """
 
 from __future__ import annotations
@@ -21,10 +30,13 @@ from netem.profile import LinkProfile
 
 SCHEMA_VERSION = 1
 
-Role = Literal["vehicle", "gnb", "core"]
+Role = Literal["vehicle", "gnb", "core", "upf", "edge"]
 Direction = Literal["uplink", "downlink"]
 Backend = Literal["auto", "tc", "userspace"]
-LinkKind = Literal["air", "backhaul"]
+LinkKind = Literal["air", "backhaul", "n3", "n6"]
+Placement = Literal["core", "cell"]
+#: Open5GS's default UE pool (`ogstun`'s 10.45.0.0/16).
+DEFAULT_UE_POOL = ipaddress.IPv4Network("10.45.0.0/16")
 
 
 @dataclass(frozen=True)
@@ -36,13 +48,61 @@ class Vehicle:
 
 @dataclass(frozen=True)
 class Cell:
-    """A gNB and the core/edge server behind it."""
+    """A gNB and what is behind it: a core (`core`), or a UPF and an edge server (`upf`,
+    `edge`, `placement`); see the module doc."""
 
     gnb: str
-    core: str
+    core: str | None = None
     core_cpu: float | None = None  # CPU cores of the edge server; None = unlimited
     #: How the gNB shares its air links' NR slots among its UEs (`netem.cell.SCHEDULERS`).
     scheduler: str = "rr"
+    upf: str | None = None
+    edge: str | None = None
+    placement: Placement = "core"
+
+    @property
+    def tunnelled(self) -> bool:
+        """Whether the gNB's UE traffic crosses N3 in GTP-U (the 5G core path)."""
+        return self.upf is not None
+
+    @property
+    def server(self) -> str:
+        """The node the edge server runs in."""
+        name = self.edge if self.upf is not None else self.core
+        assert name is not None, "a cell has a core or a UPF and an edge"
+        return name
+
+    @property
+    def uplink_peer(self) -> str:
+        """The node the gNB's wired link goes to: the core, or the UPF over N3."""
+        name = self.upf if self.upf is not None else self.core
+        assert name is not None
+        return name
+
+    def wired(self) -> list[tuple[str, LinkKind, str, str]]:
+        """(name, kind, lower, upper) of the cell's wired links, gNB side first."""
+        if self.upf is None:
+            assert self.core is not None
+            return [(f"{self.gnb}-{self.core}", "backhaul", self.gnb, self.core)]
+        assert self.edge is not None
+        n3 = (f"{self.gnb}-{self.upf}", "n3", self.gnb, self.upf)
+        if self.placement == "cell":
+            return [n3, (f"{self.gnb}-{self.edge}", "n6", self.gnb, self.edge)]
+        return [n3, (f"{self.upf}-{self.edge}", "n6", self.upf, self.edge)]
+
+    def path(self) -> list[str]:
+        """The wired links a vehicle's packets to the edge server cross, gNB side first: the
+        backhaul; N3 and N6; or, with the edge at the cell, its N6 alone."""
+        wired = self.wired()
+        return [wired[-1][0]] if self.placement == "cell" and self.upf else [w[0] for w in wired]
+
+    def nodes(self) -> list[str]:
+        """The cell's node names besides its vehicles."""
+        if self.upf is None:
+            assert self.core is not None
+            return [self.gnb, self.core]
+        assert self.edge is not None
+        return [self.gnb, self.upf, self.edge]
 
 
 @dataclass(frozen=True)
@@ -50,11 +110,16 @@ class Topology:
     vehicles: tuple[Vehicle, ...]
     cells: tuple[Cell, ...]
     address_pool: ipaddress.IPv4Network | None = None  # None: pick a free private /16
+    ue_pool: ipaddress.IPv4Network = DEFAULT_UE_POOL  # vehicles' addresses behind a UPF
 
     def node_names(self) -> list[str]:
         names = [v.name for v in self.vehicles]
+        seen: set[str] = set()
         for c in self.cells:
-            names += [c.gnb, c.core]
+            for n in c.nodes():  # several cells may share one UPF and one edge
+                if n not in seen:
+                    names.append(n)
+                    seen.add(n)
         return names
 
     def role_of(self, name: str) -> Role:
@@ -64,10 +129,27 @@ class Topology:
             return "gnb"
         if any(c.core == name for c in self.cells):
             return "core"
+        if any(c.upf == name for c in self.cells):
+            return "upf"
+        if any(c.edge == name for c in self.cells):
+            return "edge"
         raise KeyError(name)
 
     def cell_of_gnb(self, gnb: str) -> Cell:
         return next(c for c in self.cells if c.gnb == gnb)
+
+    @property
+    def tunnelled(self) -> bool:
+        """Whether any cell has the 5G core path (then its vehicles use the UE pool)."""
+        return any(c.tunnelled for c in self.cells)
+
+    def servers(self) -> list[str]:
+        """The nodes that run an edge server, each once."""
+        out: list[str] = []
+        for c in self.cells:
+            if c.server not in out:
+                out.append(c.server)
+        return out
 
 
 @dataclass(frozen=True)

@@ -367,7 +367,19 @@ LINKS = Obj(
         Field(
             "backhaul",
             _direction_pair("Default of every gNB-core link (named like gnb1-core1)."),
-            "Default of every gNB-core link (named like gnb1-core1).",
+            "Default of every gNB-core link (named like gnb1-core1), and of every N3 link"
+            " where `n3` is not written.",
+        ),
+        Field(
+            "n3",
+            _direction_pair("Default of every gNB-UPF link, N3 (named like gnb1-upf1)."),
+            "Default of every gNB-UPF link, N3 (named like gnb1-upf1): carries GTP-U.",
+        ),
+        Field(
+            "n6",
+            _direction_pair("Default of every link to an edge server, N6 (like upf1-edge1)."),
+            "Default of every link to an edge server, N6 (named like upf1-edge1, or gnb1-edge1"
+            " for an edge at the cell).",
         ),
         Field(
             "overrides",
@@ -377,12 +389,42 @@ LINKS = Obj(
     ],
 )
 
+EDGE = Obj(
+    "The edge server behind a UPF, and where it sits.",
+    [
+        Field("name", node_name("an edge server name"), "Name of the edge node.", required=True),
+        Field(
+            "placement",
+            Enum(("core", "cell")),
+            "core: behind the UPF, over N3 and N6 (the paper's lab, where the core host served"
+            " as edge); cell: at the cell site, reached from the gNB over its own N6 link"
+            " without crossing N3 (local breakout, an RSU).",
+            default="core",
+        ),
+    ],
+)
+
 CELL = Obj(
-    "A cell: a gNB (router) and the core/edge server behind it.",
+    "A cell: a gNB and what is behind it: a core (`core`: one node that routes and hosts the"
+    " edge server, plain IP), or the 5G core path (`upf` and `edge`: GTP-U over N3 to the"
+    " UPF, N6 to the edge server).",
     [
         Field("gnb", node_name("a gNB name"), "Name of the gNB node.", required=True),
         Field(
-            "core", node_name("a core name"), "Name of the core/edge-server node.", required=True
+            "core",
+            node_name("a core name"),
+            "Name of the core/edge-server node (the first form; or `upf` and `edge`).",
+        ),
+        Field(
+            "upf",
+            node_name("a UPF name"),
+            "Name of the UPF node: the gNB's N3 peer. Several cells may share one.",
+        ),
+        Field(
+            "edge",
+            Either(node_name("an edge server name"), EDGE),
+            "The edge server: its name (behind the UPF), or {name, placement}.",
+            attr=None,
         ),
         Field("core_cpu", CPU, "CPU cores for the edge server (null: unlimited)."),
         Field(
@@ -413,13 +455,20 @@ VEHICLE = Obj(
 )
 
 TOPOLOGY = Obj(
-    "Nodes: cells (gNB + core) and vehicles. Names are unique across all of them.",
+    "Nodes: cells (gNB + core, or gNB + UPF + edge) and vehicles. Names are unique across all"
+    " of them, but cells may share a UPF and an edge.",
     [
         Field(
             "address_pool",
             Nullable(PrivateNetwork()),
             "Private IPv4 network for link addresses (one /30 per link); null: pick a free /16.",
             default=None,
+        ),
+        Field(
+            "ue_pool",
+            PrivateNetwork(),
+            "Private IPv4 network the vehicles of cells with a UPF get their addresses from"
+            " (default 10.45.0.0/16, Open5GS's). It must not overlap `address_pool`.",
         ),
         Field("cells", ListOf(CELL, min_items=1), "At least one cell.", required=True),
         Field("vehicles", ListOf(VEHICLE, min_items=1), "At least one vehicle.", required=True),

@@ -25,7 +25,7 @@ from testbed.scenario.model import Scenario
 from testbed.scenario.schema_v1 import LINK_NAME_PATTERN
 
 #: Keys of `links` that are not link names (a `links.<word>` path with another word is a link).
-_LINKS_KEYS = ("backend", "air", "backhaul", "overrides")
+_LINKS_KEYS = ("backend", "air", "backhaul", "n3", "n6", "overrides")
 #: Keys that name a list item, tried in this order (`topology.vehicles.av2` = the item named av2).
 _ITEM_NAME_KEYS = ("name", "gnb", "link")
 _SEGMENT = re.compile(r"^(?P<key>[^\[\]]+)?(?P<index>(\[\d+\])*)$")

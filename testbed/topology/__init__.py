@@ -1,11 +1,13 @@
-"""The emulated network of a run: one namespace per node, one link per vehicle–gNB and gNB–core
-pair, addresses, routes, forwarding — built, torn down, and cleaned up after crashes.
+"""The emulated network of a run: one namespace per node, one link per vehicle–gNB pair and per
+wired hop behind the gNB (its backhaul to a core, or N3 to a UPF and N6 to an edge server),
+addresses, routes, forwarding, the GTP-U tunnels — built, torn down, cleaned up after crashes.
 
 Nouns (Mininet-like):
-- `Node`: a vehicle, gNB or core, living in its own namespace `el-<runid>-<name>`. It can open
-  sockets inside its namespace (`node.socket()`), step a thread into it (`node.entered()`),
-  start processes there (`node.popen(argv)`, via nsenter) and hands out its netlink socket
-  (`node.ipr`) to whoever configures it further (qdiscs, TUN devices).
+- `Node`: a vehicle, gNB, core, UPF or edge server, living in its own namespace
+  `el-<runid>-<name>`. It can open sockets inside its namespace (`node.socket()`), step a
+  thread into it (`node.entered()`), start processes there (`node.popen(argv)`, via nsenter)
+  and hands out its netlink socket (`node.ipr`) to whoever configures it further (qdiscs, TUN
+  devices).
 - `Link`: two nodes, a /30, and the two interfaces (each named after the peer node) that a
   `LinkEnds` backend creates (`VethEnds` by default).
 - `Net`: the whole run: nodes, links, the pool, the state file. A context manager:
@@ -13,13 +15,21 @@ Nouns (Mininet-like):
   Ctrl-C included.
 - `build`, `teardown_run`, `clean`: what `testbed up`, `down` and `clean` call.
 
-Routing: a vehicle's default route goes via its gNB; a core routes the whole pool via its gNB;
-a gNB only has connected routes and is the only node with ip_forward=1. Cells do not route to
-each other (a vehicle reaches its own cell's core; vehicles of one cell reach each other).
+Routing, first form (`core:`): a vehicle's default route goes via its gNB; a core routes the
+whole pool via its gNB; a gNB only has connected routes and is the only node with
+ip_forward=1. Cells do not route to each other (a vehicle reaches its own cell's core;
+vehicles of one cell reach each other).
+
+Routing, the 5G core path (`upf:` + `edge:`, `corepath`): a vehicle sends from its UE pool
+address (a /32 on its air interface, MTU 1456) via its gNB; the gNB puts what comes from the
+pool into its GTP-U tunnel to the UPF (or, for an edge at the cell, straight onto that N6);
+the UPF forwards it over N6 and tunnels each UE's address back to its gNB; the edge routes the
+pool via its N6 peer. Links carry no route between the cells' link addresses beyond that.
 
 Modules: `names` (namespace names and owner tags), `model` (Node, Link, Net), `plan` (a
 scenario into nodes, links, addresses, routes; nothing built), `build` (the plan made real),
-`teardown` (down, and `clean` of what dead runs left).
+`corepath` (PDU sessions, the GTP-U endpoints and their routes), `teardown` (down, and `clean`
+of what dead runs left).
 """
 
 from testbed.topology.build import build

@@ -14,6 +14,7 @@ from testbed.addressing import choose_pool, host_networks
 from testbed.errors import BadInput
 from testbed.namespaces import LinkEnds, require_root
 from testbed.scenario.model import Scenario
+from testbed.topology.corepath import CorePath
 from testbed.topology.model import Net
 from testbed.topology.names import RUN_NETNS_RE, Echo
 from testbed.topology.plan import check_names, link_pairs, plan
@@ -32,6 +33,21 @@ def _ids_in_use(runs: list[st.RunState]) -> set[str]:
         if m:
             ids.add(m.group(1))
     return ids
+
+
+def check_ue_pool(ue_pool: IPv4Network, pool: IPv4Network, hosts: list[IPv4Network]) -> None:
+    """The UE pool must overlap neither the run's link addresses nor a network of the host."""
+    if ue_pool.overlaps(pool):
+        raise BadInput(
+            f"topology.ue_pool {ue_pool} overlaps the link address pool {pool}; "
+            "pick another private range"
+        )
+    for net in hosts:
+        if ue_pool.overlaps(net):
+            raise BadInput(
+                f"topology.ue_pool {ue_pool} overlaps the host network {net}; pick another "
+                "private range (the UEs' addresses must not shadow the host's)"
+            )
 
 
 def build(
@@ -75,9 +91,10 @@ def build(
             run_id = st.fresh_run_id(in_use, key=domain_id_for)
         elif run_id in in_use:
             raise BadInput(f"run id {run_id} is already in use (testbed status lists runs)")
-        pool = choose_pool(
-            scenario.topology.address_pool, n_links, host_networks(), _live_pools(runs)
-        )
+        hosts = host_networks()
+        pool = choose_pool(scenario.topology.address_pool, n_links, hosts, _live_pools(runs))
+        if scenario.topology.tunnelled:
+            check_ue_pool(scenario.topology.ue_pool, pool, hosts)
         net = plan(scenario, run_id, pool, mode, backend, dry_run)
         net.link_backend = choice
         if dry_run:
@@ -86,6 +103,8 @@ def build(
                 net.control = links.controller_for(net)
                 net.control.apply()
                 lines += net.control.commands()
+            if scenario.topology.tunnelled:
+                lines += CorePath(net, die_with_parent=False).commands()
             for line in lines:
                 if echo is not None:
                     echo(line)
@@ -100,6 +119,8 @@ def build(
         if choice is not None:
             net.control = links.controller_for(net)
             net.control.apply()
+        if scenario.topology.tunnelled:
+            net.core = CorePath(net, die_with_parent=mode == "run").start()
         net.state.set_phase("up")
     except BaseException:
         net.teardown()

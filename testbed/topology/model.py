@@ -10,7 +10,7 @@ import subprocess
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, field
 from ipaddress import IPv4Address, IPv4Interface, IPv4Network
-from typing import Any, Literal
+from typing import Any
 
 from pyroute2 import IPRoute
 from pyroute2.netlink.exceptions import NetlinkError as PyNetlinkError
@@ -22,7 +22,7 @@ from testbed import state as st
 from testbed.addressing import LinkAddresses
 from testbed.errors import TestbedError
 from testbed.namespaces import EndNames, LinkEnds, Netns
-from testbed.scenario.model import LinkSpec, Role, Scenario
+from testbed.scenario.model import Cell, LinkKind, LinkSpec, Role, Scenario
 from testbed.topology.names import OWNER_TAG
 from testbed.topology.teardown import Removed, remove_run
 
@@ -31,11 +31,13 @@ from testbed.topology.teardown import Removed, remove_run
 
 @dataclass(frozen=True)
 class Route:
-    """`dst` ('default' or a network) via `via` out of interface `dev`."""
+    """`dst` ('default' or a network) via `via` out of interface `dev`, from `src` (a vehicle
+    behind a UPF sends from its UE address, not from its air link's)."""
 
     dst: str
     via: IPv4Address
     dev: str
+    src: IPv4Address | None = None
 
 
 @dataclass(eq=False)
@@ -49,6 +51,10 @@ class Node:
     interfaces: dict[str, IPv4Interface] = field(default_factory=dict)
     routes: list[Route] = field(default_factory=list)
     forwarding: bool = False
+    #: A vehicle behind a UPF: its address from the UE pool (a /32 on its air interface).
+    ue_address: IPv4Address | None = None
+    #: Interfaces whose MTU is not the link's: a UE's air interface leaves room for GTP-U.
+    mtus: dict[str, int] = field(default_factory=dict)
     ns: Netns | None = field(default=None, repr=False)  # None in a dry run or after teardown
 
     def addresses(self) -> str:
@@ -99,10 +105,11 @@ class Node:
 
 @dataclass(eq=False)
 class Link:
-    """Two nodes joined by a /30; `lower` is the vehicle (air) or the gNB (backhaul)."""
+    """Two nodes joined by a /30; `lower` is the vehicle (air), the gNB (backhaul, N3, N6 at
+    the cell) or the UPF (N6)."""
 
     name: str
-    kind: Literal["air", "backhaul"]
+    kind: LinkKind
     lower: Node
     upper: Node
     addresses: LinkAddresses
@@ -149,6 +156,9 @@ class Net:
         self.control: links.LinkController | None = None
         self._children: list[subprocess.Popen[Any]] = []
         self._removed: Removed | None = None
+        #: The GTP-U endpoints and tunnel routes (`testbed.topology.corepath.CorePath`) of a
+        #: scenario whose cells have a UPF; None otherwise.
+        self.core: Any = None
 
     def __getitem__(self, name: str) -> Node:
         return self.nodes[name]
@@ -187,10 +197,17 @@ class Net:
         for link in self.links.values():
             for node, ifname in ((link.lower, link.upper.name), (link.upper, link.lower.name)):
                 cmds.append(f"ip -n {node.netns} addr add {node.interfaces[ifname]} dev {ifname}")
+                if ifname in node.mtus:
+                    cmds.append(f"ip -n {node.netns} link set {ifname} mtu {node.mtus[ifname]}")
                 cmds.append(f"ip -n {node.netns} link set {ifname} up")
         for node in self.nodes.values():
+            if node.ue_address is not None:
+                dev = next(iter(node.interfaces))
+                cmds.append(f"ip -n {node.netns} addr add {node.ue_address}/32 dev {dev}")
+        for node in self.nodes.values():
             for r in node.routes:
-                cmds.append(f"ip -n {node.netns} route add {r.dst} via {r.via} dev {r.dev}")
+                src = f" src {r.src}" if r.src else ""
+                cmds.append(f"ip -n {node.netns} route add {r.dst} via {r.via} dev {r.dev}{src}")
         for node in self.nodes.values():
             if node.forwarding:
                 cmds.append(f"ip netns exec {node.netns} sysctl -w net.ipv4.ip_forward=1")
@@ -221,13 +238,24 @@ class Net:
                     ns.ipr.addr(
                         "add", index=idx, address=str(addr.ip), prefixlen=addr.network.prefixlen
                     )
+                    if ifname in node.mtus:
+                        ns.ipr.link("set", index=idx, mtu=node.mtus[ifname])
                     ns.ipr.link("set", index=idx, state="up")
+            for node in self.nodes.values():
+                if node.ue_address is not None:
+                    step = f"adding UE address {node.ue_address} in {node.netns}"
+                    dev = next(iter(node.interfaces))  # a vehicle has its air interface
+                    node._ns().ipr.addr(
+                        "add", index=index[node.name, dev], address=str(node.ue_address),
+                        prefixlen=32,
+                    )  # fmt: skip
             for node in self.nodes.values():
                 for r in node.routes:
                     step = f"adding route {r.dst} via {r.via} in {node.netns}"
                     dst = "0.0.0.0/0" if r.dst == "default" else r.dst
+                    extra = {"prefsrc": str(r.src)} if r.src else {}
                     node._ns().ipr.route(
-                        "add", dst=dst, gateway=str(r.via), oif=index[node.name, r.dev]
+                        "add", dst=dst, gateway=str(r.via), oif=index[node.name, r.dev], **extra
                     )
             for node in self.nodes.values():
                 if node.forwarding:
@@ -246,6 +274,8 @@ class Net:
             return self._removed
         if self.control is not None:
             self.control.close()  # helper threads first; a run's own relays stop with it
+        if self.core is not None:
+            self.core.close()  # its final counters; the processes are the run's anyway
         if self.dry_run or self.state is None:
             self._removed = Removed(self.run_id)
             return self._removed
@@ -254,6 +284,22 @@ class Net:
             node.ns = None
         self._removed = removed
         return removed
+
+    def vehicle_address(self, vehicle: str) -> IPv4Address:
+        """The address a vehicle's applications use: its UE address behind a UPF, else its
+        air link's."""
+        node = self.nodes[vehicle]
+        if node.ue_address is not None:
+            return node.ue_address
+        gnb = next(v.gnb for v in self.scenario.topology.vehicles if v.name == vehicle)
+        return node.address_towards(gnb)
+
+    def server_address(self, cell: Cell) -> IPv4Address:
+        """The edge server's address that the cell's vehicles reach it at."""
+        server = self.nodes[cell.server]
+        if not cell.tunnelled:
+            return server.address_towards(cell.gnb)
+        return server.address_towards(cell.gnb if cell.placement == "cell" else cell.uplink_peer)
 
     def backend_text(self) -> str:
         """The link backend as run.json and `testbed up` name it."""

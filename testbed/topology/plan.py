@@ -3,15 +3,15 @@ links, addresses and routes decided, nothing built (what `--dry-run` prints)."""
 
 from __future__ import annotations
 
-from ipaddress import IPv4Network
-from typing import Literal
+from ipaddress import IPv4Address, IPv4Network
 
+from netem.gtpu import N3_OVERHEAD
 from netem.profile import LinkProfile
 from testbed import state as st
 from testbed.addressing import assign
 from testbed.errors import BadInput
 from testbed.namespaces import LinkEnds, VethEnds
-from testbed.scenario.model import Cell, Links, LinkSpec, Scenario, Topology, Vehicle
+from testbed.scenario.model import Cell, LinkKind, Links, LinkSpec, Scenario, Topology, Vehicle
 from testbed.scenario.schema_v1 import NODE_NAME_PATTERN
 from testbed.topology.model import Link, Net, Node, Route
 from testbed.topology.names import NODE_NAME_RE, netns_name
@@ -40,15 +40,35 @@ def check_names(scenario: Scenario) -> None:
         raise BadInput("a topology needs at least one vehicle and one cell")
 
 
-def link_pairs(scenario: Scenario) -> list[tuple[str, Literal["air", "backhaul"], str, str]]:
-    """(name, kind, lower, upper) for every link: backhauls first, so adding vehicles never
-    moves a backhaul's addresses."""
+def link_pairs(scenario: Scenario) -> list[tuple[str, LinkKind, str, str]]:
+    """(name, kind, lower, upper) for every link: the cells' wired links first (a link that
+    cells share, like one UPF's N6 to one edge, once), so adding vehicles never moves their
+    addresses."""
     topo = scenario.topology
-    pairs: list[tuple[str, Literal["air", "backhaul"], str, str]] = [
-        (f"{c.gnb}-{c.core}", "backhaul", c.gnb, c.core) for c in topo.cells
-    ]
+    pairs: list[tuple[str, LinkKind, str, str]] = []
+    seen: set[str] = set()
+    for c in topo.cells:
+        for pair in c.wired():
+            if pair[0] not in seen:
+                seen.add(pair[0])
+                pairs.append(pair)
     pairs += [(f"{v.name}-{v.gnb}", "air", v.name, v.gnb) for v in topo.vehicles]
     return pairs
+
+
+#: A UE's air interface MTU behind a UPF: 1500 on N3 less the outer IPv4 (20), UDP (8) and
+#: GTP-U header with its PDU Session Container (16): 1456, as Open5GS and OAI set their UEs'.
+UE_MTU = 1500 - N3_OVERHEAD
+
+
+def ue_addresses(topo: Topology) -> dict[str, IPv4Address]:
+    """Each vehicle of a cell with a UPF, its address in the UE pool, in the order the
+    vehicles are written, from the pool's second host up: the first is the UPF's own, as
+    Open5GS gives its `ogstun` 10.45.0.1 and its UEs 10.45.0.2 on."""
+    hosts = topo.ue_pool.hosts()
+    next(hosts)
+    tunnelled = {c.gnb for c in topo.cells if c.tunnelled}
+    return {v.name: next(hosts) for v in topo.vehicles if v.gnb in tunnelled}
 
 
 def plan(
@@ -74,13 +94,30 @@ def plan(
         net.links[name] = link
         link.lower.interfaces[upper] = a.lower
         link.upper.interfaces[lower] = a.upper
+    ues = ue_addresses(topo)
     for v in topo.vehicles:
         gnb_addr = net.links[f"{v.name}-{v.gnb}"].addresses.upper.ip
-        net.nodes[v.name].routes.append(Route("default", gnb_addr, v.gnb))
+        node = net.nodes[v.name]
+        node.ue_address = ues.get(v.name)
+        if node.ue_address is not None:
+            node.mtus[v.gnb] = UE_MTU
+        node.routes.append(Route("default", gnb_addr, v.gnb, node.ue_address))
     for c in topo.cells:
-        gnb_addr = net.links[f"{c.gnb}-{c.core}"].addresses.lower.ip
-        net.nodes[c.core].routes.append(Route(str(pool), gnb_addr, c.gnb))
         net.nodes[c.gnb].forwarding = True
+        if not c.tunnelled:
+            assert c.core is not None
+            gnb_addr = net.links[f"{c.gnb}-{c.core}"].addresses.lower.ip
+            net.nodes[c.core].routes.append(Route(str(pool), gnb_addr, c.gnb))
+            continue
+        # The tunnels' own routes (UE traffic into the gNB's and the UPF's TUN devices) come
+        # with the GTP-U endpoints (`testbed.topology.corepath`); here the plain ones.
+        upf, edge = net.nodes[c.uplink_peer], net.nodes[c.server]
+        upf.forwarding = True
+        near = c.gnb if c.placement == "cell" else c.uplink_peer  # the edge's N6 peer
+        n6 = net.links[f"{near}-{c.server}"]
+        route = Route(str(topo.ue_pool), n6.addresses.lower.ip, near)
+        if route not in edge.routes:
+            edge.routes.append(route)
     return net
 
 
@@ -93,8 +130,6 @@ def example_scenario(
     vehicle_list = tuple(Vehicle(f"av{i + 1}", cell_list[i % cells].gnb) for i in range(vehicles))
     topo = Topology(vehicle_list, cell_list, pool)
     flat = LinkProfile()
-    specs = [
-        LinkSpec(f"{c.gnb}-{c.core}", "backhaul", c.gnb, c.core, flat, flat) for c in cell_list
-    ]
+    specs = [LinkSpec(*pair, flat, flat) for c in cell_list for pair in c.wired()]
     specs += [LinkSpec(f"{v.name}-{v.gnb}", "air", v.name, v.gnb, flat, flat) for v in vehicle_list]
     return Scenario(name, 0, 60.0, topo, Links("auto", tuple(specs)))

@@ -60,7 +60,7 @@ def head_times(cores: float | None, calls: int) -> dict[str, list[float]]:
     budget = None
     if cores is not None:
         budget = cgroups.CpuBudget(
-            f"b{secrets.token_hex(3)}", "head", cores, period_us=cgroups.period_for(cores)
+            f"b{secrets.token_hex(3)}", "head", cores, period_us=cgroups.compute_period_for(cores)
         ).create()
     compute = ComputeThread(budget.path if budget is not None else None, name="bench-head")
     try:

@@ -1,0 +1,294 @@
+"""The 5G core path of a run: PDU sessions, the GTP-U endpoints on N3, and the routes that send
+each UE's packets through them (cells with `upf:`; see `testbed.scenario.model`).
+
+- `PduSession`: one vehicle's session: its UE address, its gNB and UPF, the TEID of each
+  direction and the two N3 addresses (`netem.gtp.Session` plus who is who).
+- `sessions(net)`: the sessions a planned network has, TEIDs numbered as a UPF and a gNB would
+  hand them out (uplink 0x1001.., allocated by the UPF; downlink 0x2001.., by the gNB).
+- `CorePath`: started once the links are up. Per gNB an endpoint (`netem.gtp`, TUN `gtp0`) and
+  per N3 link an endpoint at the UPF (TUN `gtp-<gnb>`), then the routes: at the gNB, what comes
+  from the UE pool goes into `gtp0` (a rule to table `UE_TABLE`; an edge at the cell is reached
+  directly, before the tunnel); at the UPF, each UE's address goes into its gNB's tunnel. Its
+  processes are the run's (recorded, so `testbed clean` stops them); its TUN devices go with
+  them. `close()` stops them and returns their counters.
+"""
+
+from __future__ import annotations
+
+import contextlib
+from dataclasses import dataclass
+from ipaddress import IPv4Address, IPv4Network
+from typing import Any
+
+from pyroute2.netlink.exceptions import NetlinkError as PyNetlinkError
+
+from netem.errors import NetlinkError
+from netem.gtp import EndpointConfig, GtpEndpoint, GtpEndpointError, Session
+from netem.gtpu import N3_OVERHEAD
+from testbed import state as st
+from testbed.errors import TestbedError
+from testbed.topology.model import Net
+
+#: The routing table a gNB looks up for packets from its UEs (a rule sends them there).
+UE_TABLE = 100
+UE_RULE_PRIORITY = 1000
+GNB_TUN = "gtp0"
+UL_TEID_BASE, DL_TEID_BASE = 0x1001, 0x2001
+
+
+def upf_tun(gnb: str) -> str:
+    """The UPF's TUN device of the N3 link to `gnb` (at most 14 characters: IFNAMSIZ)."""
+    return f"gtp-{gnb}"
+
+
+@dataclass(frozen=True)
+class PduSession:
+    vehicle: str
+    gnb: str
+    upf: str
+    ue_address: IPv4Address
+    ul_teid: int
+    dl_teid: int
+    gnb_n3: IPv4Address
+    upf_n3: IPv4Address
+
+    def session(self) -> Session:
+        return Session(
+            str(self.ue_address), self.ul_teid, self.dl_teid, str(self.gnb_n3), str(self.upf_n3)
+        )
+
+    def to_dict(self) -> dict[str, Any]:
+        return {
+            "vehicle": self.vehicle,
+            "ue_address": str(self.ue_address),
+            "gnb": self.gnb,
+            "upf": self.upf,
+            "ul_teid": self.ul_teid,
+            "dl_teid": self.dl_teid,
+            "gnb_n3": str(self.gnb_n3),
+            "upf_n3": str(self.upf_n3),
+        }
+
+
+def sessions(net: Net) -> list[PduSession]:
+    """One session per vehicle behind a UPF, in the order the vehicles are written."""
+    topo = net.scenario.topology
+    out = []
+    for i, v in enumerate(v for v in topo.vehicles if net[v.name].ue_address is not None):
+        cell = topo.cell_of_gnb(v.gnb)
+        n3 = net.links[f"{cell.gnb}-{cell.uplink_peer}"].addresses
+        ue = net[v.name].ue_address
+        assert ue is not None
+        out.append(
+            PduSession(
+                v.name,
+                cell.gnb,
+                cell.uplink_peer,
+                ue,
+                UL_TEID_BASE + i,
+                DL_TEID_BASE + i,
+                n3.lower.ip,
+                n3.upper.ip,
+            )
+        )
+    return out
+
+
+class CorePath:
+    """The run's GTP-U endpoints and tunnel routes (see the module doc)."""
+
+    def __init__(self, net: Net, die_with_parent: bool) -> None:
+        self.net = net
+        self.die_with_parent = die_with_parent
+        self.sessions = sessions(net)
+        self.endpoints: dict[str, GtpEndpoint] = {}  # "gnb1", "upf1/gnb1"
+        self.final: dict[str, dict[str, Any]] = {}
+
+    def start(self) -> CorePath:
+        """Start every endpoint, then the routes into their TUN devices."""
+        topo = self.net.scenario.topology
+        try:
+            for cell in (c for c in topo.cells if c.tunnelled):
+                mine = tuple(s for s in self.sessions if s.gnb == cell.gnb)
+                gnb, upf = self.net[cell.gnb], self.net[cell.uplink_peer]
+                n3 = self.net.links[f"{cell.gnb}-{cell.uplink_peer}"].addresses
+                self._endpoint(cell.gnb, "gnb", gnb.netns, GNB_TUN, n3.lower.ip, mine)
+                self._endpoint(f"{upf.name}/{cell.gnb}", "upf", upf.netns, upf_tun(cell.gnb),
+                               n3.upper.ip, mine)  # fmt: skip
+                self._gnb_routes(cell.gnb, cell.placement, cell.server)
+                self._upf_routes(cell.uplink_peer, cell.gnb, mine)
+        except BaseException:
+            self.close()
+            raise
+        return self
+
+    def _endpoint(
+        self, key: str, role: str, netns: str, tun: str, address: IPv4Address,
+        mine: tuple[PduSession, ...],
+    ) -> None:  # fmt: skip
+        config = EndpointConfig(role, netns, tun, str(address), tuple(s.session() for s in mine))  # type: ignore[arg-type]
+        # Its files live with the run's relays (`testbed.links.link_state_dir`).
+        workdir = st.state_dir() / self.net.run_id / f"gtp-{key.replace('/', '-')}"
+        endpoint = GtpEndpoint(
+            config, echo_interval_s=1.0, die_with_parent=self.die_with_parent, workdir=workdir
+        )
+        try:
+            endpoint.start()
+        except GtpEndpointError as err:
+            raise TestbedError(f"GTP-U {key}: {err}") from None
+        self.endpoints[key] = endpoint
+        assert endpoint.pid is not None
+        self.net.record_pid(endpoint.pid, f"GTP-U {role} {key}")
+
+    def _gnb_routes(self, gnb: str, placement: str, server: str) -> None:
+        node = self.net[gnb]
+        ipr, pool = node.ipr, self.net.scenario.topology.ue_pool
+        step = f"routing UE traffic into {GNB_TUN} in {node.netns}"
+        try:
+            tun = node._ns().ifindex(GNB_TUN)
+            ipr.link("set", index=tun, state="up")
+            if placement == "cell":
+                # Local breakout: the edge at the cell is reached without crossing N3.
+                edge = self.net.links[f"{gnb}-{server}"].addresses
+                ipr.route("add", dst=str(edge.subnet), oif=node._ns().ifindex(server),
+                          table=UE_TABLE)  # fmt: skip
+            ipr.route("add", dst="0.0.0.0/0", oif=tun, table=UE_TABLE)
+            if not _has_rule(ipr, pool):
+                ipr.rule("add", src=str(pool.network_address), src_len=pool.prefixlen,
+                         table=UE_TABLE, priority=UE_RULE_PRIORITY)  # fmt: skip
+            for s in (s for s in self.sessions if s.gnb == gnb):
+                via = self.net.links[f"{s.vehicle}-{gnb}"].addresses.lower.ip
+                ipr.route("add", dst=f"{s.ue_address}/32", gateway=str(via),
+                          oif=node._ns().ifindex(s.vehicle))  # fmt: skip
+            _loose_rp_filter(node)
+        except PyNetlinkError as err:
+            raise NetlinkError(f"{step}: the kernel said: {err.args[-1]}") from None
+
+    def _upf_routes(self, upf: str, gnb: str, mine: tuple[PduSession, ...]) -> None:
+        node = self.net[upf]
+        step = f"routing the UEs of {gnb} into {upf_tun(gnb)} in {node.netns}"
+        try:
+            tun = node._ns().ifindex(upf_tun(gnb))
+            node.ipr.link("set", index=tun, state="up")
+            for s in mine:
+                node.ipr.route("add", dst=f"{s.ue_address}/32", oif=tun)
+            _loose_rp_filter(node)
+        except PyNetlinkError as err:
+            raise NetlinkError(f"{step}: the kernel said: {err.args[-1]}") from None
+
+    def commands(self) -> list[str]:
+        """What `start` amounts to, as shell lines (what `--dry-run` prints)."""
+        topo = self.net.scenario.topology
+        pool = topo.ue_pool
+        out = []
+        for cell in (c for c in topo.cells if c.tunnelled):
+            gnb, upf = self.net[cell.gnb], self.net[cell.uplink_peer]
+            n3 = self.net.links[f"{cell.gnb}-{cell.uplink_peer}"].addresses
+            mine = [s for s in self.sessions if s.gnb == cell.gnb]
+            teids = ", ".join(
+                f"UE {s.ue_address} UL 0x{s.ul_teid:x} DL 0x{s.dl_teid:x}" for s in mine
+            )
+            out.append(f"# GTP-U gNB {cell.gnb} on {n3.lower.ip}:2152 (TUN {GNB_TUN}): {teids}")
+            out.append(f"ip netns exec {gnb.netns} python -m netem.gtp <gnb config> &")
+            out.append(f"# GTP-U UPF {upf.name} on {n3.upper.ip}:2152 (TUN {upf_tun(cell.gnb)})")
+            out.append(f"ip netns exec {upf.netns} python -m netem.gtp <upf config> &")
+            if cell.placement == "cell":
+                edge = self.net.links[f"{cell.gnb}-{cell.server}"].addresses
+                out.append(
+                    f"ip -n {gnb.netns} route add {edge.subnet} dev {cell.server} table {UE_TABLE}"
+                )
+            out.append(f"ip -n {gnb.netns} route add default dev {GNB_TUN} table {UE_TABLE}")
+            out.append(f"ip -n {gnb.netns} rule add from {pool} lookup {UE_TABLE}")
+            for s in mine:
+                via = self.net.links[f"{s.vehicle}-{cell.gnb}"].addresses.lower.ip
+                out.append(
+                    f"ip -n {gnb.netns} route add {s.ue_address}/32 via {via} dev {s.vehicle}"
+                )
+                out.append(f"ip -n {upf.netns} route add {s.ue_address}/32 dev {upf_tun(cell.gnb)}")
+        return out
+
+    def stats(self) -> dict[str, dict[str, Any]]:
+        """Each endpoint's latest counters (the final ones after `close`)."""
+        if self.final:
+            return self.final
+        return {key: e.stats() for key, e in self.endpoints.items()}
+
+    def close(self) -> dict[str, dict[str, Any]]:
+        for key, endpoint in self.endpoints.items():
+            self.final[key] = endpoint.close()
+        self.endpoints = {}
+        return self.final
+
+    def describe(self) -> dict[str, Any]:
+        """What run.json says of the core path: sessions, endpoints, GTP-U overhead."""
+        stats = self.stats()
+        n3 = sum(
+            st.get("sent", {}).get("n3_bytes", 0) + st.get("received", {}).get("n3_bytes", 0)
+            for k, st in stats.items()
+            if "/" not in k  # the gNB ends: each N3 byte once
+        )
+        overhead = sum(st.get("overhead_bytes", 0) for k, st in stats.items() if "/" not in k)
+        return {
+            "ue_pool": str(self.net.scenario.topology.ue_pool),
+            "sessions": [s.to_dict() for s in self.sessions],
+            "gtp_overhead_bytes_per_packet": N3_OVERHEAD,
+            "n3_bytes": n3,
+            "gtp_overhead_bytes": overhead,
+            "gtp_overhead_share": overhead / n3 if n3 else None,
+            "endpoints": stats,
+        }
+
+
+def _has_rule(ipr: Any, pool: IPv4Network) -> bool:
+    for rule in ipr.get_rules(family=2):
+        if rule.get_attr("FRA_TABLE") == UE_TABLE and rule["src_len"] == pool.prefixlen:
+            return True
+    return False
+
+
+def _loose_rp_filter(node: Any) -> None:
+    """UE packets enter the gNB from the air and the UPF from a TUN; the reverse path of the
+    gNB's tunnelled downlink is not where it came in, so strict filtering would drop it."""
+    ns = node._ns()
+    for key in ("net.ipv4.conf.all.rp_filter", "net.ipv4.conf.default.rp_filter"):
+        with contextlib.suppress(OSError):
+            ns.write_sysctl(key, "0")
+    for ifname in [*node.interfaces, GNB_TUN, *(upf_tun(g) for g in node.interfaces)]:
+        with contextlib.suppress(OSError):
+            ns.write_sysctl(f"net.ipv4.conf.{ifname}.rp_filter", "0")
+
+
+def vehicle_paths(net: Net) -> list[dict[str, Any]]:
+    """Each vehicle's path to its edge server as run.json and the report show it: addresses,
+    nodes, the N3 tunnel's TEIDs, the edge's placement, and each hop's configured delay."""
+    topo = net.scenario.topology
+    by_vehicle = {s.vehicle: s for s in (net.core.sessions if net.core is not None else [])}
+    out = []
+    for v in topo.vehicles:
+        cell = topo.cell_of_gnb(v.gnb)
+        hops = []
+        for name in [f"{v.name}-{v.gnb}", *cell.path()]:
+            link = net.links[name]
+            spec = link.spec
+            hops.append({
+                "link": name,
+                "kind": link.kind,
+                "uplink_delay_ms": None if spec is None else spec.uplink.fixed_delay_s * 1e3,
+                "downlink_delay_ms": None if spec is None else spec.downlink.fixed_delay_s * 1e3,
+            })  # fmt: skip
+        session = by_vehicle.get(v.name)
+        out.append({
+            "vehicle": v.name,
+            "address": str(net.vehicle_address(v.name)),
+            "gnb": v.gnb,
+            "upf": cell.upf,
+            "edge": cell.server,
+            "edge_address": str(net.server_address(cell)),
+            "placement": cell.placement if cell.tunnelled else "core (plain backhaul)",
+            "tunnel": None if session is None else {
+                "ul_teid": f"0x{session.ul_teid:08x}", "dl_teid": f"0x{session.dl_teid:08x}",
+                "gnb_n3": str(session.gnb_n3), "upf_n3": str(session.upf_n3),
+            },
+            "hops": hops,
+        })  # fmt: skip
+    return out
