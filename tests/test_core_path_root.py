@@ -10,12 +10,10 @@ namespaces checks the UE's MTU and route.
 from __future__ import annotations
 
 import json
-import shutil
 import socket
 import statistics
 import subprocess
 import threading
-import time
 from pathlib import Path
 
 import pytest
@@ -24,10 +22,10 @@ from netem.netns import list_netns
 from testbed.connectivity import echo_rtts
 from testbed.scenario import load
 from testbed.topology import Node, build
+from tests.tshark import TSHARK, Capture
 
 pytestmark = pytest.mark.root
 
-TSHARK = shutil.which("tshark")
 SCENARIO = """
 version: 1
 name: core5g
@@ -53,34 +51,6 @@ def _ip(netns: str, *args: str) -> str:
     return subprocess.run(
         ["ip", "-n", netns, *args], capture_output=True, text=True, check=True, timeout=10
     ).stdout
-
-
-class Capture:
-    """tshark writing what crosses one interface of a namespace to a pcapng file."""
-
-    def __init__(self, netns: str, dev: str, path: Path) -> None:
-        assert TSHARK
-        self.path = path
-        self.proc = subprocess.Popen(
-            ["ip", "netns", "exec", netns, TSHARK, "-q", "-i", dev, "-w", str(path)],
-            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
-        )  # fmt: skip
-        deadline = time.monotonic() + 15
-        while time.monotonic() < deadline and not (path.exists() and path.stat().st_size > 0):
-            time.sleep(0.1)
-        time.sleep(0.5)  # dumpcap has the file open before it has the device
-
-    def stop(self) -> None:
-        time.sleep(0.3)
-        self.proc.terminate()
-        self.proc.wait(10)
-
-    def fields(self, display: str, *names: str) -> list[list[str]]:
-        cmd = [TSHARK, "-r", str(self.path), "-Y", display, "-T", "fields", "-E", "separator=|"]
-        for n in names:
-            cmd += ["-e", n]
-        out = subprocess.run(cmd, capture_output=True, text=True, timeout=60, check=True).stdout
-        return [line.split("|") for line in out.splitlines() if line]
 
 
 def _send_mib(src: Node, dst: Node, addr: str, port: int = 7401) -> int:

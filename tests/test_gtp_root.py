@@ -12,7 +12,6 @@ from __future__ import annotations
 import contextlib
 import ipaddress
 import secrets
-import shutil
 import socket
 import subprocess
 import threading
@@ -26,6 +25,7 @@ import pytest
 from netem.gtp import EndpointConfig, GtpEndpoint, QosRule, Session
 from netem.netns import in_netns
 from netem.userspace import UserspaceLink
+from tests.tshark import TSHARK, Capture
 
 pytestmark = pytest.mark.root
 
@@ -35,7 +35,6 @@ UPF_N6, EDGE = "10.100.6.1", "10.100.6.2"
 POOL = "10.45.0.0/16"
 UL_TEID, DL_TEID = 0x1001, 0x2001
 EDGE_PORT = 7400
-TSHARK = shutil.which("tshark")
 
 
 def ip(ns: str, *args: str) -> None:
@@ -97,34 +96,6 @@ def core_path(rules: tuple[QosRule, ...] = ()) -> Iterator[CorePath]:
                 with contextlib.suppress(subprocess.CalledProcessError):
                     sysctl(ns[role], f"net.ipv4.conf.{dev}.rp_filter", "0")
         yield CorePath(ns, gnb, upf)
-
-
-class Capture:
-    """tshark writing what crosses one device to a pcapng file, until `stop()`."""
-
-    def __init__(self, ns: str, dev: str, path: Path) -> None:
-        assert TSHARK
-        self.path = path
-        self.proc = subprocess.Popen(
-            ["ip", "netns", "exec", ns, TSHARK, "-q", "-i", dev, "-w", str(path)],
-            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
-        )  # fmt: skip
-        deadline = time.monotonic() + 15
-        while time.monotonic() < deadline and not (path.exists() and path.stat().st_size > 0):
-            time.sleep(0.1)
-        time.sleep(0.5)  # dumpcap has the file open before it has the device
-
-    def stop(self) -> None:
-        time.sleep(0.3)
-        self.proc.terminate()
-        self.proc.wait(10)
-
-    def fields(self, display: str, *names: str) -> list[list[str]]:
-        cmd = [TSHARK, "-r", str(self.path), "-Y", display, "-T", "fields", "-E", "separator=|"]
-        for n in names:
-            cmd += ["-e", n]
-        out = subprocess.run(cmd, capture_output=True, text=True, timeout=60, check=True).stdout
-        return [line.split("|") for line in out.splitlines() if line]
 
 
 def udp_exchange(path: CorePath, sizes: list[int], tos: int = 0) -> list[int]:
