@@ -48,9 +48,9 @@ def main() -> int:
     # core_cpu), so only the DNN stage is budgeted, not the action server's executor.
     def warmup() -> None:  # every split's tail once, from the head's output on a blank frame
         blank = torch.zeros((1, *IMAGE_SHAPE), dtype=torch.uint8)
+        codec = args.config.codec
         with torch.no_grad():
             for split in args.config.splits:
-                codec = args.config.codec
                 model.tail(split, decode(encode(model.head(split, blank), codec)))
 
     tail_thread = ComputeThread(args.compute_cgroup, name="dnn-tail", warmup=warmup)

@@ -462,24 +462,20 @@ class _Builder:
 
     def _check_shared_edges(self, cells: Items | None) -> None:
         """An edge server shared by cells sits in one place (behind one UPF, or at cells)."""
-        seen: dict[str, tuple[str, str | None, str]] = {}  # edge -> (placement, upf, path)
+        first: dict[str, tuple[str, str]] = {}  # edge -> (where it is, the path that said so)
         for _, cell, _ in cells.good() if cells else ():
             edge = _edge_name(cell)
             if edge is None or not cell.written("upf"):
                 continue
-            where = (_placement(cell), cell["upf"] if _placement(cell) == "core" else None)
-            if edge not in seen:
-                seen[edge] = (*where, cell.path_of("edge"))
-                continue
-            if (seen[edge][0], seen[edge][1]) != where:
-                first = seen[edge]
+            where = "placement cell" if _placement(cell) == "cell" else f"behind {cell['upf']}"
+            if edge not in first:
+                first[edge] = (where, cell.path_of("edge"))
+            elif first[edge][0] != where:
                 self.ctx.add(
                     cell.at("edge"),
                     cell.path_of("edge"),
-                    f"edge {edge!r} where {first[2]} puts it (placement {first[0]}"
-                    + (f", behind {first[1]}" if first[1] else "")
-                    + ")",
-                    f"placement {where[0]}" + (f" behind {where[1]}" if where[1] else ""),
+                    f"edge {edge!r} where {first[edge][1]} puts it ({first[edge][0]})",
+                    where,
                     "an edge server has one place; give this cell an edge of its own",
                 )
 

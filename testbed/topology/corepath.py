@@ -27,7 +27,8 @@ from netem.gtp import EndpointConfig, GtpEndpoint, GtpEndpointError, Session
 from netem.gtpu import N3_OVERHEAD
 from testbed import state as st
 from testbed.errors import TestbedError
-from testbed.topology.model import Net
+from testbed.scenario.model import Cell
+from testbed.topology.model import Net, Node
 
 #: The routing table a gNB looks up for packets from its UEs (a rule sends them there).
 UE_TABLE = 100
@@ -94,6 +95,26 @@ def sessions(net: Net) -> list[PduSession]:
     return out
 
 
+@dataclass(frozen=True)
+class TunnelRoute:
+    """A route of the core path in node `node` (`dst` out of `dev`, via `via`, in `table`), or,
+    with `rule`, the gNB's rule that sends packets from `dst` to table `UE_TABLE`."""
+
+    node: str
+    dst: str
+    dev: str
+    via: IPv4Address | None = None
+    table: int | None = None
+    rule: bool = False
+
+    def command(self, netns: str) -> str:
+        if self.rule:
+            return f"ip -n {netns} rule add from {self.dst} lookup {UE_TABLE}"
+        via = f" via {self.via}" if self.via else ""
+        table = f" table {self.table}" if self.table is not None else ""
+        return f"ip -n {netns} route add {self.dst}{via} dev {self.dev}{table}"
+
+
 class CorePath:
     """The run's GTP-U endpoints and tunnel routes (see the module doc)."""
 
@@ -106,21 +127,41 @@ class CorePath:
 
     def start(self) -> CorePath:
         """Start every endpoint, then the routes into their TUN devices."""
-        topo = self.net.scenario.topology
         try:
-            for cell in (c for c in topo.cells if c.tunnelled):
+            for cell in self._cells():
                 mine = tuple(s for s in self.sessions if s.gnb == cell.gnb)
                 gnb, upf = self.net[cell.gnb], self.net[cell.uplink_peer]
                 n3 = self.net.links[f"{cell.gnb}-{cell.uplink_peer}"].addresses
                 self._endpoint(cell.gnb, "gnb", gnb.netns, GNB_TUN, n3.lower.ip, mine)
                 self._endpoint(f"{upf.name}/{cell.gnb}", "upf", upf.netns, upf_tun(cell.gnb),
                                n3.upper.ip, mine)  # fmt: skip
-                self._gnb_routes(cell.gnb, cell.placement, cell.server)
-                self._upf_routes(cell.uplink_peer, cell.gnb, mine)
+                for node, tun in ((gnb, GNB_TUN), (upf, upf_tun(cell.gnb))):
+                    self._route(node, tun, [r for r in self._routes(cell) if r.node == node.name])
         except BaseException:
             self.close()
             raise
         return self
+
+    def _cells(self) -> list[Cell]:
+        return [c for c in self.net.scenario.topology.cells if c.tunnelled]
+
+    def _routes(self, cell: Cell) -> list[TunnelRoute]:
+        """The routes and the rule that send a cell's UE traffic through its tunnel: at the
+        gNB, the pool's packets to table `UE_TABLE` (an edge at the cell first, then the
+        tunnel) and each UE back over its air link; at the UPF, each UE into its tunnel."""
+        gnb, upf = cell.gnb, cell.uplink_peer
+        out = []
+        if cell.placement == "cell":
+            # Local breakout: the edge at the cell is reached without crossing N3.
+            edge = self.net.links[f"{gnb}-{cell.server}"].addresses
+            out.append(TunnelRoute(gnb, str(edge.subnet), cell.server, table=UE_TABLE))
+        out.append(TunnelRoute(gnb, "default", GNB_TUN, table=UE_TABLE))
+        out.append(TunnelRoute(gnb, str(self.net.scenario.topology.ue_pool), "", rule=True))
+        for s in (s for s in self.sessions if s.gnb == gnb):
+            via = self.net.links[f"{s.vehicle}-{gnb}"].addresses.lower.ip
+            out.append(TunnelRoute(gnb, f"{s.ue_address}/32", s.vehicle, via=via))
+            out.append(TunnelRoute(upf, f"{s.ue_address}/32", upf_tun(gnb)))
+        return out
 
     def _endpoint(
         self, key: str, role: str, netns: str, tun: str, address: IPv4Address,
@@ -140,71 +181,42 @@ class CorePath:
         assert endpoint.pid is not None
         self.net.record_pid(endpoint.pid, f"GTP-U {role} {key}")
 
-    def _gnb_routes(self, gnb: str, placement: str, server: str) -> None:
-        node = self.net[gnb]
-        ipr, pool = node.ipr, self.net.scenario.topology.ue_pool
-        step = f"routing UE traffic into {GNB_TUN} in {node.netns}"
+    def _route(self, node: Node, tun: str, routes: list[TunnelRoute]) -> None:
+        """Bring `tun` up in `node` and add `routes` there."""
+        ns = node._ns()
+        step = f"routing UE traffic into {tun} in {node.netns}"
         try:
-            tun = node._ns().ifindex(GNB_TUN)
-            ipr.link("set", index=tun, state="up")
-            if placement == "cell":
-                # Local breakout: the edge at the cell is reached without crossing N3.
-                edge = self.net.links[f"{gnb}-{server}"].addresses
-                ipr.route("add", dst=str(edge.subnet), oif=node._ns().ifindex(server),
-                          table=UE_TABLE)  # fmt: skip
-            ipr.route("add", dst="0.0.0.0/0", oif=tun, table=UE_TABLE)
-            if not _has_rule(ipr, pool):
-                ipr.rule("add", src=str(pool.network_address), src_len=pool.prefixlen,
-                         table=UE_TABLE, priority=UE_RULE_PRIORITY)  # fmt: skip
-            for s in (s for s in self.sessions if s.gnb == gnb):
-                via = self.net.links[f"{s.vehicle}-{gnb}"].addresses.lower.ip
-                ipr.route("add", dst=f"{s.ue_address}/32", gateway=str(via),
-                          oif=node._ns().ifindex(s.vehicle))  # fmt: skip
-            _loose_rp_filter(node)
+            ns.ipr.link("set", index=ns.ifindex(tun), state="up")
+            for r in routes:
+                net = IPv4Network(r.dst if r.dst != "default" else "0.0.0.0/0")
+                if r.rule:
+                    ns.ipr.rule("add", src=str(net.network_address), src_len=net.prefixlen,
+                                table=UE_TABLE, priority=UE_RULE_PRIORITY)  # fmt: skip
+                    continue
+                extra: dict[str, Any] = {"gateway": str(r.via)} if r.via else {}
+                if r.table is not None:
+                    extra["table"] = r.table
+                ns.ipr.route("add", dst=str(net), oif=ns.ifindex(r.dev), **extra)
         except PyNetlinkError as err:
             raise NetlinkError(f"{step}: the kernel said: {err.args[-1]}") from None
-
-    def _upf_routes(self, upf: str, gnb: str, mine: tuple[PduSession, ...]) -> None:
-        node = self.net[upf]
-        step = f"routing the UEs of {gnb} into {upf_tun(gnb)} in {node.netns}"
-        try:
-            tun = node._ns().ifindex(upf_tun(gnb))
-            node.ipr.link("set", index=tun, state="up")
-            for s in mine:
-                node.ipr.route("add", dst=f"{s.ue_address}/32", oif=tun)
-            _loose_rp_filter(node)
-        except PyNetlinkError as err:
-            raise NetlinkError(f"{step}: the kernel said: {err.args[-1]}") from None
+        _loose_rp_filter(node, tun)
 
     def commands(self) -> list[str]:
         """What `start` amounts to, as shell lines (what `--dry-run` prints)."""
-        topo = self.net.scenario.topology
-        pool = topo.ue_pool
         out = []
-        for cell in (c for c in topo.cells if c.tunnelled):
+        for cell in self._cells():
             gnb, upf = self.net[cell.gnb], self.net[cell.uplink_peer]
             n3 = self.net.links[f"{cell.gnb}-{cell.uplink_peer}"].addresses
-            mine = [s for s in self.sessions if s.gnb == cell.gnb]
             teids = ", ".join(
-                f"UE {s.ue_address} UL 0x{s.ul_teid:x} DL 0x{s.dl_teid:x}" for s in mine
+                f"UE {s.ue_address} UL 0x{s.ul_teid:x} DL 0x{s.dl_teid:x}"
+                for s in self.sessions
+                if s.gnb == cell.gnb
             )
             out.append(f"# GTP-U gNB {cell.gnb} on {n3.lower.ip}:2152 (TUN {GNB_TUN}): {teids}")
             out.append(f"ip netns exec {gnb.netns} python -m netem.gtp <gnb config> &")
             out.append(f"# GTP-U UPF {upf.name} on {n3.upper.ip}:2152 (TUN {upf_tun(cell.gnb)})")
             out.append(f"ip netns exec {upf.netns} python -m netem.gtp <upf config> &")
-            if cell.placement == "cell":
-                edge = self.net.links[f"{cell.gnb}-{cell.server}"].addresses
-                out.append(
-                    f"ip -n {gnb.netns} route add {edge.subnet} dev {cell.server} table {UE_TABLE}"
-                )
-            out.append(f"ip -n {gnb.netns} route add default dev {GNB_TUN} table {UE_TABLE}")
-            out.append(f"ip -n {gnb.netns} rule add from {pool} lookup {UE_TABLE}")
-            for s in mine:
-                via = self.net.links[f"{s.vehicle}-{cell.gnb}"].addresses.lower.ip
-                out.append(
-                    f"ip -n {gnb.netns} route add {s.ue_address}/32 via {via} dev {s.vehicle}"
-                )
-                out.append(f"ip -n {upf.netns} route add {s.ue_address}/32 dev {upf_tun(cell.gnb)}")
+            out += [r.command(self.net[r.node].netns) for r in self._routes(cell)]
         return out
 
     def stats(self) -> dict[str, dict[str, Any]]:
@@ -239,23 +251,13 @@ class CorePath:
         }
 
 
-def _has_rule(ipr: Any, pool: IPv4Network) -> bool:
-    for rule in ipr.get_rules(family=2):
-        if rule.get_attr("FRA_TABLE") == UE_TABLE and rule["src_len"] == pool.prefixlen:
-            return True
-    return False
-
-
-def _loose_rp_filter(node: Any) -> None:
+def _loose_rp_filter(node: Node, tun: str) -> None:
     """UE packets enter the gNB from the air and the UPF from a TUN; the reverse path of the
     gNB's tunnelled downlink is not where it came in, so strict filtering would drop it."""
     ns = node._ns()
-    for key in ("net.ipv4.conf.all.rp_filter", "net.ipv4.conf.default.rp_filter"):
-        with contextlib.suppress(OSError):
-            ns.write_sysctl(key, "0")
-    for ifname in [*node.interfaces, GNB_TUN, *(upf_tun(g) for g in node.interfaces)]:
-        with contextlib.suppress(OSError):
-            ns.write_sysctl(f"net.ipv4.conf.{ifname}.rp_filter", "0")
+    for key in ("all", "default", *node.interfaces, tun):
+        with contextlib.suppress(OSError):  # an interface may be gone or not yet there
+            ns.write_sysctl(f"net.ipv4.conf.{key}.rp_filter", "0")
 
 
 def vehicle_paths(net: Net) -> list[dict[str, Any]]:

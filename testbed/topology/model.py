@@ -156,8 +156,8 @@ class Net:
         self.control: links.LinkController | None = None
         self._children: list[subprocess.Popen[Any]] = []
         self._removed: Removed | None = None
-        #: The GTP-U endpoints and tunnel routes (`testbed.topology.corepath.CorePath`) of a
-        #: scenario whose cells have a UPF; None otherwise.
+        #: The GTP-U endpoints and tunnel routes (`testbed.topology.corepath.CorePath`, which
+        #: builds on this module, so not imported here) of a scenario whose cells have a UPF.
         self.core: Any = None
 
     def __getitem__(self, name: str) -> Node:
