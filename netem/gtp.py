@@ -129,11 +129,14 @@ class QosRule:
             raise ValueError(f"ports must be 1-65535, got {list(self.ports)}")
         if self.dscp is None and not self.ports:
             raise ValueError(f"QoS rule for QFI {self.qfi} matches nothing: give dscp or ports")
+        # Looked up per packet: a set, as a rule for DDS lists a port per participant.
+        object.__setattr__(self, "_port_set", frozenset(self.ports))
 
     def matches(self, dscp: int, sport: int | None, dport: int | None) -> bool:
         if self.dscp is not None and dscp != self.dscp:
             return False
-        return not self.ports or sport in self.ports or dport in self.ports
+        ports: frozenset[int] = self._port_set  # type: ignore[attr-defined]
+        return not ports or sport in ports or dport in ports
 
 
 def classify(packet: bytes, rules: tuple[QosRule, ...], default_qfi: int) -> int:
@@ -151,6 +154,39 @@ def classify(packet: bytes, rules: tuple[QosRule, ...], default_qfi: int) -> int
         if rule.matches(dscp, sport, dport):
             return rule.qfi
     return default_qfi
+
+
+class Classifier:
+    """`classify` over a stream of packets, IP fragments included: a datagram's later
+    fragments carry no ports, so each gets the flow its first fragment got (kept by source,
+    destination, IP ID and protocol, as a reassembler keys them, until the last fragment; at
+    most `max_datagrams` at once, the oldest forgotten first). Without this, a DDS message
+    larger than the UE's MTU would cross N3 partly in its own flow and partly in the default
+    one."""
+
+    def __init__(
+        self, rules: tuple[QosRule, ...], default_qfi: int, max_datagrams: int = 1024
+    ) -> None:
+        self.rules, self.default_qfi, self.max_datagrams = rules, default_qfi, max_datagrams
+        self._first: dict[bytes, int] = {}  # datagram key -> the QFI of its first fragment
+
+    def __call__(self, packet: bytes) -> int:
+        if not self.rules or len(packet) < 20:
+            return self.default_qfi
+        frag = struct.unpack_from("!H", packet, 6)[0]
+        offset, more = frag & 0x1FFF, frag & 0x2000
+        if not offset and not more:  # not a fragment: the common case
+            return classify(packet, self.rules, self.default_qfi)
+        key = packet[12:20] + packet[4:6] + packet[9:10]
+        if not offset:
+            qfi = classify(packet, self.rules, self.default_qfi)
+            self._first[key] = qfi
+            if len(self._first) > self.max_datagrams:
+                del self._first[next(iter(self._first))]
+            return qfi
+        if more:
+            return self._first.get(key, self.default_qfi)
+        return self._first.pop(key, self.default_qfi)
 
 
 @dataclass(frozen=True)
@@ -236,6 +272,7 @@ class Endpoint:
             (s.dl_teid if self.uplink_sender else s.ul_teid): s for s in config.sessions
         }
         self.counters = Counters()
+        self._classify = Classifier(config.rules, config.default_qfi)
         self._seq = 0
         self._gso = True  # until the kernel refuses UDP_SEGMENT
 
@@ -285,7 +322,7 @@ class Endpoint:
         if session is None:
             c.drops["no_session"] += 1
             return None
-        qfi = classify(packet, self.cfg.rules, self.cfg.default_qfi)
+        qfi = self._classify(packet)
         if self.uplink_sender:
             teid, peer = session.ul_teid, session.upf_address
         else:

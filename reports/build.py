@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import json
 import shutil
+from collections import Counter
 from collections.abc import Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -770,13 +771,16 @@ def _captures(sec: Section, folder: Path) -> None:
             rows,
             caption="what each link delivered, after its impairments; drops are counted, "
             "not captured",
+            link_columns=(0,),
         )
     )
 
 
-def _paths(folder: Path) -> Section | None:
+def _paths(folder: Path, per_vehicle: dict[str, Any] | None = None) -> Section | None:
     """Each vehicle's path to its edge (run.json `paths`): addresses, the N3 tunnel, the edge's
-    placement and each hop's delay; with a UPF, what GTP-U added on N3."""
+    placement and each hop's delay, and what the path gave (the summary's `per_vehicle`): its
+    requests' median latency and EdgeLoc's mean error, so placements compare side by side;
+    with a UPF, what GTP-U added on N3."""
     try:
         run = json.loads((folder / "run.json").read_text())
     except (OSError, ValueError):
@@ -802,6 +806,7 @@ def _paths(folder: Path) -> Section | None:
                 f"UL {tunnel['ul_teid']} / DL {tunnel['dl_teid']}" if tunnel else "-",
                 f"{p['edge']} {p['edge_address']} ({p['placement']})",
                 hops,
+                *_path_outcome((per_vehicle or {}).get(p["vehicle"]) or {}),
             ]
         )
     sec.add(
@@ -814,6 +819,9 @@ def _paths(folder: Path) -> Section | None:
                 "N3 TEIDs",
                 "edge (placement)",
                 "hops (up/down delay)",
+                "answers / requests",
+                "median latency ms",
+                "EdgeLoc mean error m",
             ],
             rows,
         )
@@ -830,7 +838,32 @@ def _paths(folder: Path) -> Section | None:
                 + f"; UE pool {core.get('ue_pool')}."
             )
         )
+        if core.get("qos_flows"):
+            sec.add(Para(f"QoS flows: {core['qos_flows']}. {_qfi_counts(core)}"))
     return sec
+
+
+def _path_outcome(pv: dict[str, Any]) -> list[str]:
+    """A vehicle's answers / requests, its answered requests' median latency and EdgeLoc's
+    mean position error, as the path table shows them."""
+    latency = (pv.get("latency_s") or {}).get("median")
+    edgeloc = ((pv.get("methods") or {}).get("edgeloc") or {}).get("position_m") or {}
+    count = f"{pv['answers']} / {pv['requests']}" if "requests" in pv else "-"
+    return [count, _ms(latency), _f(edgeloc.get("mean"), "{:.2f}")]
+
+
+def _qfi_counts(core: dict[str, Any]) -> str:
+    """G-PDUs per QFI and direction, from the gNB ends (uplink) and the UPF ends (downlink)."""
+    counts: dict[str, Counter[str]] = {"uplink": Counter(), "downlink": Counter()}
+    for key, stats in (core.get("endpoints") or {}).items():
+        direction = "downlink" if "/" in key else "uplink"  # "upf1/gnb1" is a UPF's end
+        counts[direction].update(stats.get("qfi_sent") or {})
+    parts = [
+        f"{d} " + ", ".join(f"QFI {q}: {n}" for q, n in sorted(c.items()))
+        for d, c in counts.items()
+        if c
+    ]
+    return f"G-PDUs sent: {'; '.join(parts)}." if parts else ""
 
 
 def document(
@@ -845,7 +878,7 @@ def document(
     sections += [_trajectories(data, plots, tum), _learner(data, s, plots), _splits(s, plots)]
     sections += [_latency(s, plots)]
     sections += [_acc_lat(s, plots), _realtime(s, plots), _gaps(s), _links(s, plots)]
-    sections += [_paths(data.path.parent)]
+    sections += [_paths(data.path.parent, s.get("per_vehicle"))]
     sections += [_nodes(s), _recording(data, s)]
     return Document(title, s["headline"], [x for x in sections if x is not None])
 

@@ -20,6 +20,8 @@ class Table:
     headers: list[str]
     rows: list[list[str]]
     caption: str = ""
+    #: Columns whose cells are paths relative to the report (a capture file): shown as links.
+    link_columns: tuple[int, ...] = ()
 
 
 @dataclass(frozen=True)
@@ -72,7 +74,15 @@ def to_markdown(doc: Document, plots_dir: str = "plots") -> str:
                     out += [f"*{b.caption}*", ""]
                 out.append("| " + " | ".join(_md_cell(h) for h in b.headers) + " |")
                 out.append("|" + "|".join(" --- " for _ in b.headers) + "|")
-                out += ["| " + " | ".join(_md_cell(c) for c in row) + " |" for row in b.rows]
+                out += [
+                    "| "
+                    + " | ".join(
+                        f"[{_md_cell(c)}]({c})" if i in b.link_columns else _md_cell(c)
+                        for i, c in enumerate(row)
+                    )
+                    + " |"
+                    for row in b.rows
+                ]
                 out.append("")
             elif isinstance(b, Code):
                 if b.caption:

@@ -72,7 +72,13 @@ def to_html(doc: Document, plots_dir: Path) -> str:
                     out.append(f"<caption>{escape(b.caption)}</caption>")
                 out.append("<tr>" + "".join(f"<th>{escape(h)}</th>" for h in b.headers) + "</tr>")
                 for row in b.rows:
-                    out.append("<tr>" + "".join(_cell(c) for c in row) + "</tr>")
+                    cells = (
+                        f'<td><a href="{escape(c)}">{escape(c)}</a></td>'
+                        if i in b.link_columns
+                        else _cell(c)
+                        for i, c in enumerate(row)
+                    )
+                    out.append("<tr>" + "".join(cells) + "</tr>")
                 out.append("</table>")
             elif isinstance(b, Code):
                 if b.caption:

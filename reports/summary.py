@@ -17,7 +17,8 @@ report can be compared with the run's own. Keys of summary.json (`version` 1):
   {frames, missing_frames (ground-truth frames without this method's pose), position_m,
   heading_deg}, each error block {n, total, mean, median, rmse, p95, max} (null without
   frames). Errors are per frame against ground truth on the same frame id;
-- `per_vehicle`: {vehicle: {methods: same as above for that vehicle}};
+- `per_vehicle`: {vehicle: {methods: same as above for that vehicle, requests, answers,
+  latency_s {n, mean, median, p95, max} of its answered requests (null without any)}};
 - `paper_comparison`: {totals: [{method, paper, ours}], reductions: [{versus, paper_pct,
   ours_pct}]}: the paper's four totals and EdgeLoc's three reductions beside ours;
 - `headline`: one line of the above (what `testbed run` prints last);
@@ -641,8 +642,13 @@ def summarize(data: RunData, splits: bool | str = True) -> dict[str, Any]:
     errs = method_errors(data)
     methods = {m: _method_block(list(errs.get(m, {}).values())) for m in all_methods(data)}
     per_vehicle = {
-        v: {"methods": {m: _method_block([errs[m][v]]) for m in errs if v in errs[m]}}
-        for v in data.vehicles
+        v: {
+            "methods": {m: _method_block([errs[m][v]]) for m in errs if v in errs[m]},
+            "requests": len(vd.inference),
+            "answers": sum(i.ok for i in vd.inference),
+            "latency_s": _series_stats([i.latency_s for i in vd.inference if i.ok]),
+        }
+        for v, vd in data.vehicles.items()
     }
     totals = {
         m: methods[m]["position_m"]["total"]

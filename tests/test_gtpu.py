@@ -9,9 +9,7 @@ from __future__ import annotations
 
 import ipaddress
 import re
-import shutil
 import struct
-import subprocess
 from pathlib import Path
 
 import pytest
@@ -20,8 +18,9 @@ from netem import gtpu
 from netem.gso import checksum
 from netem.gtpu import GtpError, decode, echo_request, echo_response, encode_gpdu
 from netem.pcap import PcapngWriter
+from tests.tshark import TSHARK
+from tests.tshark import fields as tshark_fields
 
-TSHARK = shutil.which("tshark")
 needs_tshark = pytest.mark.skipif(
     TSHARK is None, reason="tshark is not installed (`sudo make test` installs Debian's)"
 )
@@ -36,15 +35,6 @@ def ipv4_udp(src: str, dst: str, sport: int, dport: int, payload: bytes, tos: in
     )  # fmt: skip
     head = head[:10] + struct.pack("!H", checksum(head)) + head[12:]
     return head + udp
-
-
-def tshark_fields(path: Path, fields: list[str], display: str = "gtp") -> list[list[str]]:
-    assert TSHARK
-    cmd = [TSHARK, "-r", str(path), "-Y", display, "-T", "fields", "-E", "separator=|"]
-    for f in fields:
-        cmd += ["-e", f]
-    out = subprocess.run(cmd, capture_output=True, text=True, timeout=60, check=True).stdout
-    return [line.split("|") for line in out.splitlines() if line]
 
 
 def test_gpdu_layout_is_the_specs() -> None:
@@ -120,7 +110,7 @@ def test_tshark_dissects_our_gpdus_echoes_and_capture_file(tmp_path: Path) -> No
         "gtp.message", "gtp.teid", "gtp.ext_hdr.pdu_ses_con.pdu_type",
         "gtp.ext_hdr.pdu_ses_con.qos_flow_id", "ip.src", "gtp.seq_number", "frame.time_epoch",
     ]  # fmt: skip
-    rows = tshark_fields(path, fields)
+    rows = tshark_fields(path, "gtp", *fields)
     # ip.src lists the outer, then the inner source: the inner packet is dissected too.
     assert [r[:4] for r in rows] == [
         ["0xff", "0x00000011", "1", "9"],
@@ -131,7 +121,7 @@ def test_tshark_dissects_our_gpdus_echoes_and_capture_file(tmp_path: Path) -> No
     assert rows[0][4] == f"{gnb},{ue}" and rows[1][4] == f"{upf},{edge}"
     assert rows[2][5] == rows[3][5] == "0x004d"  # 77
     assert rows[1][6] == "1700000000.000001500"  # nanosecond timestamps
-    flags = tshark_fields(path, ["frame.comment", "frame.packet_flags_direction"], "frame")
+    flags = tshark_fields(path, "frame", "frame.comment", "frame.packet_flags_direction")
     assert [f[1] for f in flags] == ["0x00000002", "0x00000001", "", ""]  # outbound, inbound
     assert [f[0] for f in flags] == ["", "", "", "echo"]
 
@@ -148,6 +138,29 @@ def test_qos_rules_pick_the_flow_by_dscp_or_port_first_match_wins() -> None:
     assert classify(ipv4_udp("10.45.0.2", "10.46.0.2", 1, 2, b"", tos=46 << 2), rules, 1) == 7
     assert classify(ipv4_udp("10.45.0.2", "10.46.0.2", 1, 2, b""), rules, 1) == 1
     assert classify(ipv4_udp("10.45.0.2", "10.46.0.2", 1, 2, b""), (), 9) == 9
+
+
+def test_a_datagrams_later_fragments_follow_its_first_into_its_flow() -> None:
+    from netem.gtp import Classifier, QosRule
+
+    def fragment(packet: bytes, ident: int, offset_8: int, more: bool) -> bytes:
+        flags = (0x2000 if more else 0) | offset_8
+        return packet[:4] + struct.pack("!HH", ident, flags) + packet[8:]
+
+    classify = Classifier((QosRule(qfi=2, ports=(7410,)),), default_qfi=1, max_datagrams=2)
+    first = ipv4_udp("10.45.0.2", "10.46.0.2", 40000, 7410, bytes(64))
+    # A later fragment holds no UDP header (its bytes here would read as ports 0 and 0).
+    later = ipv4_udp("10.45.0.2", "10.46.0.2", 0, 0, bytes(64))
+    assert classify(fragment(first, 7, 0, more=True)) == 2
+    assert classify(fragment(later, 7, 185, more=True)) == 2
+    assert classify(fragment(later, 8, 185, more=True)) == 1  # another datagram: unknown
+    assert classify(fragment(later, 7, 370, more=False)) == 2  # the last: forgotten after
+    assert classify(fragment(later, 7, 370, more=False)) == 1
+    assert classify(first) == 2 and classify(later) == 1  # whole datagrams as `classify`
+    # At most max_datagrams remembered: the oldest goes first.
+    for ident in (10, 11, 12):
+        classify(fragment(first, ident, 0, more=True))
+    assert [classify(fragment(later, i, 185, more=True)) for i in (10, 11, 12)] == [1, 2, 2]
 
 
 @pytest.mark.parametrize(

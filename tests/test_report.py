@@ -230,6 +230,9 @@ def test_summary_matches_hand_computed_figures(tmp_path: Path) -> None:
     assert lat["conv3"]["answers"] == 1 and lat["conv3"]["timed_out"] == 1
     assert lat["conv3"]["errors"] == 1
     assert lat["conv3"]["mean_payload_bytes"] == pytest.approx(600.0)
+    av1 = s["per_vehicle"]["av1"]  # the vehicle's own requests, every split
+    assert (av1["requests"], av1["answers"]) == (4, 3)
+    assert av1["latency_s"]["median"] == pytest.approx(0.05)
 
     lr = s["learner"]
     assert lr["decisions"] == 4 and lr["switches"] == 1
@@ -586,6 +589,7 @@ def test_vehicles_are_pooled_and_kept_apart(tmp_path: Path) -> None:
     assert sm["methods"]["edgeloc"]["frames"] == 10
     per = sm["per_vehicle"]
     assert per["av1"]["methods"]["edgeloc"]["position_m"]["total"] == pytest.approx(1.0)
+    assert (per["av1"]["requests"], per["av1"]["latency_s"]) == (0, None)  # no inference
     assert per["av2"]["methods"]["edgeloc"]["position_m"]["max"] == pytest.approx(0.4)
     red = {r["versus"]: r["ours_pct"] for r in sm["paper_comparison"]["reductions"]}
     assert red["vo"] == pytest.approx(70.0)
@@ -737,6 +741,14 @@ def test_the_recording_section_lists_the_runs_captures(tmp_path: Path) -> None:
     _captures(sec, tmp_path)
     (table,) = [b for b in sec.blocks if isinstance(b, Table)]
     assert table.rows == [["pcap/av1-gnb1.pcapng", "0.00", "7 / 2", "5 / 0"]]
+    # Both renderings link the file, relative to the report in the run folder.
+    from reports.document import Document, to_markdown
+    from reports.html import to_html
+
+    doc = Document("t", "h", [sec])
+    assert "| [pcap/av1-gnb1.pcapng](pcap/av1-gnb1.pcapng) | 0.00 |" in to_markdown(doc)
+    html = to_html(doc, tmp_path)
+    assert '<td><a href="pcap/av1-gnb1.pcapng">pcap/av1-gnb1.pcapng</a></td>' in html
 
 
 def test_the_path_section_shows_each_vehicles_tunnel_edge_and_hops(tmp_path: Path) -> None:
@@ -755,15 +767,25 @@ def test_the_path_section_shows_each_vehicles_tunnel_edge_and_hops(tmp_path: Pat
             "tunnel": {"ul_teid": "0x00001001", "dl_teid": "0x00002001"}, "hops": hops}  # fmt: skip
     core = {"gtp_overhead_bytes_per_packet": 44, "gtp_overhead_bytes": 440_000,
             "n3_bytes": 4_400_000, "gtp_overhead_share": 0.1,
-            "ue_pool": "10.45.0.0/16"}  # fmt: skip
+            "ue_pool": "10.45.0.0/16",
+            "qos_flows": "QFI 2 for DDS discovery; QFI 1 for the rest",
+            "endpoints": {"gnb1": {"qfi_sent": {"1": 900, "2": 40}},
+                          "upf1/gnb1": {"qfi_sent": {"1": 800, "2": 38}}}}  # fmt: skip
     assert _paths(tmp_path) is None  # no run.json: no section
     (tmp_path / "run.json").write_text(json.dumps({"paths": [path], "core_path": core}))
-    sec = _paths(tmp_path)
+    per_vehicle = {"av1": {"requests": 40, "answers": 38, "latency_s": {"median": 0.0623},
+                           "methods": {"edgeloc": {"position_m": {"mean": 1.234}}}}}  # fmt: skip
+    sec = _paths(tmp_path, per_vehicle)
     assert sec is not None
     (table,) = [b for b in sec.blocks if isinstance(b, Table)]
     (row,) = table.rows
+    assert row[7:] == ["38 / 40", "62.3", "1.23"]  # what the path gave, beside it
     assert row[:5] == ["av1", "10.45.0.2", "gnb1", "upf1", "UL 0x00001001 / DL 0x00002001"]
     assert row[5] == "edge1 10.200.0.6 (core)"
     assert row[6] == "av1-gnb1 (air, 8/8 ms) + gnb1-upf1 (n3, 1/1 ms) + upf1-edge1 (n6, 5/5 ms)"
-    (para,) = [b for b in sec.blocks if isinstance(b, Para)]
+    para, qos = [b for b in sec.blocks if isinstance(b, Para)]
     assert "44 bytes per packet" in para.text and "(10.0%)" in para.text
+    assert qos.text == (
+        "QoS flows: QFI 2 for DDS discovery; QFI 1 for the rest. G-PDUs sent: uplink QFI 1: "
+        "900, QFI 2: 40; downlink QFI 1: 800, QFI 2: 38."
+    )

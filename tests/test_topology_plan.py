@@ -337,3 +337,93 @@ def test_each_vehicles_path_names_its_hops_and_delays(tmp_path: Path) -> None:
     ]  # fmt: skip
     assert [h["link"] for h in av2["hops"]] == ["av2-gnb2", "gnb2-rsu2"]  # not over N3
     assert av2["placement"] == "cell"
+
+
+def test_the_ue_mtu_and_the_qos_flows_reach_the_plan_and_the_gtp_u_ends(tmp_path: Path) -> None:
+    """A scenario's `ue_mtu` is the UEs' air interface MTU; its QoS rules are what the GTP-U
+    ends match, a DDS rule as the RTPS ports of the run's domain (DDSI-RTPS's formula: domain
+    d, participant p: discovery 7400 + 250 d (multicast) and 7410 + 250 d + 2 p, data one
+    port above each)."""
+    from testbed.scenario import load
+    from testbed.topology.corepath import CorePath
+
+    text = CORE5G.replace(
+        "  vehicles:\n",
+        "  ue_mtu: 1400\n  qos:\n    flows: [1, 2, 9]\n    default_qfi: 9\n    rules:\n"
+        "      - {qfi: 2, dds: discovery}\n      - {qfi: 1, dds: data, dscp: 46}\n  vehicles:\n",
+        1,
+    )
+    (tmp_path / "qos.yaml").write_text(text)
+    net = plan(load(tmp_path / "qos.yaml"), "abc123", POOL)  # domain 1 + 0xabc123 % 100 = 100
+    assert net["av1"].mtus == {"gnb1": 1400}
+    rules = CorePath(net, die_with_parent=True).qos_rules()
+    assert [(r.qfi, r.dscp, len(r.ports)) for r in rules] == [(2, None, 121), (1, 46, 121)]
+    base = 7400 + 250 * 100
+    assert rules[0].ports[:3] == (base, base + 10, base + 12)
+    assert rules[1].ports[:3] == (base + 1, base + 11, base + 13)
+    assert max(rules[1].ports) < base + 250  # never the next domain's ports
+    assert not set(rules[0].ports) & set(rules[1].ports)
+    assert net.scenario.topology.qos.default_qfi == 9
+    assert (
+        "# QoS flows: QFI 2 for DDS discovery; QFI 1 for DDS data + DSCP 46; QFI 9 for the rest"
+        in (CorePath(net, die_with_parent=True).commands())
+    )
+
+
+def test_qos_defaults_put_dds_discovery_in_its_own_flow(tmp_path: Path) -> None:
+    from netem.gtp import classify
+    from testbed.scenario import load
+    from testbed.topology.corepath import CorePath
+
+    net = _core5g(tmp_path)
+    qos = net.scenario.topology.qos
+    assert (qos.flows, qos.default_qfi) == ((1, 2), 1)
+    rules = CorePath(net, die_with_parent=True).qos_rules()
+
+    def udp(dport: int) -> bytes:  # an IPv4 header (IHL 5, proto UDP) and the UDP ports
+        return (
+            bytes([0x45, 0, 0, 36])
+            + bytes(5)
+            + bytes([17])
+            + bytes(10)
+            + ((40000).to_bytes(2, "big") + dport.to_bytes(2, "big") + bytes(4))
+        )
+
+    base = 7400 + 250 * 100
+    assert [classify(udp(p), rules, 1) for p in (base, base + 10, base + 11, 5201)] == [2, 2, 1, 1]
+    # Flows written without 2: the default rule goes, nothing is put in a flow the
+    # sessions lack.
+    (tmp_path / "one.yaml").write_text(
+        CORE5G.replace("  vehicles:\n", "  qos: {flows: [5], default_qfi: 5}\n  vehicles:\n", 1)
+    )
+    assert load(tmp_path / "one.yaml").topology.qos.rules == ()
+
+
+def test_links_backhaul_stands_in_for_n3_where_n3_is_not_written(tmp_path: Path) -> None:
+    from testbed.scenario import load
+
+    text = CORE5G.replace("  n3: {uplink: {delay: 1ms}, downlink: {delay: 1ms}}\n", "")
+    alias = text.replace("links:\n", "links:\n  backhaul: {uplink: {delay: 2ms, rate: 1gbit}}\n")
+    (tmp_path / "alias.yaml").write_text(alias)
+    net = plan(load(tmp_path / "alias.yaml"), "abc123", POOL)
+    for name in ("gnb1-upf1", "gnb2-upf1"):
+        spec = net.links[name].spec
+        assert (spec.uplink.delay_s, spec.uplink.rate_bps) == (0.002, 1e9)
+        assert spec.downlink.delay_s == 0.0
+    # Written n3 wins over the alias.
+    both = alias.replace("links:\n", "links:\n  n3: {uplink: {delay: 4ms}}\n")
+    (tmp_path / "both.yaml").write_text(both)
+    net = plan(load(tmp_path / "both.yaml"), "abc123", POOL)
+    assert net.links["gnb1-upf1"].spec.uplink.delay_s == 0.004
+
+
+def test_a_ue_pool_overlapping_the_links_or_a_host_network_is_bad_input() -> None:
+    from testbed.topology.build import check_ue_pool
+
+    ue, links = IPv4Network("10.45.0.0/16"), IPv4Network("10.200.0.0/16")
+    check_ue_pool(ue, links, [IPv4Network("192.168.1.0/24")])  # apart: fine
+    with pytest.raises(BadInput, match=r"^s\.yaml: topology\.ue_pool 10\.45\.0\.0/16 overlaps "
+                       r"the host network 10\.45\.3\.0/24"):  # fmt: skip
+        check_ue_pool(ue, links, [IPv4Network("10.45.3.0/24")], Path("s.yaml"))
+    with pytest.raises(BadInput, match=r"overlaps the link address pool 10\.45\.0\.0/24"):
+        check_ue_pool(ue, IPv4Network("10.45.0.0/24"), [])

@@ -33,9 +33,14 @@ class Capture:
         self.proc.wait(10)
 
     def fields(self, display: str, *names: str) -> list[list[str]]:
-        assert TSHARK
-        cmd = [TSHARK, "-r", str(self.path), "-Y", display, "-T", "fields", "-E", "separator=|"]
-        for n in names:
-            cmd += ["-e", n]
-        out = subprocess.run(cmd, capture_output=True, text=True, timeout=60, check=True).stdout
-        return [line.split("|") for line in out.splitlines() if line]
+        return fields(self.path, display, *names)
+
+
+def fields(path: Path, display: str, *names: str) -> list[list[str]]:
+    """The fields `names` of each packet of the capture `path` that `display` selects."""
+    assert TSHARK
+    cmd = [TSHARK, "-r", str(path), "-Y", display, "-T", "fields", "-E", "separator=|"]
+    for n in names:
+        cmd += ["-e", n]
+    out = subprocess.run(cmd, capture_output=True, text=True, timeout=60, check=True).stdout
+    return [line.split("|") for line in out.splitlines() if line]

@@ -67,6 +67,14 @@ _DROPPED = (
 )
 
 
+#: RTPS's well-known ports (DDSI-RTPS 2.5 §9.6.1.1): port base, domain gain, participant gain,
+#: and the offsets of discovery (metatraffic) and user data, multicast then unicast.
+RTPS_PB, RTPS_DG, RTPS_PG = 7400, 250, 2
+RTPS_OFFSETS = {"discovery": (0, 10), "data": (1, 11)}
+#: Participant ids whose unicast ports `rtps_ports` lists: a domain's 250 ports hold 120.
+RTPS_PARTICIPANTS = 120
+
+
 class RosEnvError(RosError, ValueError):
     """A domain id, peer address or buffer size that cannot be used."""
 
@@ -88,6 +96,17 @@ def domain_id_for(run_id: str) -> int:
     except ValueError:
         raise RosEnvError(f"run id {run_id!r} is not hexadecimal") from None
     return 1 + value % 100
+
+
+def rtps_ports(
+    domain_id: int, traffic: str, participants: int = RTPS_PARTICIPANTS
+) -> tuple[int, ...]:
+    """The UDP ports `traffic` ("discovery" or "data") of DDS domain `domain_id` uses: the
+    multicast port, then each participant's unicast one. Fast DDS takes them from the spec's
+    formula, so a packet's port says what it carries."""
+    base = RTPS_PB + RTPS_DG * check_domain_id(domain_id)
+    multicast, unicast = RTPS_OFFSETS[traffic]
+    return (base + multicast, *(base + unicast + RTPS_PG * p for p in range(participants)))
 
 
 def _check_peer(peer: str | IPv4Address) -> str:

@@ -419,7 +419,8 @@ class _Builder:
                     f"/{prefix} or larger)",
                     f"'{pool}' (room for {room})",
                 )
-        if not self.topology_ok:
+        qos = self._qos(topo.get("qos"))
+        if not self.topology_ok or qos is None:
             return None
         assert cells is not None and vehicles is not None
         return model.Topology(
@@ -427,7 +428,52 @@ class _Builder:
             cells=tuple(self._cell(c) for _, c, _ in cells.good()),
             address_pool=pool,
             ue_pool=ue_pool,
+            ue_mtu=topo.get("ue_mtu", model.MAX_UE_MTU),
+            qos=qos,
         )
+
+    def _qos(self, qos: Section | None) -> model.Qos | None:
+        """The sessions' QoS flows; None when a rule or the default names a QFI the flows lack
+        (reported: a G-PDU would carry a flow its session does not have)."""
+        if qos is None:
+            return model.Qos()
+        if not qos.clean:
+            return None
+        flows = tuple(qos["flows"])
+        known = ", ".join(str(q) for q in flows)
+        ok = True
+        if qos["default_qfi"] not in flows:
+            self.ctx.add(
+                qos.at("default_qfi"),
+                qos.path_of("default_qfi"),
+                f"a QFI of the sessions' flows ({known})",
+                f"QFI {qos['default_qfi']}",
+                "add it to qos.flows",
+            )
+            ok = False
+        rules: list[model.QosRule] = []
+        written: Items | None = qos.get("rules")
+        for i, rule, _ in written.good() if written is not None else ():
+            if rule["qfi"] not in flows:
+                self.ctx.add(
+                    rule.at("qfi"),
+                    rule.path_of("qfi"),
+                    f"a QFI of the sessions' flows ({known})",
+                    f"unknown QFI {rule['qfi']} (rule {i})",
+                    "add it to qos.flows, or map the rule to one of them",
+                )
+                ok = False
+                continue
+            rules.append(
+                model.QosRule(
+                    rule["qfi"], rule.get("dscp"), tuple(rule.get("ports") or ()), rule.get("dds")
+                )
+            )
+        if not ok:
+            return None
+        if written is None:  # the default rules whose flow the sessions have
+            rules = [r for r in model.Qos().rules if r.qfi in flows]
+        return model.Qos(flows, qos["default_qfi"], tuple(rules))
 
     def _check_cell_form(self, cell: Section) -> None:
         """A cell has a core, or a UPF and an edge (see `model.Cell`), never a mix."""

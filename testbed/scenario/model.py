@@ -26,6 +26,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Literal
 
+from netem.gtpu import N3_OVERHEAD
 from netem.profile import LinkProfile
 
 SCHEMA_VERSION = 1
@@ -37,6 +38,37 @@ LinkKind = Literal["air", "backhaul", "n3", "n6"]
 Placement = Literal["core", "cell"]
 #: Open5GS's default UE pool (`ogstun`'s 10.45.0.0/16).
 DEFAULT_UE_POOL = ipaddress.IPv4Network("10.45.0.0/16")
+#: The N3 links' MTU. What GTP-U adds to a UE packet there (`N3_OVERHEAD`: outer IPv4, UDP,
+#: the G-PDU header with its PDU Session Container) leaves a UE at most 1456, as Open5GS and
+#: OAI set it.
+N3_MTU = 1500
+MAX_UE_MTU = N3_MTU - N3_OVERHEAD
+#: The smallest MTU an IPv4 host must accept (RFC 791): below it a UE could not talk at all.
+MIN_UE_MTU = 576
+DdsTraffic = Literal["discovery", "data"]
+
+
+@dataclass(frozen=True)
+class QosRule:
+    """A packet filter of every PDU session: packets with this DSCP, to or from one of these
+    ports, or of this kind of DDS traffic (its RTPS ports in the run's domain) go in QoS flow
+    `qfi`. A rule with several criteria needs all of them."""
+
+    qfi: int
+    dscp: int | None = None
+    ports: tuple[int, ...] = ()
+    dds: DdsTraffic | None = None
+
+
+@dataclass(frozen=True)
+class Qos:
+    """The QoS flows of every PDU session on N3 (TS 23.501 §5.7): the QFIs it has, the one a
+    packet no rule matches goes in, and the rules, first match wins. By default EdgeLoc's
+    requests and answers (DDS data) ride QFI 1, DDS discovery QFI 2."""
+
+    flows: tuple[int, ...] = (1, 2)
+    default_qfi: int = 1
+    rules: tuple[QosRule, ...] = (QosRule(2, dds="discovery"),)
 
 
 @dataclass(frozen=True)
@@ -111,6 +143,8 @@ class Topology:
     cells: tuple[Cell, ...]
     address_pool: ipaddress.IPv4Network | None = None  # None: pick a free private /16
     ue_pool: ipaddress.IPv4Network = DEFAULT_UE_POOL  # vehicles' addresses behind a UPF
+    ue_mtu: int = MAX_UE_MTU  # their air interface's MTU: room for GTP-U on N3
+    qos: Qos = field(default_factory=Qos)
 
     def node_names(self) -> list[str]:
         names = [v.name for v in self.vehicles]

@@ -454,6 +454,52 @@ VEHICLE = Obj(
     model=model.Vehicle,
 )
 
+QFI = Int(0, 63, "a QoS flow identifier (QFI)")
+QOS_RULE = Obj(
+    "A packet filter: packets matching every criterion given go in QoS flow `qfi`.",
+    [
+        Field("qfi", QFI, "The QoS flow; one of `flows`.", required=True),
+        Field("dscp", Int(0, 63, "a DSCP value"), "The packet's DSCP."),
+        Field(
+            "ports",
+            ListOf(Int(1, 65535, "a port number"), min_items=1, unique=True),
+            "TCP/UDP ports; a packet to or from one of them matches.",
+        ),
+        Field(
+            "dds",
+            Enum(("discovery", "data")),
+            "DDS traffic of the run's ROS domain by its RTPS ports: discovery (SPDP/SEDP) or"
+            " data (topics, such as EdgeLoc's requests and answers).",
+        ),
+    ],
+    require_any=("dscp", "ports", "dds"),
+)
+QOS = Obj(
+    "The QoS flows of every PDU session on N3: each G-PDU's PDU Session Container carries the"
+    " QFI of the flow its packet is in. Default: flows 1 and 2, DDS discovery in 2, the rest"
+    " (EdgeLoc's requests and answers) in 1.",
+    [
+        Field(
+            "flows",
+            ListOf(QFI, min_items=1, unique=True),
+            "The QFIs each PDU session has.",
+            default=model.Qos.flows,
+        ),
+        Field(
+            "default_qfi",
+            QFI,
+            "The flow of a packet no rule matches; one of `flows`.",
+            default=model.Qos.default_qfi,
+        ),
+        Field(
+            "rules",
+            ListOf(QOS_RULE),
+            "Packet filters, first match wins (default: DDS discovery in QFI 2, where the"
+            " flows have it).",
+        ),
+    ],
+)
+
 TOPOLOGY = Obj(
     "Nodes: cells (gNB + core, or gNB + UPF + edge) and vehicles. Names are unique across all"
     " of them, but cells may share a UPF and an edge.",
@@ -470,6 +516,19 @@ TOPOLOGY = Obj(
             "Private IPv4 network the vehicles of cells with a UPF get their addresses from"
             " (default 10.45.0.0/16, Open5GS's). It must not overlap `address_pool`.",
         ),
+        Field(
+            "ue_mtu",
+            Int(
+                model.MIN_UE_MTU,
+                model.MAX_UE_MTU,
+                f"an MTU in bytes that leaves room for GTP-U's {model.N3_OVERHEAD} bytes on a"
+                f" {model.N3_MTU}-byte N3",
+            ),
+            "MTU of the air interface of vehicles behind a UPF: nothing they send is"
+            " fragmented on N3.",
+            default=model.MAX_UE_MTU,
+        ),
+        Field("qos", QOS, "QoS flows on N3 (cells with a UPF)."),
         Field("cells", ListOf(CELL, min_items=1), "At least one cell.", required=True),
         Field("vehicles", ListOf(VEHICLE, min_items=1), "At least one vehicle.", required=True),
     ],

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import contextlib
 from ipaddress import IPv4Network
+from pathlib import Path
 
 from netem.netns import list_netns
 from nodes.ros.env import domain_id_for
@@ -35,18 +36,22 @@ def _ids_in_use(runs: list[st.RunState]) -> set[str]:
     return ids
 
 
-def check_ue_pool(ue_pool: IPv4Network, pool: IPv4Network, hosts: list[IPv4Network]) -> None:
-    """The UE pool must overlap neither the run's link addresses nor a network of the host."""
+def check_ue_pool(
+    ue_pool: IPv4Network, pool: IPv4Network, hosts: list[IPv4Network], source: Path | None = None
+) -> None:
+    """The UE pool must overlap neither the run's link addresses nor a network of the host
+    (known only here, so checked before anything is created rather than at validation)."""
+    where = f"{source}: " if source is not None else ""
     if ue_pool.overlaps(pool):
         raise BadInput(
-            f"topology.ue_pool {ue_pool} overlaps the link address pool {pool}; "
+            f"{where}topology.ue_pool {ue_pool} overlaps the link address pool {pool}; "
             "pick another private range"
         )
     for net in hosts:
         if ue_pool.overlaps(net):
             raise BadInput(
-                f"topology.ue_pool {ue_pool} overlaps the host network {net}; pick another "
-                "private range (the UEs' addresses must not shadow the host's)"
+                f"{where}topology.ue_pool {ue_pool} overlaps the host network {net}; pick "
+                "another private range (the UEs' addresses must not shadow the host's)"
             )
 
 
@@ -94,7 +99,7 @@ def build(
         hosts = host_networks()
         pool = choose_pool(scenario.topology.address_pool, n_links, hosts, _live_pools(runs))
         if scenario.topology.tunnelled:
-            check_ue_pool(scenario.topology.ue_pool, pool, hosts)
+            check_ue_pool(scenario.topology.ue_pool, pool, hosts, scenario.source)
         net = plan(scenario, run_id, pool, mode, backend, dry_run)
         net.link_backend = choice
         if dry_run:

@@ -23,8 +23,9 @@ from typing import Any
 from pyroute2.netlink.exceptions import NetlinkError as PyNetlinkError
 
 from netem.errors import NetlinkError
-from netem.gtp import EndpointConfig, GtpEndpoint, GtpEndpointError, Session
+from netem.gtp import EndpointConfig, GtpEndpoint, GtpEndpointError, QosRule, Session
 from netem.gtpu import N3_OVERHEAD
+from nodes.ros.env import domain_id_for, rtps_ports
 from testbed import state as st
 from testbed.errors import TestbedError
 from testbed.scenario.model import Cell
@@ -167,7 +168,17 @@ class CorePath:
         self, key: str, role: str, netns: str, tun: str, address: IPv4Address,
         mine: tuple[PduSession, ...],
     ) -> None:  # fmt: skip
-        config = EndpointConfig(role, netns, tun, str(address), tuple(s.session() for s in mine))  # type: ignore[arg-type]
+        topo = self.net.scenario.topology
+        config = EndpointConfig(
+            role,  # type: ignore[arg-type]
+            netns,
+            tun,
+            str(address),
+            tuple(s.session() for s in mine),
+            rules=self.qos_rules(),
+            default_qfi=topo.qos.default_qfi,
+            tun_mtu=topo.ue_mtu,
+        )
         # Its files live with the run's relays (`testbed.links.link_state_dir`).
         workdir = st.state_dir() / self.net.run_id / f"gtp-{key.replace('/', '-')}"
         endpoint = GtpEndpoint(
@@ -180,6 +191,25 @@ class CorePath:
         self.endpoints[key] = endpoint
         assert endpoint.pid is not None
         self.net.record_pid(endpoint.pid, f"GTP-U {role} {key}")
+
+    def qos_rules(self) -> tuple[QosRule, ...]:
+        """The scenario's packet filters as the endpoints match them: a DDS rule becomes the
+        RTPS ports of this run's ROS domain."""
+        domain = domain_id_for(self.net.run_id)
+        return tuple(
+            QosRule(r.qfi, r.dscp, r.ports + (rtps_ports(domain, r.dds) if r.dds else ()))
+            for r in self.net.scenario.topology.qos.rules
+        )
+
+    def _qos_text(self) -> str:
+        qos = self.net.scenario.topology.qos
+        rules = []
+        for r in qos.rules:
+            what = [f"DDS {r.dds}"] if r.dds else []
+            what += [f"DSCP {r.dscp}"] if r.dscp is not None else []
+            what += [f"ports {','.join(map(str, r.ports))}"] if r.ports else []
+            rules.append(f"QFI {r.qfi} for {' + '.join(what)}")
+        return "; ".join([*rules, f"QFI {qos.default_qfi} for the rest"])
 
     def _route(self, node: Node, tun: str, routes: list[TunnelRoute]) -> None:
         """Bring `tun` up in `node` and add `routes` there."""
@@ -213,6 +243,7 @@ class CorePath:
                 if s.gnb == cell.gnb
             )
             out.append(f"# GTP-U gNB {cell.gnb} on {n3.lower.ip}:2152 (TUN {GNB_TUN}): {teids}")
+            out.append(f"# QoS flows: {self._qos_text()}")
             out.append(f"ip netns exec {gnb.netns} python -m netem.gtp <gnb config> &")
             out.append(f"# GTP-U UPF {upf.name} on {n3.upper.ip}:2152 (TUN {upf_tun(cell.gnb)})")
             out.append(f"ip netns exec {upf.netns} python -m netem.gtp <upf config> &")
@@ -247,6 +278,7 @@ class CorePath:
             "n3_bytes": n3,
             "gtp_overhead_bytes": overhead,
             "gtp_overhead_share": overhead / n3 if n3 else None,
+            "qos_flows": self._qos_text(),
             "endpoints": stats,
         }
 

@@ -5,7 +5,6 @@ from __future__ import annotations
 
 from ipaddress import IPv4Address, IPv4Network
 
-from netem.gtpu import N3_OVERHEAD
 from netem.profile import LinkProfile
 from testbed import state as st
 from testbed.addressing import assign
@@ -56,11 +55,6 @@ def link_pairs(scenario: Scenario) -> list[tuple[str, LinkKind, str, str]]:
     return pairs
 
 
-#: A UE's air interface MTU behind a UPF: 1500 on N3 less the outer IPv4 (20), UDP (8) and
-#: GTP-U header with its PDU Session Container (16): 1456, as Open5GS and OAI set their UEs'.
-UE_MTU = 1500 - N3_OVERHEAD
-
-
 def ue_addresses(topo: Topology) -> dict[str, IPv4Address]:
     """Each vehicle of a cell with a UPF, its address in the UE pool, in the order the
     vehicles are written, from the pool's second host up: the first is the UPF's own, as
@@ -100,7 +94,7 @@ def plan(
         node = net.nodes[v.name]
         node.ue_address = ues.get(v.name)
         if node.ue_address is not None:
-            node.mtus[v.gnb] = UE_MTU
+            node.mtus[v.gnb] = topo.ue_mtu
         node.routes.append(Route("default", gnb_addr, v.gnb, node.ue_address))
     for c in topo.cells:
         net.nodes[c.gnb].forwarding = True
