@@ -65,3 +65,15 @@ def processes_mentioning(text: str) -> list[int]:
 # finds there as a test (running `testbed` with no arguments).
 testbed_cli.__test__ = False  # type: ignore[attr-defined]
 testbed_popen.__test__ = False  # type: ignore[attr-defined]
+
+
+def lines_until_the_timeline(proc: subprocess.Popen[str]) -> list[str]:
+    """What `testbed run` (started by `testbed_popen`) printed until its nodes run and its
+    timeline plays; AssertionError with all of it if the run ended first."""
+    assert proc.stdout is not None
+    lines: list[str] = []
+    for line in proc.stdout:
+        lines.append(line)
+        if "playing the timeline" in line:
+            return lines
+    raise AssertionError("testbed run ended before its timeline started:\n" + "".join(lines))

@@ -72,13 +72,13 @@ def state(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Path:
 def test_the_default_scenario_gets_a_note_for_each_1gbit_backhaul_direction() -> None:
     warnings = check_links(load(DEFAULT), PLANE)
     assert [(w.level, w.link, w.direction) for w in warnings] == [
-        ("note", "gnb1-core1", "uplink"),
-        ("note", "gnb1-core1", "downlink"),
+        ("note", "gnb1-upf1", "uplink"),
+        ("note", "gnb1-upf1", "downlink"),
     ]
     up = warnings[0]
     assert (up.rate_bps, up.host_bps) == (1e9, 720e6)
     assert up.message == (
-        "gnb1-core1 uplink: rate 1gbit is more than this host's relay carries one packet at a "
+        "gnb1-upf1 uplink: rate 1gbit is more than this host's relay carries one packet at a "
         "time (720mbit: 60,000 packets/s of 1500 bytes): UDP sent without GSO (ROS 2 DDS) above "
         "that is limited by the relay, TCP is not. Lower it to 720mbit if such traffic must "
         "reach the rate, or use a host whose kernel has sch_netem (links.backend: tc or auto)"
@@ -315,8 +315,8 @@ def test_validate_host_prints_the_figure_and_the_notes_and_exits_0(
     result = runner.invoke(app, ["validate", "--host", str(DEFAULT)])
     assert result.exit_code == 0, result.output
     assert f"host data plane: {PLANE.text()}; measured now in 3.0 s" in result.output
-    assert f"note: {DEFAULT}: gnb1-core1 uplink: rate 1gbit" in result.output
-    assert f"note: {DEFAULT}: gnb1-core1 downlink: rate 1gbit" in result.output
+    assert f"note: {DEFAULT}: gnb1-upf1 uplink: rate 1gbit" in result.output
+    assert f"note: {DEFAULT}: gnb1-upf1 downlink: rate 1gbit" in result.output
 
 
 def test_validate_host_exits_3_when_a_rate_is_beyond_even_tcp(
@@ -326,7 +326,7 @@ def test_validate_host_exits_3_when_a_rate_is_beyond_even_tcp(
     _fake_host(monkeypatch, slow)
     result = runner.invoke(app, ["validate", "--host", str(DEFAULT)])
     assert result.exit_code == 3
-    assert f"error: {DEFAULT}: gnb1-core1 uplink: rate 1gbit is more than" in result.output
+    assert f"error: {DEFAULT}: gnb1-upf1 uplink: rate 1gbit is more than" in result.output
     # a bad file still decides the exit code: 2
     bad = tmp_path / "bad.yaml"
     bad.write_text("name: x\n")
@@ -378,7 +378,7 @@ def test_link_test_prints_the_capacity_first_and_keeps_it_in_its_report(
         link_test(load(DEFAULT), quick=True, progress=lines.append, capacity=check)
     assert lines == check.lines()
     assert lines[0] == f"host data plane: {PLANE.text()}; measured now in 3.0 s"
-    assert lines[1].startswith("note: gnb1-core1 uplink: rate 1gbit")
+    assert lines[1].startswith("note: gnb1-upf1 uplink: rate 1gbit")
     report = LinkTestReport("userspace", True, [], capacity=check.to_dict())
     data = json.loads(json.dumps(report.to_dict()))
     assert data["capacity"]["data_plane"] == PLANE.to_dict()

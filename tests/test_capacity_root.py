@@ -91,7 +91,7 @@ def test_validate_host_prints_the_figure_then_reuses_it(state_dir: Path) -> None
     # the 1 Gbit/s backhaul: a note per direction where the relay moves fewer packets
     figure = json.loads((state_dir / CACHE_FILE).read_text())
     if figure["datagram_bps"] < 1e9:
-        assert "note: scenarios/default.yaml: gnb1-core1 uplink: rate 1gbit" in first.stdout
+        assert "note: scenarios/default.yaml: gnb1-upf1 uplink: rate 1gbit" in first.stdout
     again = testbed_cli("validate", "--host", "scenarios/default.yaml", timeout=120)
     assert again.returncode == 0, again.stdout + again.stderr
     assert "measuring" not in again.stdout and "; cached from " in again.stdout

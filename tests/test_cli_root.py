@@ -51,21 +51,23 @@ def test_up_carries_packets_and_down_leaves_nothing(state_dir: Path) -> None:
     run_id = re.search(r"run ([0-9a-f]{6}) is up", up.stdout).group(1)
     assert re.search(r"link backend: (userspace|tc) \(auto: ", up.stdout)
     names = _ours(run_id)
-    assert len(names) == 3
-    # A datagram from the vehicle's namespace reaches the core's through the gNB.
+    assert len(names) == 4  # av1, gnb1, upf1, edge1
+    # A datagram from the vehicle's namespace reaches the edge server's through the gNB, the
+    # GTP-U tunnel on N3 and the UPF, from the UE's pool address.
     run = st.load_run(run_id)
     assert run is not None and run.liveness() == "detached"
     av1 = next(n for n in names if n.endswith("-av1"))
-    core1 = next(n for n in names if n.endswith("-core1"))
-    with Netns.open(core1) as core, Netns.open(av1) as vehicle:
-        core_ip = core.ipr.get_addr(label="gnb1")[0].get_attr("IFA_ADDRESS")
-        srv = core.socket()
+    edge1 = next(n for n in names if n.endswith("-edge1"))
+    with Netns.open(edge1) as edge, Netns.open(av1) as vehicle:
+        edge_ip = edge.ipr.get_addr(label="upf1")[0].get_attr("IFA_ADDRESS")
+        srv = edge.socket()
         cli = vehicle.socket()
         try:
-            srv.bind((core_ip, 0))
+            srv.bind((edge_ip, 0))
             srv.settimeout(2)
-            cli.sendto(b"through the gnb", (core_ip, srv.getsockname()[1]))
-            assert srv.recvfrom(64)[0] == b"through the gnb"
+            cli.sendto(b"through the gnb", (edge_ip, srv.getsockname()[1]))
+            data, sender = srv.recvfrom(64)
+            assert (data, sender[0]) == (b"through the gnb", "10.45.0.2")
         finally:
             srv.close()
             cli.close()
@@ -140,7 +142,7 @@ def test_run_leaves_a_run_folder_and_no_namespaces(state_dir: Path, tmp_path: Pa
     assert [(e["kind"], e["scheduled_s"]) for e in events] == [("shape", 0.0), ("shape", 2.0)]
     assert "shape av1 uplink 8 Mbit/s" in result.stdout
     echoes = json.loads((folder / "connectivity.json").read_text())
-    assert [(e["src"], e["dst"], e["received"]) for e in echoes] == [("av1", "core1", 5)]
+    assert [(e["src"], e["dst"], e["received"]) for e in echoes] == [("av1", "edge1", 5)]
     assert (folder / "scenario.yaml").read_text() == short.read_text()
     assert _ours(folder.name) == []
     assert st.list_runs() == []

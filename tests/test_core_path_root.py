@@ -236,7 +236,13 @@ def test_a_core_path_run_stopped_midway_leaves_nothing(
     import signal
 
     from testbed import state as st
-    from tests.realrun import REPO, processes_mentioning, testbed_cli, testbed_popen
+    from tests.realrun import (
+        REPO,
+        lines_until_the_timeline,
+        processes_mentioning,
+        testbed_cli,
+        testbed_popen,
+    )
 
     scenario = tmp_path / "mec.yaml"
     scenario.write_text(
@@ -245,15 +251,8 @@ def test_a_core_path_run_stopped_midway_leaves_nothing(
         .replace("duration: 40s", "duration: 30s")
     )
     proc = testbed_popen("run", str(scenario), "--runs-dir", str(tmp_path / "runs"))
-    lines: list[str] = []
     try:
-        assert proc.stdout is not None
-        for line in proc.stdout:
-            lines.append(line)
-            if "playing the timeline" in line:
-                break
-        else:
-            pytest.fail("testbed run ended before its timeline started:\n" + "".join(lines))
+        lines = lines_until_the_timeline(proc)
         (run_id,) = [r.run_id for r in st.list_runs()]
         ends = f"{state_dir / run_id}/gtp-"
         assert len(processes_mentioning(ends)) == 4, "".join(lines)

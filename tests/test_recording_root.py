@@ -141,7 +141,11 @@ def test_run_mcap_decodes_fully_and_counts_match_the_nodes(
     assert meta["edgeloc.linktest"] == {"ran": "false"}
     assert attachments == {"scenario.yaml", "links.json", "events.jsonl", "nodes/config.json"}
     links = json.loads((folder / "links.json").read_text())
-    assert set(links["links"]) == set(links["final_profiles"]) == {"av1-gnb1", "gnb1-core1"}
+    assert (
+        set(links["links"])
+        == set(links["final_profiles"])
+        == {"av1-gnb1", "gnb1-upf1", "upf1-edge1"}
+    )
     assert links["links"]["av1-gnb1"]["profiles"]["uplink"]["rate_bps"] == 50e6
     print(f"\nrun {result.run_id}: {path.stat().st_size / 1e6:.2f} MB, topics {counts}")
 

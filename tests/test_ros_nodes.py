@@ -157,23 +157,26 @@ def test_supervisor_plan_puts_each_node_in_its_namespace_with_its_peers(
     sup = Supervisor(net, tmp_path / "run", print)
     plan = {n.name: n for n in sup.plan()}
     assert set(plan) == {
-        "core1.edge",
+        "edge1.edge",
         "av1.fusion",
         "av1.inference",
         "av1.sensor",
         "gnb1.link_events",
     }
-    core_ip = str(net["core1"].address_towards("gnb1"))
-    av1_ip = str(net["av1"].address_towards("gnb1"))
+    # The default scenario's vehicle is a UE behind a UPF: it and its edge server talk from
+    # its pool address and the edge's N6 address.
+    core_ip = str(net.server_address(net.scenario.topology.cells[0]))
+    av1_ip = str(net.vehicle_address("av1"))
+    assert (av1_ip, core_ip) == ("10.45.0.2", str(net["edge1"].address_towards("upf1")))
     assert plan["av1.inference"].host == "av1"
     assert plan["av1.inference"].peers == [core_ip, "127.0.0.1"]
-    assert plan["core1.edge"].peers == [av1_ip, "127.0.0.1"]
+    assert plan["edge1.edge"].peers == [av1_ip, "127.0.0.1"]
     assert plan["av1.inference"].module == "nodes.ros.inference_request"
     argv = plan["av1.inference"].argv
-    assert argv[argv.index("--edge") + 1] == "core1"
+    assert argv[argv.index("--edge") + 1] == "edge1"
     assert plan["av1.fusion"].log == (tmp_path / "run" / "logs" / "av1.fusion.log").resolve()
     no_edge = Supervisor(net, tmp_path / "run", print, edge=False).plan()
-    assert "core1.edge" not in {n.name for n in no_edge}
+    assert "edge1.edge" not in {n.name for n in no_edge}
 
 
 def test_compute_thread_joins_its_group_by_thread_id_and_runs_jobs_there(tmp_path: Path) -> None:

@@ -21,7 +21,7 @@ from typing import Any
 
 import pytest
 
-from tests.realrun import processes_mentioning, testbed_popen
+from tests.realrun import lines_until_the_timeline, processes_mentioning, testbed_popen
 
 pytestmark = [pytest.mark.root, pytest.mark.ros, pytest.mark.slow, pytest.mark.e2e]
 
@@ -92,7 +92,7 @@ def test_run_starts_every_node_and_leaves_nothing(
     folder = result.folder
     assert result.ok, "\n".join(lines)
     procs = result.nodes["processes"]
-    assert set(procs) == {"core1.edge", "av1.fusion", "av1.inference", "av1.sensor",
+    assert set(procs) == {"edge1.edge", "av1.fusion", "av1.inference", "av1.sensor",
                           "gnb1.link_events"}  # fmt: skip
     for name, p in procs.items():
         assert p["exit_code"] == 0, (name, (folder / p["log"]).read_text()[-2000:])
@@ -103,11 +103,11 @@ def test_run_starts_every_node_and_leaves_nothing(
     netns = {n: _ready_lines(folder / p["log"])["netns"] for n, p in procs.items()}
     host = os.stat("/proc/self/ns/net").st_ino
     assert netns["av1.fusion"] == netns["av1.inference"] == netns["av1.sensor"]
-    assert len({netns["av1.fusion"], netns["core1.edge"], netns["gnb1.link_events"], host}) == 4
+    assert len({netns["av1.fusion"], netns["edge1.edge"], netns["gnb1.link_events"], host}) == 4
 
     fusion = procs["av1.fusion"]["stats"]
     inference = procs["av1.inference"]["stats"]
-    edge = procs["core1.edge"]["stats"]
+    edge = procs["edge1.edge"]["stats"]
     # Fused poses at the frame rate for the whole timeline (every method, every frame).
     fused = fusion["published"]["edgeloc"]
     assert fused >= 0.8 * RATE_HZ * DURATION_S, fusion
@@ -156,7 +156,7 @@ def test_run_starts_every_node_and_leaves_nothing(
     assert set(inference["head_s"]) <= {"image", "conv3", "vehicle"}
     assert len(inference["decisions"]) == inference["requests"]
     # The core has no core_cpu: its tail thread runs unbudgeted, and says why.
-    assert budgets["core1"]["compute_cgroup"] is None and budgets["core1"]["compute_reason"]
+    assert budgets["edge1"]["compute_cgroup"] is None and budgets["edge1"]["compute_reason"]
     assert not edge["compute_budget"]["joined"]
 
     # Teardown left nothing: no namespace, no node process, no cgroup of this run.
@@ -249,12 +249,12 @@ def test_vehicle_keeps_publishing_fused_poses_when_the_edge_dies(
             nodes.start()
             time.sleep(8.0)
             nodes.check()  # all alive, requests flowing
-            edge = next(n for n in nodes.nodes if n.name == "core1.edge")
+            edge = next(n for n in nodes.nodes if n.name == "edge1.edge")
             os.kill(edge.proc.pid, signal.SIGKILL)  # type: ignore[union-attr]
             killed_at = time.time()
             time.sleep(6.0)
             # In a run, the watcher would fail it now, quoting the dead node's log.
-            with pytest.raises(TestbedError, match=r"node core1\.edge exited with -9") as err:
+            with pytest.raises(TestbedError, match=r"node edge1\.edge exited with -9") as err:
                 nodes.check()
             assert '"event": "ready"' in str(err.value)
         finally:
@@ -264,7 +264,7 @@ def test_vehicle_keeps_publishing_fused_poses_when_the_edge_dies(
     inference = procs["av1.inference"]["stats"]
     for name in ("av1.fusion", "av1.inference", "av1.sensor"):
         assert procs[name]["exit_code"] == 0, (name, (folder / procs[name]["log"]).read_text())
-    assert procs["core1.edge"]["exit_code"] == -signal.SIGKILL
+    assert procs["edge1.edge"]["exit_code"] == -signal.SIGKILL
     # Before the kill the edge answered; after it, requests timed out and were charged.
     # (A 2-vCPU VM answers about one request a second here: 7-11 before the kill.)
     assert inference["answers"] >= 4, inference
@@ -296,15 +296,8 @@ def test_ctrl_c_mid_run_tears_everything_down(
     scenario = short_scenario(tmp_path, duration_s=60)
     runs = tmp_path / "runs"
     proc = testbed_popen("run", str(scenario), "--runs-dir", str(runs))
-    lines: list[str] = []
     try:
-        assert proc.stdout is not None
-        for line in proc.stdout:  # wait until the nodes run and the timeline plays
-            lines.append(line)
-            if "playing the timeline" in line:
-                break
-        else:
-            pytest.fail("testbed run ended before its timeline started:\n" + "".join(lines))
+        lines = lines_until_the_timeline(proc)
         (run_id,) = [r.run_id for r in st.list_runs()]
         time.sleep(2)
         t0 = time.monotonic()

@@ -27,15 +27,16 @@ def test_default_scenario() -> None:
     assert (s.name, s.seed, s.duration_s, s.version) == ("default", 7, 90.0, 1)
     assert s.source == SCENARIOS / "default.yaml"
     assert s.topology.vehicles == (m.Vehicle("av1", "gnb1", cpu=0.025),)
-    assert s.topology.cells == (m.Cell("gnb1", "core1"),)
+    assert s.topology.cells == (m.Cell("gnb1", upf="upf1", edge="edge1", placement="core"),)
     assert s.links.backend == "auto"
-    assert s.links.names() == ["av1-gnb1", "gnb1-core1"]
+    assert sorted(s.links.names()) == ["av1-gnb1", "gnb1-upf1", "upf1-edge1"]
     air = s.links.get("av1-gnb1")
     assert (air.kind, air.lower, air.upper) == ("air", "av1", "gnb1")
     assert air.uplink == LinkProfile(rate_bps=50e6, delay_s=0.008, jitter_s=0.002, loss=0.001)
     assert air.downlink.rate_bps == 200e6
-    backhaul = s.links.get("gnb1-core1")
-    assert backhaul.uplink == LinkProfile(rate_bps=1e9, delay_s=0.001)
+    n3 = s.links.get("gnb1-upf1")
+    assert (n3.kind, n3.uplink) == ("n3", LinkProfile(rate_bps=1e9, delay_s=0.001))
+    assert s.links.get("upf1-edge1").uplink == LinkProfile()  # N6: the edge on the UPF's host
     # The paper's three uplink phases, in order.
     assert [(e.at_s, e.node, e.uplink_bps) for e in s.timeline] == [
         (0.0, "av1", 40e6),

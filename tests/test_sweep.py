@@ -107,7 +107,7 @@ def test_overrides_reach_nested_fields_lists_and_single_links() -> None:
     assert air.uplink.delay_s == pytest.approx(0.020)
     assert air.downlink.loss == pytest.approx(0.01)
     assert air.downlink.delay_s == pytest.approx(0.008)  # the rest of the default stays
-    assert scenario.links.get("gnb1-core1").downlink.loss == 0  # other links keep defaults
+    assert scenario.links.get("gnb1-upf1").downlink.loss == 0  # other links keep defaults
     assert scenario.workload.fusion.k_s == 40
     assert scenario.timeline[1].uplink_bps == 4e6  # type: ignore[union-attr]
     assert scenario.topology.vehicles[0].cpu == 0.5
