@@ -175,11 +175,13 @@ def _iface_bytes(node: Any, ifname: str) -> tuple[int, int]:
     return stats["rx_bytes"], stats["tx_bytes"]
 
 
-def _start_server(net: Any, env: dict[str, str], out: Path) -> subprocess.Popen[Any]:
+def _start_server(
+    net: Any, env: dict[str, str], out: Path, node: str = "core1"
+) -> subprocess.Popen[Any]:
     log = out.open("w")
-    proc = net["core1"].popen(
+    proc = net[node].popen(
         [sys.executable, str(THIS), "serve"],
-        what="core1: ros probe server",
+        what=f"{node}: ros probe server",
         env=env,
         stdout=log,
         stderr=subprocess.STDOUT,
@@ -284,6 +286,56 @@ def test_goal_of_1mib_crosses_the_gnb(net: Any, tmp_path: Path, peers: str) -> N
         f"{answer['first_answer_s']:.2f} s after client start, goal round trip "
         f"{answer['round_trip_s'] * 1000:.0f} ms, gNB forwarded {air_rx / 1e6:.2f} MB up"
     )
+
+
+CORE5G = """
+version: 1
+name: core5g
+duration: 20s
+topology:
+  cells: [{gnb: gnb1, upf: upf1, edge: edge1}]
+  vehicles: [{name: av1, gnb: gnb1}]
+links:
+  backend: userspace
+"""
+
+
+def test_goal_of_1mib_crosses_n3_in_gtp_u(
+    state_dir: Path, interfaces: None, tmp_path: Path
+) -> None:
+    """The same 1 MiB goal from a UE behind a UPF: DDS between the UE's pool address and the
+    edge's N6 address, every byte through the gNB's GTP-U tunnel on N3, intact (CRC), with
+    no drop at either GTP-U end."""
+    from nodes.ros.env import RosEnv, domain_id_for
+    from testbed.scenario import load
+    from testbed.topology import build
+
+    (tmp_path / "core5g.yaml").write_text(CORE5G)
+    with build(load(tmp_path / "core5g.yaml"), mode="run") as net:
+        assert net.core is not None
+        ros = RosEnv(tmp_path / "run", domain_id_for(net.run_id))
+        edge_ip = net.server_address(net.scenario.topology.cells[0])
+        ue_ip = net.vehicle_address("av1")
+        n3_before = _iface_bytes(net["gnb1"], "upf1")
+        server = None
+        try:
+            server = _start_server(net, ros.environ([ue_ip]), tmp_path / "server.log", "edge1")
+            code, events = _ask(net, ros.environ([edge_ip]), timeout_s=30)
+        finally:
+            _stop(server)
+        n3_tx = _iface_bytes(net["gnb1"], "upf1")[1] - n3_before[1]
+        ends = net.core.close()
+    seen = [
+        json.loads(x) for x in (tmp_path / "server.log").read_text().splitlines() if x[:1] == "{"
+    ]
+    assert code == 0, events
+    assert events[-1]["event"] == "answer" and events[-1]["x"] == PAYLOAD_BYTES, events[-1]
+    (goal,) = [e for e in seen if e["event"] == "goal"]
+    assert (goal["bytes"], goal["crc32"]) == (PAYLOAD_BYTES, zlib.crc32(payload()))
+    assert n3_tx >= PAYLOAD_BYTES, n3_tx  # in G-PDUs, over N3
+    assert ends["gnb1"]["sent"]["inner_bytes"] >= PAYLOAD_BYTES, ends["gnb1"]
+    for key, counters in ends.items():
+        assert not any(counters["drops"].values()), (key, counters["drops"])
 
 
 def test_without_static_peers_discovery_fails_across_the_gnb(net: Any, tmp_path: Path) -> None:
