@@ -526,7 +526,7 @@ def rtt_tolerance(delay_s: float) -> float:
     proportion to how far ahead they were set (CI's TCG guests measured 22.6 and 24.5 ms for
     20 ms, 11.7 for 10 ms, 18.6 for 15). And how late this guest's own timer of `delay_s`
     fires now (`guest_timer_lateness`), which is the same lateness netem's qdisc watchdog
-    meets: 0.5-0.7 ms on an idle host, more when the emulation lags. A delay not applied,
+    meets, and grows when the emulation lags. A delay not applied,
     doubled, or left unchanged after a `change` (20 -> 35 ms) is still outside.
     """
     if not IN_VM:

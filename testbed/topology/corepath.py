@@ -123,6 +123,7 @@ class CorePath:
         self.net = net
         self.die_with_parent = die_with_parent
         self.sessions = sessions(net)
+        self.rules = self.qos_rules()  # the same for every end: made once
         self.endpoints: dict[str, GtpEndpoint] = {}  # "gnb1", "upf1/gnb1"
         self.final: dict[str, dict[str, Any]] = {}
 
@@ -136,8 +137,9 @@ class CorePath:
                 self._endpoint(cell.gnb, "gnb", gnb.netns, GNB_TUN, n3.lower.ip, mine)
                 self._endpoint(f"{upf.name}/{cell.gnb}", "upf", upf.netns, upf_tun(cell.gnb),
                                n3.upper.ip, mine)  # fmt: skip
+                routes = self._routes(cell)
                 for node, tun in ((gnb, GNB_TUN), (upf, upf_tun(cell.gnb))):
-                    self._route(node, tun, [r for r in self._routes(cell) if r.node == node.name])
+                    self._route(node, tun, [r for r in routes if r.node == node.name])
         except BaseException:
             self.close()
             raise
@@ -175,7 +177,7 @@ class CorePath:
             tun,
             str(address),
             tuple(s.session() for s in mine),
-            rules=self.qos_rules(),
+            rules=self.rules,
             default_qfi=topo.qos.default_qfi,
             tun_mtu=topo.ue_mtu,
         )
@@ -234,6 +236,7 @@ class CorePath:
     def commands(self) -> list[str]:
         """What `start` amounts to, as shell lines (what `--dry-run` prints)."""
         out = []
+        qos = f"# QoS flows: {self._qos_text()}"
         for cell in self._cells():
             gnb, upf = self.net[cell.gnb], self.net[cell.uplink_peer]
             n3 = self.net.links[f"{cell.gnb}-{cell.uplink_peer}"].addresses
@@ -243,7 +246,7 @@ class CorePath:
                 if s.gnb == cell.gnb
             )
             out.append(f"# GTP-U gNB {cell.gnb} on {n3.lower.ip}:2152 (TUN {GNB_TUN}): {teids}")
-            out.append(f"# QoS flows: {self._qos_text()}")
+            out.append(qos)
             out.append(f"ip netns exec {gnb.netns} python -m netem.gtp <gnb config> &")
             out.append(f"# GTP-U UPF {upf.name} on {n3.upper.ip}:2152 (TUN {upf_tun(cell.gnb)})")
             out.append(f"ip netns exec {upf.netns} python -m netem.gtp <upf config> &")
