@@ -21,6 +21,7 @@ Nouns:
 from __future__ import annotations
 
 import struct
+from collections.abc import Iterator, Sequence
 
 #: struct virtio_net_hdr: flags, gso_type, hdr_len, gso_size, csum_start, csum_offset. The
 #: TUN uses the host's byte order unless told otherwise (TUNSETVNETLE/BE).
@@ -33,6 +34,9 @@ PROTO_TCP, PROTO_UDP = 6, 17
 _PLAIN_HEADER = VNET.pack(0, GSO_NONE, 0, 0, 0, 0)
 _FIN_PSH, _CWR = 0x09, 0x80
 _ONES = 0xFFFF
+_ACK = 0x10
+_GRO_FLAGS = (_ACK, _ACK | 0x08)  # ACK, and ACK+PSH to end a run
+MAX_IP_LEN = 0xFFFF
 
 
 class Frame:
@@ -100,7 +104,30 @@ def split(frame: Frame) -> list[Frame]:
     """The wire packets of a super-packet (itself alone if it is one already)."""
     if frame.segments <= 1:
         return [frame]
-    data = frame.data
+    return [Frame(p, 1, len(p) - VNET_LEN) for p in _segments(frame.data, _PLAIN_HEADER)]
+
+
+def ip_packets(data: bytes) -> list[bytes]:
+    """The IP packets, complete, that one read from an offloading TUN holds: a super-packet's
+    segments (software GSO), a packet whose checksum the kernel left to us (NEEDS_CSUM)
+    finished, any other packet as it is. For an end that must hand on real packets with
+    valid checksums (a GTP-U tunnel end), not the virtio-net header's promise of them."""
+    flags, gso_type, _, gso_size, csum_start, csum_offset = VNET.unpack_from(data)
+    if gso_type & ~GSO_ECN != GSO_NONE and gso_size:
+        return list(_segments(data, b""))
+    if flags & VNET_F_NEEDS_CSUM:
+        packet = bytearray(data[VNET_LEN:])
+        # The field holds the pseudo-header's sum: summing over it finishes the checksum.
+        at = csum_start + csum_offset
+        if at + 2 <= len(packet):
+            struct.pack_into("!H", packet, at, checksum(packet[csum_start:]))
+        return [bytes(packet)]
+    return [data[VNET_LEN:]]
+
+
+def _segments(data: bytes, prefix: bytes) -> Iterator[bytes]:
+    """Software GSO of the super-packet `data` (virtio-net header first): each wire packet
+    with complete checksums, `prefix` in front of it."""
     gso_size = VNET.unpack_from(data)[3]
     ip = VNET_LEN
     version = data[ip] >> 4
@@ -121,7 +148,6 @@ def split(frame: Frame) -> list[Frame]:
     seq = int.from_bytes(l4_header[4:8], "big") if tcp else 0
     flags = l4_header[13] if tcp else 0
     view = memoryview(data)
-    out: list[Frame] = []
     n_bytes = len(data) - end
     for i, offset in enumerate(range(0, n_bytes, gso_size)):
         chunk = view[end + offset : end + min(offset + gso_size, n_bytes)]
@@ -148,6 +174,99 @@ def split(frame: Frame) -> list[Frame]:
         else:
             struct.pack_into("!HH", l4_header, 4, l4_len, 0)
             struct.pack_into("!H", l4_header, 6, checksum(pseudo, l4_header, chunk))
-        packet = b"".join((_PLAIN_HEADER, ip_header, l4_header, chunk))
-        out.append(Frame(packet, 1, len(packet) - VNET_LEN))
+        yield b"".join((prefix, ip_header, l4_header, chunk))
+
+
+def coalesce(packets: Sequence[bytes]) -> list[tuple[bytes, int]]:
+    """Software GRO: `packets` (complete IP packets, in arrival order) as frames for an
+    offloading TUN, each with how many packets it holds.
+
+    A run of IPv4 TCP segments of one flow, back to back in sequence, with the same headers
+    but for sequence, length, IP ID and checksums, each but the last of the first one's
+    payload size, and no flag but ACK (PSH allowed on the last), becomes one super-packet
+    (`GSO_TCPV4`, the first one's payload as `gso_size`, the checksum left to the kernel as
+    TSO leaves it). The receiving stack then handles one packet where it would have handled
+    ~44, as after a NIC's GRO; split again (by the kernel or `split`), it gives back the very
+    packets it was made of. Anything else passes alone, as it came."""
+    out: list[tuple[bytes, int]] = []
+    i, n = 0, len(packets)
+    while i < n:
+        first = packets[i]
+        j = i + 1
+        run = _gro_head(first)
+        if run is not None:
+            ihl, end, size = run
+            total = len(first)
+            seq = (int.from_bytes(first[ihl + 4 : ihl + 8], "big") + size) & 0xFFFFFFFF
+            last_flags = first[ihl + 13]
+            # What every packet of the run shares with the first: version, TOS; flags, TTL,
+            # protocol; addresses and ports; ACK and data offset; window; urgent pointer and
+            # options (IP ID, lengths, sequence, TCP flags and checksums may differ).
+            same = (first[:2], first[6:10], first[12 : ihl + 4], first[ihl + 8 : ihl + 13],
+                    first[ihl + 14 : ihl + 16], first[ihl + 18 : end])  # fmt: skip
+            while j < n and last_flags == _ACK:
+                nxt = packets[j]
+                more = len(nxt) - end
+                if (
+                    more <= 0
+                    or more > size
+                    or total + more > MAX_IP_LEN
+                    or nxt[ihl + 13] not in _GRO_FLAGS
+                    or int.from_bytes(nxt[ihl + 4 : ihl + 8], "big") != seq
+                    or int.from_bytes(nxt[2:4], "big") != len(nxt)
+                    or (
+                        nxt[:2],
+                        nxt[6:10],
+                        nxt[12 : ihl + 4],
+                        nxt[ihl + 8 : ihl + 13],
+                        nxt[ihl + 14 : ihl + 16],
+                        nxt[ihl + 18 : end],
+                    )
+                    != same
+                ):
+                    break
+                total += more
+                seq = (seq + more) & 0xFFFFFFFF
+                last_flags = nxt[ihl + 13]
+                j += 1
+                if more < size:
+                    break
+        if j - i == 1:
+            out.append((_PLAIN_HEADER + first, 1))
+        else:
+            out.append((_merge(packets[i:j], total, last_flags), j - i))
+        i = j
     return out
+
+
+def _gro_head(packet: bytes) -> tuple[int, int, int] | None:
+    """(IP header length, header end, payload size) if `packet` may start a GRO run."""
+    if len(packet) < 40 or packet[0] >> 4 != 4 or packet[9] != PROTO_TCP:
+        return None
+    ihl = (packet[0] & 0x0F) * 4
+    if packet[6] & 0x3F or packet[7]:  # a fragment
+        return None
+    if len(packet) < ihl + 20 or packet[ihl + 13] != _ACK:
+        return None
+    end = ihl + (packet[ihl + 12] >> 4) * 4
+    size = len(packet) - end
+    if size <= 0 or int.from_bytes(packet[2:4], "big") != len(packet):
+        return None
+    return ihl, end, size
+
+
+def _merge(run: Sequence[bytes], total: int, flags: int) -> bytes:
+    first = run[0]
+    ihl = (first[0] & 0x0F) * 4
+    end = ihl + (first[ihl + 12] >> 4) * 4
+    ip_header = bytearray(first[:ihl])
+    struct.pack_into("!H", ip_header, 2, total)
+    struct.pack_into("!H", ip_header, 10, 0)
+    struct.pack_into("!H", ip_header, 10, checksum(ip_header))
+    tcp_header = bytearray(first[ihl:end])
+    tcp_header[13] = flags
+    # As TSO leaves it: the pseudo-header's sum, not complemented, for the kernel to finish.
+    pseudo = first[12:20] + struct.pack("!BBH", 0, PROTO_TCP, total - ihl)
+    struct.pack_into("!H", tcp_header, 16, _ONES - checksum(pseudo))
+    header = VNET.pack(VNET_F_NEEDS_CSUM, GSO_TCPV4, end, len(first) - end, ihl, 16)
+    return b"".join((header, ip_header, tcp_header, *(p[end:] for p in run)))

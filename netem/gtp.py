@@ -43,11 +43,13 @@ import sys
 import tempfile
 import time
 from collections import Counter
+from collections.abc import Iterable
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any, Literal
 
 from netem.errors import NetemError
+from netem.gso import VNET_LEN, coalesce, ip_packets
 from netem.gtpu import (
     ECHO_REQUEST,
     ECHO_RESPONSE,
@@ -74,6 +76,10 @@ SOL_UDP, UDP_SEGMENT, UDP_GRO = 17, 103, 104  # linux/udp.h
 #: UDP GSO sends at most 64 segments in one call; 44 of 1472 bytes stay under 64 kB.
 GSO_MAX_SEGMENTS = 44
 _GRO_CMSG_SPACE = socket.CMSG_SPACE(4)
+#: The first two bytes of a G-PDU as these ends send it (version 1, PT, E; type 255), and
+#: its bytes 11-12: one PDU Session Container (0x85) of one 4-byte unit.
+_GPDU_FLAGS_TYPE, _ONE_CONTAINER = bytes((0x34, G_PDU)), bytes((0x85, 1))
+_PLAIN = bytes(2)  # virtio-net flags and GSO type of a plain packet
 
 
 class GtpEndpointError(NetemError, RuntimeError):
@@ -203,6 +209,10 @@ class EndpointConfig:
     default_qfi: int = 1
     tun_mtu: int = 1456
     stats_path: str | None = None
+    #: The TUN with TSO/USO offloads (`netem.tun`): super-packets in, segmented here into the
+    #: UE's packets before they are tunnelled; coalesced (GRO) on the way out. False: one
+    #: packet per read and write (what the bench compares against).
+    offload: bool = True
 
     def __post_init__(self) -> None:
         if self.role not in ("gnb", "upf"):
@@ -268,46 +278,63 @@ class Endpoint:
         self.uplink_sender = config.role == "gnb"
         self._by_ue = {s.ue_packed: s for s in config.sessions}
         # The TEID this end receives on: the gNB is addressed with DL TEIDs, the UPF with UL.
+        # Keyed by the TEID's 4 bytes as they stand in a G-PDU (no int per packet).
         self._by_teid = {
-            (s.dl_teid if self.uplink_sender else s.ul_teid): s for s in config.sessions
+            (s.dl_teid if self.uplink_sender else s.ul_teid).to_bytes(4, "big"): s
+            for s in config.sessions
         }
+        self._spoof_check = config.role == "upf"
+        # (session, QFI) -> (peer, the G-PDU header for an empty packet): per packet only
+        # the length field changes (`_encapsulate`).
+        self._heads: dict[tuple[Session, int], tuple[str, bytes]] = {}
         self.counters = Counters()
         self._classify = Classifier(config.rules, config.default_qfi)
         self._seq = 0
         self._gso = True  # until the kernel refuses UDP_SEGMENT
+        self._read_size = VNET_LEN + 65535 if config.offload else 65535
 
     # ---- TUN -> N3 -------------------------------------------------------------------------
 
     def from_tun(self) -> int:
         """Tunnel what the TUN holds (up to a batch); returns how many packets were read.
 
-        Datagrams to one peer leave in runs of equal size through UDP GSO (one sendmsg for up
-        to `GSO_MAX_SEGMENTS`), as a bulk TCP flow gives them: the kernel still puts one
-        datagram per UE packet on N3, only the system calls are fewer."""
+        With offloads one read may be a TCP super-packet: it is cut into the UE's packets
+        (`netem.gso.ip_packets`, complete checksums), each its own G-PDU, as a real gNB gets
+        them from the air. Datagrams to one peer leave in runs of equal size through UDP GSO
+        (one sendmsg for up to `GSO_MAX_SEGMENTS`), as a bulk TCP flow gives them: the kernel
+        still puts one datagram per UE packet on N3, only the system calls are fewer."""
         n = 0
         run: list[bytes] = []
         run_peer, run_size = "", 0
+        offload = self.cfg.offload
         while n < _BATCH:
             try:
-                packet = os.read(self.tun, 65535)
+                data = os.read(self.tun, self._read_size)
             except BlockingIOError:
                 break
             n += 1
-            out = self._encapsulate(packet)
-            if out is None:
-                continue
-            peer, datagram = out
-            if run and (
-                peer != run_peer or len(datagram) > run_size or len(run) >= GSO_MAX_SEGMENTS
-            ):
-                self._send_run(run, run_peer, run_size)
-                run = []
-            if not run:
-                run_peer, run_size = peer, len(datagram)
-            run.append(datagram)
-            if len(datagram) < run_size:  # a shorter one may only end a GSO run
-                self._send_run(run, run_peer, run_size)
-                run = []
+            if not offload:
+                packets: Iterable[bytes] = (data,)
+            elif data[:2] == _PLAIN:  # one packet, checksums done: the usual read
+                packets = (data[VNET_LEN:],)
+            else:
+                packets = ip_packets(data)
+            for packet in packets:
+                out = self._encapsulate(packet)
+                if out is None:
+                    continue
+                peer, datagram = out
+                if run and (
+                    peer != run_peer or len(datagram) > run_size or len(run) >= GSO_MAX_SEGMENTS
+                ):
+                    self._send_run(run, run_peer, run_size)
+                    run = []
+                if not run:
+                    run_peer, run_size = peer, len(datagram)
+                run.append(datagram)
+                if len(datagram) < run_size:  # a shorter one may only end a GSO run
+                    self._send_run(run, run_peer, run_size)
+                    run = []
         if run:
             self._send_run(run, run_peer, run_size)
         return n
@@ -323,15 +350,25 @@ class Endpoint:
             c.drops["no_session"] += 1
             return None
         qfi = self._classify(packet)
+        cached = self._heads.get((session, qfi))
+        if cached is None:
+            cached = self._heads[session, qfi] = self._head(session, qfi)
+        peer, head = cached
+        c.qfi_sent[qfi] += 1
+        c.sent["inner_bytes"] += len(packet)
+        if len(packet) > 0xFFFF - 8:
+            c.drops["too_big_for_n3"] += 1
+            return None
+        return peer, b"".join((head[:2], (8 + len(packet)).to_bytes(2, "big"), head[4:], packet))
+
+    def _head(self, session: Session, qfi: int) -> tuple[str, bytes]:
         if self.uplink_sender:
             teid, peer = session.ul_teid, session.upf_address
         else:
             teid, peer = session.dl_teid, session.gnb_address
-        c.qfi_sent[qfi] += 1
-        c.sent["inner_bytes"] += len(packet)
         # Sequence numbers are not signalled (S flag off): 0, so equal-sized G-PDUs of one
         # run differ only in their inner packet.
-        return peer, encode_gpdu(teid, packet, qfi, uplink=self.uplink_sender)
+        return peer, encode_gpdu(teid, b"", qfi, uplink=self.uplink_sender)
 
     def _send_run(self, run: list[bytes], peer: str, size: int) -> None:
         c = self.counters
@@ -370,8 +407,12 @@ class Endpoint:
 
     def from_n3(self) -> int:
         """Unwrap what N3 delivered (up to a batch of receives; with UDP GRO one receive may
-        hold many datagrams of one size, `gso` says how long each is)."""
+        hold many datagrams of one size, `gso` says how long each is). The inner packets go
+        into the TUN together at the end: with offloads a run of one TCP flow's segments as
+        one super-packet (`netem.gso.coalesce`, as a NIC's GRO would), so the stack behind
+        handles one packet where it would have handled dozens."""
         n = 0
+        inner: list[bytes] = []
         while n < _BATCH:
             try:
                 data, anc, _flags, peer = self.sock.recvmsg(65535, _GRO_CMSG_SPACE)
@@ -383,26 +424,77 @@ class Endpoint:
                 if level == SOL_UDP and kind == UDP_GRO and len(value) >= 2:
                     size = struct.unpack("=H", value[:2])[0] or size
             if size >= len(data):
-                self._untunnel(data, peer)
+                self._untunnel(data, peer, inner)
             else:
-                view = memoryview(data)
-                for off in range(0, len(data), size):
-                    self._untunnel(bytes(view[off : off + size]), peer)
+                self._untunnel_run(data, size, peer, inner)
+        if inner:
+            self._to_tun(inner)
         return n
 
-    def _untunnel(self, datagram: bytes, peer: tuple[str, int]) -> None:
+    def _untunnel_run(
+        self, data: bytes, size: int, peer: tuple[str, int], inner_out: list[bytes]
+    ) -> None:
+        """The datagrams of one UDP GRO receive: `size` bytes each (the last may be
+        shorter), one peer. G-PDUs of one tunnel and flow with no sequence number are alike
+        to the byte in their 16-byte header, so the first one's is checked in full and the
+        others are compared with it (and their inner source with the UE's); any that differs
+        goes through `_untunnel` alone."""
+        head = data[:16]
+        session = self._by_teid.get(head[4:8])
+        if (
+            session is None
+            or head[:2] != _GPDU_FLAGS_TYPE
+            or head[11:13] != _ONE_CONTAINER
+            or head[15] != 0
+            or int.from_bytes(head[2:4], "big") + 8 != size
+            or size < 16 + 20
+        ):
+            for off in range(0, len(data), size):
+                self._untunnel(data[off : off + size], peer, inner_out)
+            return
+        # The UPF lets only the session's own UE send in its tunnel; the gNB checks nothing.
+        ue = session.ue_packed if self._spoof_check else None
+        alike = 0
+        whole = len(data) - len(data) % size
+        for off in range(0, whole, size):
+            if data[off : off + 16] == head and (ue is None or data[off + 28 : off + 32] == ue):
+                inner_out.append(data[off + 16 : off + size])
+                alike += 1
+            else:
+                self._untunnel(data[off : off + size], peer, inner_out)
+        if whole < len(data):
+            self._untunnel(data[whole:], peer, inner_out)
+        c = self.counters
+        c.received["packets"] += alike
+        c.received["inner_bytes"] += alike * (size - 16)
+        c.received["n3_bytes"] += alike * (size + OUTER_IP_UDP)
+
+    def _to_tun(self, packets: list[bytes]) -> None:
+        c = self.counters
+        frames = coalesce(packets) if self.cfg.offload else [(p, 1) for p in packets]
+        for frame, count in frames:
+            try:
+                os.write(self.tun, frame)
+            except OSError:
+                c.drops["tun_write"] += count
+                c.received["packets"] -= count
+        c.received["tun_writes"] += len(frames)
+        merged = [count for _, count in frames if count > 1]
+        if merged:  # how much GRO did: packets handed on inside super-packets, and those
+            c.received["gro_packets"] += sum(merged)
+            c.received["gro_frames"] += len(merged)
+
+    def _untunnel(self, datagram: bytes, peer: tuple[str, int], inner_out: list[bytes]) -> None:
         c = self.counters
         # The G-PDU as this testbed's ends send it (flags 0x34, one PDU Session Container),
         # read in place; anything else through the general decoder.
         if (
-            len(datagram) >= 16
-            and datagram[0] == 0x34
-            and datagram[1] == G_PDU
-            and datagram[11] == 0x85
-            and datagram[12] == 1
+            datagram[:2] == _GPDU_FLAGS_TYPE
+            and datagram[11:13] == _ONE_CONTAINER
+            and len(datagram) >= 16
             and datagram[15] == 0
         ):
-            teid = int.from_bytes(datagram[4:8], "big")
+            teid = datagram[4:8]
             inner = datagram[16 : 8 + int.from_bytes(datagram[2:4], "big")]
         else:
             try:
@@ -422,20 +514,16 @@ class Endpoint:
             if msg.message_type != G_PDU:
                 c.drops[f"message_type_{msg.message_type}"] += 1
                 return
-            teid, inner = msg.teid, msg.payload
+            teid, inner = msg.teid.to_bytes(4, "big"), msg.payload
         session = self._by_teid.get(teid)
         if session is None:
             c.drops["unknown_teid"] += 1
             return
         # Only the session's own UE may send in its tunnel (no spoofed sources onto N6).
-        if self.cfg.role == "upf" and (len(inner) < 20 or inner[12:16] != session.ue_packed):
+        if self._spoof_check and (len(inner) < 20 or inner[12:16] != session.ue_packed):
             c.drops["spoofed_source"] += 1
             return
-        try:
-            os.write(self.tun, inner)
-        except OSError:
-            c.drops["tun_write"] += 1
-            return
+        inner_out.append(inner)
         c.received["packets"] += 1
         c.received["inner_bytes"] += len(inner)
         c.received["n3_bytes"] += len(datagram) + OUTER_IP_UDP
@@ -450,7 +538,9 @@ class Endpoint:
 def open_endpoint(config: EndpointConfig) -> tuple[int, socket.socket]:
     """The TUN device and the N3 socket of `config`, made inside its namespace."""
     with in_netns(config.netns):
-        fd = open_tun(TunConfig(config.tun, mtu=config.tun_mtu, offload=False))
+        # Reads one packet at a time: the kernel segments TCP faster than Python could.
+        tun = TunConfig(config.tun, mtu=config.tun_mtu, offload=config.offload, tso=False)
+        fd = open_tun(tun)
         try:
             sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
             sock.setsockopt(socket.IPPROTO_IP, IP_MTU_DISCOVER, IP_PMTUDISC_DO)

@@ -60,6 +60,11 @@ class TunConfig:
     ipv6: bool = False
     #: Read and write super-packets behind a virtio-net header (see the module docstring).
     offload: bool = True
+    #: With `offload`, whether the device announces TSO/USO (reads may be super-packets).
+    #: False: every read is one packet, segmented and checksummed by the kernel, while
+    #: writes may still be super-packets (an end that must see each packet but may hand
+    #: on coalesced ones).
+    tso: bool = True
 
     def __post_init__(self) -> None:
         if not self.name or len(self.name.encode()) >= IFNAMSIZ or "/" in self.name:
@@ -87,7 +92,7 @@ def open_tun(config: TunConfig) -> int:
         ifr = struct.pack("16sH22x", config.name.encode(), flags)
         fcntl.ioctl(fd, TUNSETIFF, ifr)
         if config.offload:
-            _set_offloads(fd, config.name)
+            _set_offloads(fd, config.name, config.tso)
     except OSError as exc:
         os.close(fd)
         hint = " (a device of that name exists already)" if exc.errno == errno.EBUSY else ""
@@ -102,8 +107,11 @@ def open_tun(config: TunConfig) -> int:
     return fd
 
 
-def _set_offloads(fd: int, name: str) -> None:
+def _set_offloads(fd: int, name: str, tso: bool = True) -> None:
     fcntl.ioctl(fd, TUNSETVNETHDRSZ, struct.pack("i", VNET_LEN))
+    if not tso:
+        fcntl.ioctl(fd, TUNSETOFFLOAD, 0)
+        return
     for offloads in OFFLOADS:
         try:
             fcntl.ioctl(fd, TUNSETOFFLOAD, offloads)

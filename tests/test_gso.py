@@ -32,6 +32,8 @@ from netem.gso import (  # noqa: E402
     VNET_LEN,
     Frame,
     checksum,
+    coalesce,
+    ip_packets,
     split,
 )
 from netem.profile import GilbertElliott, LinkProfile  # noqa: E402
@@ -141,6 +143,76 @@ def test_a_frame_of_one_segment_is_not_copied() -> None:
     small = super_packet(IP() / TCP(), GSO_TCPV4, gso_size=9000)
     assert small.segments == 1 and split(small) == [small]
     assert split(frame)[0] is not frame
+
+
+def test_ip_packets_are_the_segments_without_the_virtio_header() -> None:
+    frame = tcp4()
+    packets = ip_packets(frame.data)
+    assert packets == [f.data[VNET_LEN:] for f in split(frame)]
+    for packet in packets:
+        assert_checksums_valid(IP(packet))
+
+
+def test_ip_packets_finish_a_checksum_the_kernel_left_partial() -> None:
+    # One packet with NEEDS_CSUM, as TUN_F_CSUM hands a small TCP packet: the field holds the
+    # pseudo-header's sum only. scapy must find a correct checksum once it is finished.
+    packet = (
+        IP(src="10.45.0.2", dst="10.100.6.2") / TCP(sport=1, dport=2, flags="PA") / Raw(b"x" * 101)
+    )
+    raw = bytearray(bytes(packet))
+    pseudo = raw[12:20] + bytes([0, 6]) + (len(raw) - 20).to_bytes(2, "big")
+    raw[36:38] = (0xFFFF - checksum(pseudo)).to_bytes(2, "big")
+    header = VNET.pack(VNET_F_NEEDS_CSUM, GSO_NONE, 0, 0, 20, 16)
+    [finished] = ip_packets(header + bytes(raw))
+    assert finished != bytes(raw)
+    assert_checksums_valid(IP(finished))
+    assert IP(finished)[TCP].chksum == IP(bytes(packet))[TCP].chksum
+
+
+def test_coalesced_segments_split_back_into_the_same_packets() -> None:
+    frame = tcp4()
+    segments = ip_packets(frame.data)
+    [(merged, count)] = coalesce(segments)
+    assert count == len(segments) == 4
+    again = Frame(merged)
+    assert again.segments == 4 and len(again) == len(frame)
+    assert [f.data[VNET_LEN:] for f in split(again)] == segments
+    flags, gso_type, hdr_len, gso_size, start, offset = VNET.unpack_from(merged)
+    assert (flags, gso_type, hdr_len, gso_size, start, offset) == (
+        VNET_F_NEEDS_CSUM, GSO_TCPV4, 40, 1448, 20, 16,
+    )  # fmt: skip
+    head = IP(merged[VNET_LEN:])
+    assert head.len == 20 + 20 + len(PAYLOAD) and bytes(head[TCP].payload) == PAYLOAD
+    assert head[TCP].flags == "PA"
+
+
+def test_only_a_clean_run_of_one_flow_is_coalesced() -> None:
+    segments = ip_packets(tcp4().data)
+    other_flow = ip_packets(
+        super_packet(
+            IP(src="10.9.0.1", dst="10.9.0.3", flags="DF") / TCP(sport=1, dport=2, flags="A"),
+            GSO_TCPV4,
+        ).data
+    )
+    udp = bytes(IP(src="10.9.0.1", dst="10.9.0.2") / UDP(sport=5, dport=6) / Raw(b"u" * 30))
+    syn = bytes(IP(src="10.9.0.1", dst="10.9.0.2") / TCP(flags="S"))
+    counts = [n for _, n in coalesce([*segments[:2], udp, *segments[2:], syn, *other_flow])]
+    assert counts == [2, 1, 2, 1, 4]
+    # A gap in the sequence, or a short segment in the middle, ends a run.
+    assert [n for _, n in coalesce([segments[0], segments[2], segments[3]])] == [1, 2]
+
+    def seg(seq: int, size: int) -> bytes:
+        return bytes(
+            IP(src="10.9.0.1", dst="10.9.0.2", flags="DF")
+            / TCP(sport=7, dport=8, seq=seq, ack=1, flags="A")
+            / Raw(b"s" * size)
+        )
+
+    assert [n for _, n in coalesce([seg(0, 1448), seg(1448, 100), seg(1548, 1448)])] == [2, 1]
+    # Every packet that passes alone passes as it came, behind a plain header.
+    alone = coalesce([udp, syn])
+    assert alone == [(VNET.pack(0, GSO_NONE, 0, 0, 0, 0) + udp, 1),
+                     (VNET.pack(0, GSO_NONE, 0, 0, 0, 0) + syn, 1)]  # fmt: skip
 
 
 @given(st.binary(min_size=0, max_size=300))

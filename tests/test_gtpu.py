@@ -16,6 +16,7 @@ import pytest
 
 from netem import gtpu
 from netem.gso import checksum
+from netem.gtp import Endpoint, EndpointConfig, QosRule, Session
 from netem.gtpu import GtpError, decode, echo_request, echo_response, encode_gpdu
 from netem.pcap import PcapngWriter
 from tests.tshark import TSHARK
@@ -210,3 +211,39 @@ def test_endpoint_config_survives_its_json() -> None:
         (QosRule(5, ports=(7400, 7401)), QosRule(7, dscp=46)), default_qfi=9,
     )  # fmt: skip
     assert EndpointConfig.from_json(cfg.to_json()) == cfg
+
+
+def _ends() -> tuple[Endpoint, Endpoint]:
+    session = Session("10.45.0.2", 0x1001, 0x2001, "10.100.3.1", "10.100.3.2")
+    rules = (QosRule(5, ports=(7400,)),)
+    gnb = EndpointConfig("gnb", "ns", "gtp0", "10.100.3.1", (session,), rules, default_qfi=9)
+    upf = EndpointConfig("upf", "ns", "upf0", "10.100.3.2", (session,), rules, default_qfi=9)
+    # No TUN or socket: these tests call the per-packet parts of the data plane directly.
+    return Endpoint(gnb, -1, None), Endpoint(upf, -1, None)  # type: ignore[arg-type]
+
+
+@pytest.mark.parametrize("size", [0, 1, 100, 1428])
+def test_an_ends_g_pdu_is_encode_gpdus_for_its_session_and_flow(size: int) -> None:
+    gnb, upf = _ends()
+    up = ipv4_udp("10.45.0.2", "10.100.6.2", 40000, 7400, bytes(size))
+    down = ipv4_udp("10.100.6.2", "10.45.0.2", 5000, 6000, bytes(size))
+    assert gnb._encapsulate(up) == ("10.100.3.2", encode_gpdu(0x1001, up, 5, uplink=True))
+    assert upf._encapsulate(down) == ("10.100.3.1", encode_gpdu(0x2001, down, 9, uplink=False))
+
+
+def test_a_gro_receive_is_unwrapped_packet_by_packet_and_a_spoofed_one_dropped() -> None:
+    _, upf = _ends()
+    packets = [ipv4_udp("10.45.0.2", "10.100.6.2", 40000, 7400, bytes([i]) * 500) for i in range(5)]
+    packets[2] = ipv4_udp("10.45.0.3", "10.100.6.2", 40000, 7400, bytes(500))  # not this UE's
+    last = ipv4_udp("10.45.0.2", "10.100.6.2", 40000, 7400, b"end")
+    datagrams = [encode_gpdu(0x1001, p, 5, uplink=True) for p in (*packets, last)]
+    inner: list[bytes] = []
+    upf._untunnel_run(b"".join(datagrams), len(datagrams[0]), ("10.100.3.1", 2152), inner)
+    assert inner == [packets[0], packets[1], packets[3], packets[4], last]
+    got = upf.counters.to_dict()
+    assert got["received"]["packets"] == 5 and got["drops"] == {"spoofed_source": 1}
+    assert got["received"]["inner_bytes"] == sum(map(len, inner))
+    # A run whose first G-PDU is not of the tunnel's form goes one by one, and still unwraps.
+    inner.clear()
+    upf._untunnel_run(b"".join(datagrams[3:5]), len(datagrams[3]) - 1, ("x", 1), inner)
+    assert upf.counters.drops["malformed"] >= 1
