@@ -776,11 +776,16 @@ def _captures(sec: Section, folder: Path) -> None:
     )
 
 
-def _paths(folder: Path, per_vehicle: dict[str, Any] | None = None) -> Section | None:
+def _paths(
+    folder: Path,
+    per_vehicle: dict[str, Any] | None = None,
+    linktest: dict[str, Any] | None = None,
+) -> Section | None:
     """Each vehicle's path to its edge (run.json `paths`): addresses, the N3 tunnel, the edge's
-    placement and each hop's delay, and what the path gave (the summary's `per_vehicle`): its
-    requests' median latency and EdgeLoc's mean error, so placements compare side by side;
-    with a UPF, what GTP-U added on N3."""
+    placement and each hop's delay, configured and, where the link self-test ran, measured
+    (its one-way median per direction, `_measured_hops`), and what the path gave (the
+    summary's `per_vehicle`): its requests' median latency and EdgeLoc's mean error, so
+    placements compare side by side; with a UPF, what GTP-U added on N3."""
     try:
         run = json.loads((folder / "run.json").read_text())
     except (OSError, ValueError):
@@ -789,12 +794,14 @@ def _paths(folder: Path, per_vehicle: dict[str, Any] | None = None) -> Section |
     if not paths:
         return None
     sec = Section("Path to the edge")
+    measured = _measured_hops(linktest)
     rows = []
     for p in paths:
         tunnel = p.get("tunnel") or {}
         hops = " + ".join(
             f"{h['link']} ({h['kind']}, {_f(h.get('uplink_delay_ms'), '{:g}')}/"
-            f"{_f(h.get('downlink_delay_ms'), '{:g}')} ms)"
+            f"{_f(h.get('downlink_delay_ms'), '{:g}')} ms"
+            + (f"; measured {measured[h['link']]})" if h["link"] in measured else ")")
             for h in p.get("hops", [])
         )
         rows.append(
@@ -818,7 +825,7 @@ def _paths(folder: Path, per_vehicle: dict[str, Any] | None = None) -> Section |
                 "UPF",
                 "N3 TEIDs",
                 "edge (placement)",
-                "hops (up/down delay)",
+                "hops (up/down delay" + (", measured by the link self-test)" if measured else ")"),
                 "answers / requests",
                 "median latency ms",
                 "EdgeLoc mean error m",
@@ -841,6 +848,23 @@ def _paths(folder: Path, per_vehicle: dict[str, Any] | None = None) -> Section |
         if core.get("qos_flows"):
             sec.add(Para(f"QoS flows: {core['qos_flows']}. {_qfi_counts(core)}"))
     return sec
+
+
+def _measured_hops(linktest: dict[str, Any] | None) -> dict[str, str]:
+    """Link -> "uplink/downlink" one-way delay medians (ms) that the link self-test measured
+    before the nodes started, each net of the same path's delay with the link neutral
+    (`owd_median_ms` - `baseline_ms`), so they read against the configured delays."""
+    out: dict[str, str] = {}
+    for link in (linktest or {}).get("links") or []:
+        net = {}
+        for d in link.get("directions") or []:
+            owd, base = d.get("owd_median_ms"), d.get("baseline_ms")
+            net[d.get("direction")] = None if owd is None else owd - (base or 0.0)
+        if any(v is not None for v in net.values()):
+            out[link["link"]] = (
+                f"{_f(net.get('uplink'), '{:.2f}')}/{_f(net.get('downlink'), '{:.2f}')}"
+            )
+    return out
 
 
 def _path_outcome(pv: dict[str, Any]) -> list[str]:
@@ -878,7 +902,7 @@ def document(
     sections += [_trajectories(data, plots, tum), _learner(data, s, plots), _splits(s, plots)]
     sections += [_latency(s, plots)]
     sections += [_acc_lat(s, plots), _realtime(s, plots), _gaps(s), _links(s, plots)]
-    sections += [_paths(data.path.parent, s.get("per_vehicle"))]
+    sections += [_paths(data.path.parent, s.get("per_vehicle"), s["links"].get("linktest"))]
     sections += [_nodes(s), _recording(data, s)]
     return Document(title, s["headline"], [x for x in sections if x is not None])
 

@@ -785,6 +785,18 @@ def test_the_path_section_shows_each_vehicles_tunnel_edge_and_hops(tmp_path: Pat
     assert row[6] == "av1-gnb1 (air, 8/8 ms) + gnb1-upf1 (n3, 1/1 ms) + upf1-edge1 (n6, 5/5 ms)"
     para, qos = [b for b in sec.blocks if isinstance(b, Para)]
     assert "44 bytes per packet" in para.text and "(10.0%)" in para.text
+    # With the link self-test's one-way medians, each tested hop shows them net of its path.
+    linktest = {"links": [{"link": "gnb1-upf1", "directions": [
+        {"direction": "uplink", "owd_median_ms": 1.154, "baseline_ms": 0.084},
+        {"direction": "downlink", "owd_median_ms": 1.212, "baseline_ms": 0.1}]}]}  # fmt: skip
+    measured = _paths(tmp_path, per_vehicle, linktest)
+    assert measured is not None
+    (table,) = [b for b in measured.blocks if isinstance(b, Table)]
+    assert table.rows[0][6] == (
+        "av1-gnb1 (air, 8/8 ms) + gnb1-upf1 (n3, 1/1 ms; measured 1.07/1.11) + "
+        "upf1-edge1 (n6, 5/5 ms)"
+    )
+    assert table.headers[6] == "hops (up/down delay, measured by the link self-test)"
     assert qos.text == (
         "QoS flows: QFI 2 for DDS discovery; QFI 1 for the rest. G-PDUs sent: uplink QFI 1: "
         "900, QFI 2: 40; downlink QFI 1: 800, QFI 2: 38."
