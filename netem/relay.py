@@ -62,7 +62,7 @@ from typing import Any
 
 from netem.cell import SCHEDULERS, Cell, CellError
 from netem.errors import NetemError
-from netem.gso import VNET_LEN, Frame
+from netem.gso import VNET_LEN, Frame, ip_packets
 from netem.pcap import PcapngWriter
 from netem.proc import PR_SET_TIMERSLACK, die_with_parent, prctl, renice
 from netem.profile import PROFILE_FIELDS, LinkProfile, check_profile
@@ -607,7 +607,11 @@ class Relay:
                     self.stats["write_errors"] += 1
                     continue
                 if capture is not None:
-                    capture.write(direction, data[VNET_LEN:] if offload else data)
+                    # The packets as a wire carries them: a super-packet (a TCP or a UDP-GSO
+                    # run, such as a GTP-U end's G-PDUs) is written segment by segment, so
+                    # every frame in the file is one packet, one G-PDU on N3.
+                    for wire in ip_packets(data) if offload else (data,):
+                        capture.write(direction, wire)
 
     def _deadlines(self) -> tuple[float | None, float | None]:
         """(earliest hand-off or exit, earliest exit) over both directions."""

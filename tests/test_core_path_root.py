@@ -312,6 +312,12 @@ def test_edgeloc_runs_over_gtp_u_with_discovery_and_data_in_their_qos_flows(
         "frame.protocols",
     )  # fmt: skip
     assert rows and all(r[0] for r in rows)  # every datagram on 2152 is GTP-U
+    # One packet per frame, as on a wire: the gNB's UDP-GSO runs were written segment by
+    # segment, so no frame is larger than N3's MTU and each holds one G-PDU.
+    sizes = [
+        int(r[0]) for r in tshark_fields(folder / "pcap" / "gnb1-upf1.pcapng", "frame", "frame.len")
+    ]
+    assert sizes and max(sizes) <= 1500, max(sizes)
     base = RTPS_PB + RTPS_DG * run["nodes"]["ros_domain_id"]
     flows: dict[str, set[str]] = {"discovery": set(), "data": set()}
     for _, qfi, ports, protocols in (r for r in rows if r[0] == "0xff"):
