@@ -335,6 +335,12 @@ class Endpoint:
                 if len(datagram) < run_size:  # a shorter one may only end a GSO run
                     self._send_run(run, run_peer, run_size)
                     run = []
+            if n == 1 and run:
+                # What the first read gave leaves before the next read is tried: a lone
+                # packet (a ping, a DDS heartbeat) does not wait for the read that finds
+                # the TUN empty; a burst goes on in GSO runs.
+                self._send_run(run, run_peer, run_size)
+                run = []
         if run:
             self._send_run(run, run_peer, run_size)
         return n
@@ -427,6 +433,9 @@ class Endpoint:
                 self._untunnel(data, peer, inner)
             else:
                 self._untunnel_run(data, size, peer, inner)
+            if n == 1 and inner:  # as in `from_tun`: the first receive goes on at once
+                self._to_tun(inner)
+                inner = []
         if inner:
             self._to_tun(inner)
         return n
