@@ -189,7 +189,7 @@ class Capture:
     """A pcapng file of what one link delivers, per direction (one interface each), written as
     packets leave the link: after every impairment, so dropped packets are not in it; their
     number goes into the file's interface statistics when it is closed. With TUN offloads a
-    TCP super-packet is captured whole, as tcpdump shows one on a NIC with TSO."""
+    super-packet is written as the wire packets it stands for (`Relay._deliver`)."""
 
     def __init__(self, path: str, port: Port, label: str | None = None) -> None:
         self.path = path

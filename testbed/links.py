@@ -37,6 +37,7 @@ from typing import Any, Literal, Protocol
 
 from netem.profile import HTB_MIN_RATE_BPS, LinkProfile
 from netem.shaping import NodeShaper, check_caps
+from netem.sniff import LinkSniffer, SniffConfig, SniffError
 from netem.tc import TcLinkBackend, shaping_end
 from netem.tc_plan import needs_netem
 from netem.traces import Trace, load_trace
@@ -623,6 +624,7 @@ class TcController(_Base):
             sends: Direction = "downlink" if end == "upper" else "uplink"
             self.shapers[link.name] = TcLinkBackend(node.netns, ifname, sends, dry_run=dry_run)
         self._outage_until: dict[str, float] = {}
+        self._sniffers: dict[str, LinkSniffer] = {}  # link -> its capture (`capture`)
 
     def apply(self) -> None:
         for name, shaper in self.shapers.items():
@@ -651,15 +653,26 @@ class TcController(_Base):
         return None
 
     def capture(self, link: str, path: Path) -> None:
-        self._link(link)
-        raise BadInput(
-            f"record.pcap: link {link} runs on the tc backend, whose packets no relay sees; "
-            "captures need the userspace backend for now (links.backend: userspace)"
-        )
+        # No relay sees these packets: a capture process listens on both ends' interfaces
+        # for what arrives there, after the far end's qdiscs (`netem.sniff`).
+        ln = self._link(link)
+        if link in self._sniffers:
+            raise BadInput(f"record.pcap: link {link} is captured already")
+        config = SniffConfig(
+            link, str(path), ln.lower.netns, ln.ends.lower_ifname,
+            ln.upper.netns, ln.ends.upper_ifname,
+        )  # fmt: skip
+        try:
+            sniffer = LinkSniffer(config).start()
+        except SniffError as err:
+            raise HostError(f"record.pcap: {err}") from None
+        self.net.record_pid(sniffer.pid or 0, f"capture {link}")
+        self._sniffers[link] = sniffer
 
     def stop_capture(self, link: str) -> dict[str, Any]:
         self._link(link)
-        return {}
+        sniffer = self._sniffers.pop(link, None)
+        return {} if sniffer is None else sniffer.close()
 
     def realisation(self, link: str) -> dict[str, Any]:
         self._link(link)
@@ -712,6 +725,8 @@ class TcController(_Base):
 
     def close(self) -> None:
         super().close()
+        for link in list(self._sniffers):  # a capture never outlives its run
+            self.stop_capture(link)
         for shaper in self.shapers.values():
             shaper.close()
 

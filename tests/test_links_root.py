@@ -187,6 +187,34 @@ def test_tc_backend_shapes_rates_with_htb_at_the_gnb(state_dir: Path, tmp_path: 
         assert _rtt_ms(net) < 5
 
 
+def test_tc_backend_captures_a_link_with_its_packets_after_the_shaper(
+    state_dir: Path, tmp_path: Path
+) -> None:
+    from tests.tshark import TSHARK
+    from tests.tshark import fields as tshark_fields
+
+    if TSHARK is None:
+        pytest.skip("tshark is not installed (`sudo make test`)")
+    scenario = load(_scenario(tmp_path, "tc", "{rate: 20mbit}"))
+    path = tmp_path / "pcap" / "av1-gnb1.pcapng"
+    with build(scenario, mode="run") as net:
+        assert isinstance(net.control, links.TcController)
+        net.control.capture("av1-gnb1", path)
+        state = st.load_run(net.run_id)
+        assert state is not None
+        (ref,) = [p for p in state.pids if p.what == "capture av1-gnb1"]
+        assert _rtt_ms(net, count=9) < 5  # 9 datagrams up (av1 -> gnb1), 9 answers down
+        info = net.control.stop_capture("av1-gnb1")
+        assert not Path(f"/proc/{ref.pid}").exists()
+        net.control.capture("av1-gnb1", tmp_path / "second.pcapng")  # closed with the run
+    assert info["packets"] == {"uplink": 9, "downlink": 9} and info["dropped"] is None
+    rows = tshark_fields(path, "udp", "frame.interface_name", "ip.src", "udp.length")
+    av1, gnb1 = str(net["av1"].address_towards("gnb1")), str(net["gnb1"].address_towards("av1"))
+    assert [tuple(r) for r in rows] == [("av1-gnb1 uplink", av1, "9"),
+                                        ("av1-gnb1 downlink", gnb1, "9")] * 9  # fmt: skip
+    assert (tmp_path / "second.pcapng").is_file()  # finished when the run was torn down
+
+
 @pytest.mark.skipif(NETEM_OK, reason="this kernel has sch_netem: tc takes delay here")
 def test_tc_with_delay_on_a_kernel_without_netem_is_a_host_error(
     state_dir: Path, tmp_path: Path
