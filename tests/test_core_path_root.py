@@ -328,3 +328,55 @@ def test_edgeloc_runs_over_gtp_u_with_discovery_and_data_in_their_qos_flows(
         kind = "discovery" if inner % 2 == RTPS_OFFSETS["discovery"][0] % 2 else "data"
         flows[kind].add(qfi)
     assert flows == {"discovery": {"2"}, "data": {"1"}}, flows
+
+
+TC_SCENARIO = """
+version: 1
+name: core5g-tc
+duration: 20s
+topology:
+  cells:
+    - {gnb: gnb1, upf: upf1, edge: edge1}
+  vehicles:
+    - {name: av1, gnb: gnb1}
+links:
+  backend: tc
+  air: {uplink: {rate: 50mbit}, downlink: {rate: 100mbit}}
+  n3: {uplink: {rate: 1gbit}, downlink: {rate: 1gbit}}
+"""
+
+
+def test_the_core_path_on_the_tc_backend_and_its_n3_capture(
+    state_dir: Path, tmp_path: Path
+) -> None:
+    # Rates only (HTB), so it runs on a kernel without sch_netem too: the GTP-U ends do not
+    # care which backend carries N3, and the capture is netem.sniff's, not a relay's.
+    (tmp_path / "tc.yaml").write_text(TC_SCENARIO)
+    scenario = load(tmp_path / "tc.yaml")
+    path = tmp_path / "pcap" / "gnb1-upf1.pcapng"
+    with build(scenario, mode="run") as net:
+        assert net.link_backend is not None and net.link_backend.name == "tc"
+        assert net.control is not None
+        net.control.capture("gnb1-upf1", path)
+        edge = str(net.server_address(scenario.topology.cells[0]))
+        rtts = echo_rtts(net["av1"], net["edge1"], edge, count=20)
+        received = _send_mib(net["av1"], net["edge1"], edge)
+        info = net.control.stop_capture("gnb1-upf1")
+        stats = net.core.stats()
+    assert len(rtts) == 20 and received == 1 << 20
+    gnb = stats["gnb1"]
+    assert not gnb.get("drops"), gnb
+    rows = tshark_fields(
+        path, "udp.port == 2152", "gtp.message", "gtp.teid", "gtp.ext_hdr.pdu_ses_con.pdu_type",
+        "ip.src", "frame.len", "frame.interface_name",
+    )  # fmt: skip
+    gpdus = [r for r in rows if r[0] == "0xff"]
+    assert rows and all(r[0] for r in rows)  # every datagram on 2152 dissects as GTP-U
+    up = [r for r in gpdus if r[5] == "gnb1-upf1 uplink"]
+    down = [r for r in gpdus if r[5] == "gnb1-upf1 downlink"]
+    assert len(up) >= 700 and len(down) >= 20, (len(up), len(down))
+    assert {(r[1], r[2]) for r in up} == {("0x00001001", "1")}
+    assert {(r[1], r[2]) for r in down} == {("0x00002001", "0")}
+    assert {r[3].split(",")[1] for r in up} == {"10.45.0.2"}  # the inner source: the UE's
+    assert max(int(r[4]) for r in rows) <= 1500  # one G-PDU per frame, none over N3's MTU
+    assert info["packets"]["uplink"] >= len(up)
