@@ -6,7 +6,9 @@ order, whichever of them the relay happens to advance. In each occasion the cell
 
 1. lets every UE send the scheduling request that falls before it, and takes what each has
    reserved for HARQ retransmissions off the top (a retransmission goes first, as a gNB
-   schedules it);
+   schedules it). A UE reserves a retransmission only where the cell has that share of the
+   occasion's PRBs free after every UE's reservations (`free_share`), else in a later
+   occasion, so the retransmissions of several UEs never overbook an occasion;
 2. asks each UE what it would send (its demand: what arrived in time and, with a scheduling
    request, what it was granted);
 3. splits the rest of the occasion's PRBs among the UEs that have data, by `scheduler`:
@@ -45,6 +47,8 @@ class Cell:
         self.scheduler = scheduler
         self.members: list[Slots] = []
         self._average: dict[int, float] = {}  # PF: bytes per occasion each UE has been getting
+        #: Occasions whose retransmissions wanted more than all of their PRBs (stays 0).
+        self.overbooked = 0
 
     def join(self, stage: Slots) -> None:
         """Attach a UE's stage; from now on the cell decides what it sends."""
@@ -99,7 +103,7 @@ class Cell:
     def _serve(self, start: float, end: float) -> None:
         key = _ns(start)
         taken = 0.0  # the share of the PRBs retransmissions use
-        wants: list[tuple[Slots, int, float]] = []  # (UE, full block, share it would fill)
+        served: list[tuple[Slots, tuple[int, int], int]] = []  # UEs whose occasion this is
         for m in self.members:
             if not m.occasions:
                 continue
@@ -113,12 +117,17 @@ class Cell:
                 taken += reserved / capacity
             if here:
                 assert cursor is not None
-                m._cursor = m._step(cursor)
-                demand = m._demand(start)
-                if demand > 0 and capacity:
-                    wants.append((m, capacity, demand / capacity))
-                else:
-                    m._serve(start, end, 0)
+                served.append((m, cursor, capacity))
+        if taken > 1.0 + 1e-9:
+            self.overbooked += 1
+        wants: list[tuple[Slots, int, float]] = []  # (UE, full block, share it would fill)
+        for m, cursor, capacity in served:
+            m._cursor = m._step(cursor)
+            demand = m._demand(start)
+            if demand > 0 and capacity:
+                wants.append((m, capacity, demand / capacity))
+            else:
+                m._serve(start, end, 0)
         free = max(0.0, 1.0 - taken)
         shares = self._split(wants, free)
         for (m, capacity, _), share in zip(wants, shares, strict=True):
@@ -132,6 +141,18 @@ class Cell:
                 average = self._average.get(id(m), 1.0)
                 got = served.get(id(m), 0.0)
                 self._average[id(m)] = average + (got - average) / PF_WINDOW
+
+    def free_share(self, start: float) -> float:
+        """The share of the PRBs of the occasion at `start` that no UE's retransmission has
+        reserved yet."""
+        key = _ns(start)
+        taken = 0.0
+        for m in self.members:
+            reserved = m._reserved.get(key, 0)
+            if reserved:
+                capacity = _capacity_at(m, start)
+                taken += reserved / capacity if capacity else 0.0
+        return max(0.0, 1.0 - taken)
 
     def _split(self, wants: list[tuple[Slots, int, float]], free: float) -> list[float]:
         """The share of the occasion each UE that wants some gets."""

@@ -74,6 +74,8 @@ class SharedSlots(Protocol):
 
     def next_end(self) -> float | None: ...
 
+    def free_share(self, start: float) -> float: ...
+
 
 def jitter_sd(profile: LinkProfile) -> float:
     """Standard deviation of the per-packet delay that `profile`'s jitter gives.
@@ -966,7 +968,12 @@ class Slots(Stage):
         self._reports.append((ok_at + self.grant_delay_s, upto))
 
     def _free(self, cursor: tuple[int, int]) -> int:
+        """Bytes of this UE's block in the occasion at `cursor` that no retransmission has
+        reserved: in a shared cell, what the cell's PRBs left free by every UE's reservations
+        give this UE (`Cell.free_share`), so two UEs' retransmissions never overbook it."""
         start, _, capacity = self._occasion(cursor)
+        if self.cell is not None:
+            return int(self.cell.free_share(start) * capacity + 1e-9)
         return capacity - self._reserved.get(_ns(start), 0)
 
     def _deliver_block(self, end: float, size: int) -> float | None:

@@ -100,3 +100,16 @@ def test_a_ue_of_another_tdd_period_cannot_join() -> None:
         ue(Radio(slots="DDSU", special=(10, 4, 0), sr_period_slots=4, sr_offset=3), cell, 2)
     with pytest.raises(CellError, match="scheduler must be one of rr, pf"):
         Cell("fifo")
+
+
+def test_two_ues_retransmissions_never_overbook_an_occasion() -> None:
+    # Both UEs saturate the cell and lose 30% of their blocks: each retransmission must find
+    # a share of an occasion that the other UE's retransmissions left free, so no occasion's
+    # reservations add up to more than its PRBs (before each UE looked at its own only: 24
+    # such occasions in this drive).
+    radio = Radio(ul_access="ideal", bler=0.3, max_retx=4)
+    cell = Cell("rr")
+    a, b = ue(radio, cell, 1), ue(radio, cell, 2)
+    out = drive([a, b], [saturating(3000), saturating(3000)], until=1.0)
+    assert out and cell.overbooked == 0
+    assert sum(a.retransmissions[1:]) > 100 and sum(b.retransmissions[1:]) > 100
