@@ -943,17 +943,31 @@ class Slots(Stage):
         bisect.insort(self._recovering, (at, packet), key=lambda e: e[0])
 
     def _readmit(self, now: float) -> None:
-        """Put what RLC sends again back into the buffer once its status report came."""
+        """Put what RLC sends again back into the buffer once its status report came: next
+        after the packet on the air, ahead of new data, as RLC-AM's retransmissions go first
+        (TS 38.322 §5.2.3.1.1; MAC serves them before new data). At the back of a long
+        buffer it would hold up every packet behind it in PDCP's order until the buffer had
+        drained (a saturated UE at BLER 30% stopped delivering for good)."""
         while self._recovering and self._recovering[0][0] <= now:
             at, packet = self._recovering.pop(0)
-            if self._queue:
-                at = max(at, self._queue[-1][0])  # (the buffer stays in arrival order)
-            else:
-                self._head_left = len(packet)
-                self._cursor = self._first_at_or_after(at + self._lead())
+            size = len(packet)
             self._queued_packets += wire_packets(packet)
-            self._arrived += len(packet)
-            self._queue.append((at, packet, self._arrived))
+            self._arrived += size
+            q = self._queue
+            if not q:
+                self._head_left = size
+                self._cursor = self._first_at_or_after(at + self._lead())
+                q.append((at, packet, self._arrived))
+                continue
+            # Behind the head, as if it had been there as early as the head: its bytes count
+            # as buffered for every occasion from now on (the earlier ones are past), and
+            # every later entry has entered the buffer `size` bytes later than it had.
+            head = q.popleft()
+            rest = [(t, p, cumulative + size) for t, p, cumulative in q]
+            q.clear()
+            q.append(head)
+            q.append((head[0], packet, head[2] + size))
+            q.extend(rest)
 
     def _report(self, start: float, end: float, ok_at: float | None) -> None:
         """The BSR of the PUSCH at `start`: what had arrived by then, decoded at `ok_at`."""
