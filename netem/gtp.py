@@ -63,7 +63,7 @@ from netem.gtpu import (
     encode_gpdu,
 )
 from netem.netns import in_netns
-from netem.proc import die_with_parent, renice
+from netem.proc import die_with_parent, remove_dir, renice, spawn_ready, stop
 from netem.tun import TunConfig, open_tun
 
 Role = Literal["gnb", "upf"]
@@ -657,29 +657,10 @@ class GtpEndpoint:
         if self.nice and os.geteuid() == 0:
             # Like the relays: on a busy 2-core host an endpoint waiting for a CPU adds delay.
             cmd += ["--nice", str(self.nice)]
-        # Errors go to a file: a pipe nobody reads once a detached `testbed up` has exited
-        # would fail the process's next write.
-        log = open(Path(self._dir) / "gtp.log", "w")  # noqa: SIM115 - the child holds it
-        with log:
-            self.proc = subprocess.Popen(
-                cmd, stdout=subprocess.PIPE, stderr=log, text=True,
-                cwd=Path(__file__).resolve().parents[1],
-            )  # fmt: skip
-        assert self.proc.stdout is not None
-        sel = selectors.DefaultSelector()
-        sel.register(self.proc.stdout, selectors.EVENT_READ)
-        if not sel.select(timeout_s):
+        self.proc, why = spawn_ready(cmd, Path(self._dir) / "gtp.log", timeout_s)
+        if self.proc is None:
             self.close()
-            raise GtpEndpointError(f"GTP-U {self.config.role} did not start within {timeout_s} s")
-        line = self.proc.stdout.readline()
-        if not line.startswith('{"event": "ready"'):
-            with contextlib.suppress(subprocess.TimeoutExpired):
-                self.proc.wait(2)
-            err = (Path(self._dir) / "gtp.log").read_text(errors="replace")
-            self.close()
-            raise GtpEndpointError(
-                f"GTP-U {self.config.role} failed to start: {err.strip() or line}"
-            )
+            raise GtpEndpointError(f"GTP-U {self.config.role} failed to start: {why}")
         return self
 
     @property
@@ -694,24 +675,11 @@ class GtpEndpoint:
 
     def close(self, timeout_s: float = 3.0) -> dict[str, Any]:
         """Stop the process; returns its last counters."""
-        if self.proc is not None and self.proc.poll() is None:
-            self.proc.terminate()
-            try:
-                self.proc.wait(timeout_s)
-            except subprocess.TimeoutExpired:
-                self.proc.kill()
-                self.proc.wait()
-        stats = self.stats()
-        if self.proc is not None:
-            for stream in (self.proc.stdout, self.proc.stderr):
-                if stream:
-                    stream.close()
+        stop(self.proc, timeout_s)
         self.proc = None
+        stats = self.stats()
         if self._own_dir:
-            with contextlib.suppress(OSError):
-                for p in Path(self._dir).iterdir():
-                    p.unlink()
-                os.rmdir(self._dir)
+            remove_dir(self._dir)
         return stats
 
     def __enter__(self) -> GtpEndpoint:

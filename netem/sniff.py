@@ -40,7 +40,7 @@ from netem.errors import NetemError
 from netem.gso import VNET, VNET_LEN, ip_packets
 from netem.netns import in_netns
 from netem.pcap import PcapngWriter
-from netem.proc import die_with_parent
+from netem.proc import die_with_parent, remove_dir, spawn_ready, stop
 
 ETH_P_ALL, ETH_P_IP, ETH_P_IPV6 = 0x0003, 0x0800, 0x86DD
 SOL_PACKET, PACKET_VNET_HDR, PACKET_STATISTICS = 263, 15, 6
@@ -244,48 +244,22 @@ class LinkSniffer:
     def start(self, timeout_s: float = 10.0) -> LinkSniffer:
         cfg = Path(self._dir) / "config.json"
         cfg.write_text(self.config.to_json())
-        log = open(Path(self._dir) / "sniff.log", "w")  # noqa: SIM115 - the child holds it
-        with log:
-            self.proc = subprocess.Popen(
-                [sys.executable, "-m", "netem.sniff", str(cfg), "--die-with-parent",
-                 "--link", self.config.link],
-                stdout=subprocess.PIPE, stderr=log, text=True,
-                cwd=Path(__file__).resolve().parents[1],
-            )  # fmt: skip
-        assert self.proc.stdout is not None
-        sel = selectors.DefaultSelector()
-        sel.register(self.proc.stdout, selectors.EVENT_READ)
-        line = self.proc.stdout.readline() if sel.select(timeout_s) else ""
-        sel.close()
-        if not line.startswith('{"event": "ready"'):
-            with contextlib.suppress(subprocess.TimeoutExpired):
-                self.proc.wait(2)
-            err = (Path(self._dir) / "sniff.log").read_text(errors="replace").strip()
+        cmd = [sys.executable, "-m", "netem.sniff", str(cfg), "--die-with-parent",
+               "--link", self.config.link]  # fmt: skip
+        self.proc, why = spawn_ready(cmd, Path(self._dir) / "sniff.log", timeout_s)
+        if self.proc is None:
             self.close()
-            raise SniffError(
-                f"capture of {self.config.link} did not start: {err or 'no ready line'}"
-            )
+            raise SniffError(f"capture of {self.config.link} did not start: {why}")
         return self
 
     def close(self, timeout_s: float = 5.0) -> dict[str, Any]:
         """Stop the process (it finishes the file); returns {path, packets, dropped, ...}."""
-        if self.proc is not None and self.proc.poll() is None:
-            self.proc.terminate()
-            try:
-                self.proc.wait(timeout_s)
-            except subprocess.TimeoutExpired:
-                self.proc.kill()
-                self.proc.wait()
+        stop(self.proc, timeout_s)
+        self.proc = None
         result: dict[str, Any] = {}
         with contextlib.suppress(OSError, ValueError):
             result = json.loads(Path(self.config.stats_path or "").read_text())
-        if self.proc is not None and self.proc.stdout is not None:
-            self.proc.stdout.close()
-        self.proc = None
-        with contextlib.suppress(OSError):
-            for p in Path(self._dir).iterdir():
-                p.unlink()
-            os.rmdir(self._dir)
+        remove_dir(self._dir)
         return result
 
     def __enter__(self) -> LinkSniffer:
