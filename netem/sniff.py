@@ -110,6 +110,7 @@ class Sniffer:
         }
         self.packets = {"uplink": 0, "downlink": 0}
         self._held: list[tuple[int, str, bytes]] = []  # (arrival ns, direction, data)
+        self.unstamped = 0  # reads the kernel gave no arrival time (stamped when read)
 
     def read(self, *ends: str, flush: bool = False) -> None:
         """Take what the sockets of `ends` hold now, and write, in arrival order, what
@@ -150,6 +151,8 @@ class Sniffer:
                     stamp = sec * 1_000_000_000 + nsec
             if address[3] == ARPHRD_ETHER:
                 data = _without_ethernet(data)
+            if stamp is None:
+                self.unstamped += 1
             out.append((_now_ns() if stamp is None else stamp, direction, data))
 
     def capture_drops(self) -> int:
@@ -175,6 +178,7 @@ class Sniffer:
             "packets": dict(self.packets),
             "dropped": None,  # the link's drops are netem's (see the module doc)
             "capture_missed": missed,
+            "unstamped": self.unstamped,
         }
 
 
