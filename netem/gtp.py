@@ -43,7 +43,6 @@ import sys
 import tempfile
 import time
 from collections import Counter
-from collections.abc import Iterable
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any, Literal
@@ -79,7 +78,6 @@ _GRO_CMSG_SPACE = socket.CMSG_SPACE(4)
 #: The first two bytes of a G-PDU as these ends send it (version 1, PT, E; type 255), and
 #: its bytes 11-12: one PDU Session Container (0x85) of one 4-byte unit.
 _GPDU_FLAGS_TYPE, _ONE_CONTAINER = bytes((0x34, G_PDU)), bytes((0x85, 1))
-_PLAIN = bytes(2)  # virtio-net flags and GSO type of a plain packet
 
 
 class GtpEndpointError(NetemError, RuntimeError):
@@ -313,13 +311,7 @@ class Endpoint:
             except BlockingIOError:
                 break
             n += 1
-            if not offload:
-                packets: Iterable[bytes] = (data,)
-            elif data[:2] == _PLAIN:  # one packet, checksums done: the usual read
-                packets = (data[VNET_LEN:],)
-            else:
-                packets = ip_packets(data)
-            for packet in packets:
+            for packet in ip_packets(data) if offload else (data,):
                 out = self._encapsulate(packet)
                 if out is None:
                     continue

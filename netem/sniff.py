@@ -124,7 +124,7 @@ class Sniffer:
         self._held.sort(key=lambda g: g[0])
         cut = len(self._held)
         if not flush:
-            horizon = _now_ns() - HOLD_NS
+            horizon = time.time_ns() - HOLD_NS
             cut = next((k for k, g in enumerate(self._held) if g[0] > horizon), cut)
         ready, self._held = self._held[:cut], self._held[cut:]
         for stamp, direction, data in ready:
@@ -153,7 +153,7 @@ class Sniffer:
                 data = _without_ethernet(data)
             if stamp is None:
                 self.unstamped += 1
-            out.append((_now_ns() if stamp is None else stamp, direction, data))
+            out.append((time.time_ns() if stamp is None else stamp, direction, data))
 
     def capture_drops(self) -> int:
         """Packets the sockets' queues overflowed with since they opened (capture losses)."""
@@ -167,7 +167,7 @@ class Sniffer:
     def close(self) -> dict[str, Any]:
         self.read(flush=True)
         missed = self.capture_drops()
-        now = _now_ns()
+        now = time.time_ns()
         for direction, iface in self.interfaces.items():
             self.writer.statistics(iface, now, self.packets[direction], 0)
         self.writer.close()
@@ -189,10 +189,6 @@ def _without_ethernet(data: bytes) -> bytes:
     head = VNET.pack(flags, gso_type, max(hdr_len - ETH_HLEN, 0), gso_size,
                      max(start - ETH_HLEN, 0), offset)  # fmt: skip
     return head + data[VNET_LEN + ETH_HLEN :]
-
-
-def _now_ns() -> int:
-    return time.time_ns()
 
 
 def serve(config: SniffConfig) -> int:
