@@ -20,6 +20,7 @@ import dataclasses
 import ipaddress
 import math
 import re
+import shlex
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, field
 from typing import Any
@@ -602,6 +603,79 @@ class ListOf(Kind):
 
     def to_yaml(self, value: Any) -> Any:
         return None if value is None else [self.item.to_yaml(v) for v in value]
+
+
+class Word(Scalar):
+    """One word of a command line or an environment value: a string, or a number or boolean
+    written bare (`[ping, -c, 3]`), kept as the text it was written as."""
+
+    tags = (STR, INT, FLOAT, BOOL)
+
+    def __init__(self, expected: str) -> None:
+        self.expected = expected
+
+    def check(self, node: Node, ctx: Context, path: str) -> Any:
+        if not self.accepts(node):
+            raise Invalid(self.expected, describe(node))
+        assert isinstance(node, ScalarNode)
+        return str(node.value)
+
+    def schema(self, defs: dict[str, Any]) -> dict[str, Any]:
+        return {"type": ["string", "number", "boolean"]}
+
+
+class MapOf(Kind):
+    """A mapping of free keys (each matching `key`) to values of one kind (`env:`)."""
+
+    def __init__(self, key: Str, value: Kind) -> None:
+        self.key, self.value = key, value
+        self.expected = f"a mapping of {key.expected} to {value.expected}"
+
+    def accepts(self, node: Node) -> bool:
+        return isinstance(node, MappingNode) and node.tag == MAP
+
+    def check(self, node: Node, ctx: Context, path: str) -> dict[str, Any]:
+        if not self.accepts(node):
+            raise Invalid(self.expected, describe(node))
+        assert isinstance(node, MappingNode)
+        out: dict[str, Any] = {}
+        for key_node, value_node in mapping_pairs(node, ctx, path):
+            try:
+                key = self.key.check(key_node, ctx, path)
+            except Invalid as err:
+                ctx.add(key_node, path, err.expected, err.found, err.hint)
+                continue
+            try:
+                out[key] = self.value.check(value_node, ctx, child(path, key))
+            except Invalid as err:
+                ctx.add(value_node, child(path, key), err.expected, err.found, err.hint)
+        return out
+
+    def schema(self, defs: dict[str, Any]) -> dict[str, Any]:
+        return {
+            "type": "object",
+            "propertyNames": self.key.schema(defs),
+            "additionalProperties": self.value.schema(defs),
+        }
+
+
+class Argv(ListOf):
+    """A command line as a list of words. A shell string is refused with the list it would
+    be: the testbed runs no shell, so quoting, `$VAR` and `|` would mean nothing."""
+
+    def __init__(self) -> None:
+        super().__init__(Word("a word of the command line"), min_items=1)
+        self.expected = "a command as a list of words (argv), like [python, app.py, --rate, 10]"
+
+    def check(self, node: Node, ctx: Context, path: str) -> Items:
+        if isinstance(node, ScalarNode) and node.tag == STR:
+            try:
+                words = shlex.split(node.value)
+            except ValueError:
+                words = node.value.split()
+            hint = "no shell runs it; write it as a list: [" + ", ".join(words) + "]"
+            raise Invalid(self.expected, f"a shell string {_clip(node.value)!r}", hint)
+        return super().check(node, ctx, path)
 
 
 # ---- mappings -------------------------------------------------------------------------------

@@ -28,6 +28,7 @@ from testbed import units
 from testbed.scenario import model, radios, schema_v1
 from testbed.scenario.issues import ROOT_PATH, Issue, ScenarioError, did_you_mean
 from testbed.scenario.kinds import Context, Invalid, Items, Section, item
+from testbed.scenario.programs import Programs
 
 __all__ = ["load", "loads", "profile_changes"]
 
@@ -302,9 +303,14 @@ class _Builder:
         record = self.root.get("record")
         if record is not None:
             self._check_pcap(record)
+        programs = Programs(self.ctx, self.base_dir, self.duration, self._check_node)
+        apps = programs.apps(self.root.get("apps"))
+        traffic = programs.traffic(self.root.get("traffic"))
+        topics = programs.topics(record.get("topics") if record is not None else None)
         if self.ctx.issues or topology is None or links is None:
             return None
         report = self.root.get("report")
+        built_record = record.obj.build(record) if record else model.Record()
         return model.Scenario(
             name=self.root["name"],
             seed=self.root["seed"],
@@ -313,8 +319,10 @@ class _Builder:
             links=links,
             timeline=tuple(sorted(timeline, key=lambda e: e.at_s)),
             workload=workload,
-            record=record.obj.build(record) if record else model.Record(),
+            record=dataclasses.replace(built_record, topics=topics),
             report=report.obj.build(report) if report else model.Report(),
+            apps=apps,
+            traffic=traffic,
             source=self.path,
             version=self.root["version"],
         )
@@ -963,9 +971,11 @@ class _Builder:
     # -- workload --
 
     def _workload(self) -> model.Workload:
-        workload: Section | None = self.root.get("workload")
+        workload: Section | str | None = self.root.get("workload")
         if workload is None:
             return model.Workload()
+        if isinstance(workload, str):  # `workload: none` or `workload: edgeloc`
+            return model.Workload(kind=workload)  # type: ignore[arg-type]
         changes: dict[str, Any] = {}
         dataset = workload.get("dataset")
         if workload.written("dataset") and dataset != "synthetic" and dataset is not None:

@@ -71,11 +71,17 @@ class Qos:
     rules: tuple[QosRule, ...] = (QosRule(2, dds="discovery"),)
 
 
+#: What a vehicle or a scenario runs as its built-in workload: EdgeLoc's nodes, or nothing (a
+#: background UE that only carries `traffic:` or `apps:`).
+WorkloadKind = Literal["edgeloc", "none"]
+
+
 @dataclass(frozen=True)
 class Vehicle:
     name: str
     gnb: str  # the gNB this vehicle attaches to
     cpu: float | None = None  # CPU cores allowed (cgroup quota); None = unlimited
+    workload: WorkloadKind = "edgeloc"
 
 
 @dataclass(frozen=True)
@@ -330,6 +336,7 @@ class Kalman:
 
 @dataclass(frozen=True)
 class Workload:
+    kind: WorkloadKind = "edgeloc"  # none: no EdgeLoc node anywhere (apps and traffic only)
     rate_hz: float = 20.0  # real-time thread (VO + fused pose) rate
     dataset: Literal["synthetic"] | Path = "synthetic"  # or a folder of recorded data
     codec: Literal["fp16-zlib", "int8-zlib"] = "fp16-zlib"
@@ -342,12 +349,27 @@ class Workload:
 
 
 @dataclass(frozen=True)
+class TopicRecord:
+    """Record `topic` (or every topic `regex` matches) from inside namespace `node`."""
+
+    node: str
+    topic: str | None = None
+    regex: str | None = None
+
+    @property
+    def pattern(self) -> str:
+        return self.topic if self.topic is not None else f"~{self.regex}"
+
+
+@dataclass(frozen=True)
 class Record:
     enabled: bool = True
     compression: Literal["zstd", "lz4", "none"] = "zstd"
     images: bool = False  # camera frames are large; off unless asked
     # Links captured to pcapng ("all": every link); see `testbed.run`.
     pcap: Literal["all"] | tuple[str, ...] = ()
+    # ROS 2 topics that apps publish, recorded into run.mcap by a recorder in `node`.
+    topics: tuple[TopicRecord, ...] = ()
 
     def pcap_links(self, links: Sequence[str]) -> list[str]:
         """The captured links of a run with `links`, in the run's order."""
@@ -362,6 +384,67 @@ class Report:
     link_test: bool = True  # short link self-test before the workload
 
 
+# ---- apps and traffic: workloads that are not ours ------------------------------------------
+
+ReadyKind = Literal["log", "topic", "port"]
+Protocol = Literal["tcp", "udp"]
+TrafficKind = Literal["tcp", "udp", "onoff"]
+
+
+@dataclass(frozen=True)
+class Ready:
+    """When an app counts as started: a line of its log matches `value` (a regex), ROS topic
+    `value` publishes, or port `value` (`protocol`) listens in its namespace; within
+    `timeout_s`, else the run fails naming it."""
+
+    kind: ReadyKind
+    value: str | int
+    timeout_s: float
+    protocol: Protocol = "tcp"
+
+    def text(self) -> str:
+        what = {"log": "a log line matching", "topic": "a message on", "port": "listening on"}
+        value = f"{self.protocol} port {self.value}" if self.kind == "port" else repr(self.value)
+        return f"{what[self.kind]} {value} within {self.timeout_s:g} s"
+
+
+@dataclass(frozen=True)
+class App:
+    """A process a researcher brings: `command` (argv; `python` is the testbed's interpreter,
+    existing paths relative to the scenario made absolute) in namespace `node`, from `start_s`
+    to `stop_s` (None: the end of the run)."""
+
+    name: str
+    node: str
+    command: tuple[str, ...]
+    env: tuple[tuple[str, str], ...] = ()
+    cwd: Path | None = None  # None: the scenario file's folder
+    ros: bool = False  # gets the run's ROS environment (domain, Fast DDS profile, peers)
+    ready: Ready | None = None
+    start_s: float = 0.0
+    stop_s: float | None = None
+    cpu: float | None = None  # CPU cores (cgroup quota); None = unlimited
+    required: bool = True  # a non-zero exit fails the run
+
+
+@dataclass(frozen=True)
+class Traffic:
+    """A cross-traffic flow from `src` to `dst`: bulk TCP (`rate_bps` None: as fast as the
+    path takes), constant-bit-rate UDP, or on/off UDP (`on_s` at the rate, `off_s` silent)."""
+
+    name: str
+    kind: TrafficKind
+    src: str
+    dst: str
+    rate_bps: float | None = None
+    size: int = 1200  # UDP payload bytes per datagram (TCP: bytes per write)
+    start_s: float = 0.0
+    stop_s: float | None = None  # None: the end of the run
+    on_s: float = 1.0
+    off_s: float = 1.0
+    port: int | None = None  # None: one picked per flow
+
+
 @dataclass(frozen=True)
 class Scenario:
     name: str
@@ -373,5 +456,13 @@ class Scenario:
     workload: Workload = field(default_factory=Workload)
     record: Record = field(default_factory=Record)
     report: Report = field(default_factory=Report)
+    apps: tuple[App, ...] = ()
+    traffic: tuple[Traffic, ...] = ()
     source: Path | None = None  # the file it was loaded from
     version: int = SCHEMA_VERSION
+
+    def edgeloc_vehicles(self) -> list[Vehicle]:
+        """The vehicles that run EdgeLoc's nodes (none when the workload is `none`)."""
+        if self.workload.kind == "none":
+            return []
+        return [v for v in self.topology.vehicles if v.workload == "edgeloc"]

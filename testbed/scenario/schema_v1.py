@@ -19,6 +19,7 @@ from netem.nr import RADIO_PROFILES, UL_ACCESS
 from netem.profile import JITTER_DISTRIBUTIONS, GilbertElliott, LinkProfile
 from testbed.scenario import model
 from testbed.scenario.kinds import (
+    Argv,
     Bool,
     Const,
     Duration,
@@ -28,6 +29,7 @@ from testbed.scenario.kinds import (
     Float,
     Int,
     ListOf,
+    MapOf,
     Nullable,
     Obj,
     Percent,
@@ -35,6 +37,7 @@ from testbed.scenario.kinds import (
     Rate,
     Str,
     Tagged,
+    Word,
 )
 
 JSON_SCHEMA_DIALECT = "https://json-schema.org/draft/2020-12/schema"
@@ -71,6 +74,7 @@ AT = Field(
     required=True,
 )
 CPU = Nullable(Float(0.0, 1024.0, lo_open=True, noun="a number of CPU cores"))
+WORKLOAD_KIND = Enum(("edgeloc", "none"))
 
 RADIO = Obj(
     "A 5G NR air interface: a named radio with some of its fields changed. A mapping starts"
@@ -450,6 +454,12 @@ VEHICLE = Obj(
         Field("name", node_name("a vehicle name"), "Name of the vehicle node.", required=True),
         Field("gnb", node_name("a gNB name"), "The gNB it attaches to.", required=True),
         Field("cpu", CPU, "CPU cores for this vehicle's processes (null: unlimited)."),
+        Field(
+            "workload",
+            WORKLOAD_KIND,
+            "edgeloc: this vehicle runs EdgeLoc's nodes; none: a background UE that only"
+            " carries `traffic:` and `apps:` (e.g. to load its cell).",
+        ),
     ],
     model=model.Vehicle,
 )
@@ -685,6 +695,11 @@ WORKLOAD = Obj(
     "The EdgeLoc workload: rates, data, model and algorithm knobs.",
     [
         Field(
+            "kind",
+            WORKLOAD_KIND,
+            "The built-in workload: edgeloc, or none (a scenario of apps and traffic only).",
+        ),
+        Field(
             "rate_hz",
             Float(0.0, 1000.0, lo_open=True, noun="a rate in Hz"),
             "Real-time thread rate (VO and fused pose).",
@@ -716,6 +731,29 @@ WORKLOAD = Obj(
     ],
     model=model.Workload,
 )
+TOPIC_NAME = Str("a ROS 2 topic name like /chatter", r"^/[A-Za-z0-9_/~{}]*[A-Za-z0-9_}]$")
+_RECORD_NODE = Field(
+    "node", node_name("a node name"), "The namespace the recorder runs in.", required=True
+)
+TOPIC_RECORD = Tagged(
+    "a topic to record",
+    {
+        "topic": Obj(
+            "One topic by name.",
+            [Field("topic", TOPIC_NAME, "The topic.", required=True), _RECORD_NODE],
+            model=model.TopicRecord,
+        ),
+        "regex": Obj(
+            "Every topic whose name a regular expression matches (re.search).",
+            [
+                Field("regex", Str("a regular expression"), "The pattern.", required=True),
+                _RECORD_NODE,
+            ],
+            model=model.TopicRecord,
+        ),
+    },
+)
+
 RECORD = Obj(
     "What the run records into run.mcap.",
     [
@@ -728,6 +766,13 @@ RECORD = Obj(
             "Links whose packets are captured to runs/<id>/pcap/<link>.pcapng (both directions"
             " as they leave the link, after its impairments; what they dropped is counted in"
             " the file's interface statistics), or all; userspace backend only.",
+        ),
+        Field(
+            "topics",
+            ListOf(TOPIC_RECORD),
+            "ROS 2 topics that apps publish, recorded into run.mcap with their full schemas by"
+            " a recorder in the named node's namespace (so no recording traffic crosses an"
+            " emulated link).",
         ),
     ],
     model=model.Record,
@@ -745,6 +790,148 @@ REPORT = Obj(
         Field("link_test", Bool(), "Measure each link briefly before the workload."),
     ],
     model=model.Report,
+)
+
+# ---- apps and traffic ------------------------------------------------------------------------
+
+PROGRAM_NAME = Str(
+    "a name: a lowercase letter, then up to 31 lowercase letters, digits, '_' or '-'",
+    r"^[a-z][a-z0-9_-]{0,31}$",
+    "it names the log file and the report's row",
+)
+START = Field(
+    "start",
+    Duration(MAX_DURATION_S, noun="a time"),
+    "When it starts, from the start of the timeline.",
+    attr="start_s",
+)
+STOP = Field(
+    "stop",
+    Nullable(Duration(MAX_DURATION_S, lo_open=True, noun="a time")),
+    "When it is stopped (SIGTERM), from the start of the timeline; null: at the end of the run.",
+    attr="stop_s",
+)
+READY_TIMEOUT = Field(
+    "timeout",
+    Duration(3600.0, lo_open=True, noun="a timeout"),
+    "How long to wait for it; then the run fails naming the app.",
+    required=True,
+    attr="timeout_s",
+)
+READY = Tagged(
+    "a readiness check",
+    {
+        "log": Obj(
+            "A line of the app's log (stdout and stderr) matches a regular expression.",
+            [
+                Field("log", Str("a regular expression"), "The pattern.", required=True),
+                READY_TIMEOUT,
+            ],
+        ),
+        "topic": Obj(
+            "A message arrives on a ROS 2 topic (read in the app's namespace).",
+            [Field("topic", TOPIC_NAME, "The topic.", required=True), READY_TIMEOUT],
+        ),
+        "port": Obj(
+            "A TCP port listens, or a UDP port is bound, in the app's namespace.",
+            [
+                Field("port", Int(1, 65535, "a port number"), "The port.", required=True),
+                Field("protocol", Enum(("tcp", "udp")), "tcp or udp.", default="tcp"),
+                READY_TIMEOUT,
+            ],
+        ),
+    },
+)
+APP = Obj(
+    "A process you bring, run in one namespace of the topology.",
+    [
+        Field("name", PROGRAM_NAME, "Its name (log file logs/app.<name>.log).", required=True),
+        Field("node", node_name("a node name"), "The namespace it runs in.", required=True),
+        Field(
+            "command",
+            Argv(),
+            "argv as a list, never a shell string: [python, apps/talker.py, --rate, 10]."
+            " `python` is the testbed's own interpreter; an argument naming an existing file"
+            " or folder relative to the scenario file is made absolute.",
+            required=True,
+        ),
+        Field(
+            "env",
+            MapOf(
+                Str("an environment variable name", r"^[A-Za-z_][A-Za-z0-9_]*$"),
+                Word("a value"),
+            ),
+            "Extra environment variables (over the run's ROS environment with ros: true).",
+        ),
+        Field(
+            "cwd",
+            Str("a folder, relative to the scenario file"),
+            "Working folder relative to the scenario file (default: the scenario's folder).",
+        ),
+        Field(
+            "ros",
+            Bool(),
+            "Give it the run's ROS environment: domain id, the Fast DDS profile with the"
+            " namespace's unicast peers, socket buffers.",
+            default=False,
+        ),
+        Field("ready", READY, "When it counts as started (default: once it is running)."),
+        START,
+        STOP,
+        Field("cpu", CPU, "CPU cores it may use (cgroup quota; null: unlimited)."),
+        Field(
+            "required",
+            Bool(),
+            "Its non-zero exit fails the run with its last log lines (false: recorded only).",
+            default=True,
+        ),
+    ],
+)
+TRAFFIC = Obj(
+    "A cross-traffic flow between two nodes (our generator, `nodes.traffic`).",
+    [
+        Field("name", PROGRAM_NAME, "Its name (topic /traffic/<name>).", required=True),
+        Field(
+            "kind",
+            Enum(("tcp", "udp", "onoff")),
+            "tcp: bulk TCP; udp: constant bit rate; onoff: UDP at `rate` for `on`, then"
+            " silent for `off` (video-like).",
+            required=True,
+        ),
+        Field("from", node_name("a node name"), "The sender's node.", required=True, attr="src"),
+        Field("to", node_name("a node name"), "The receiver's node.", required=True, attr="dst"),
+        Field(
+            "rate",
+            Rate(unlimited=True),
+            "Sending rate (udp and onoff: required; tcp: a cap, default unlimited).",
+            attr="rate_bps",
+        ),
+        Field(
+            "size",
+            Int(16, 65000, "a datagram size in bytes"),
+            "UDP payload bytes per datagram (tcp: bytes per write).",
+        ),
+        START,
+        STOP,
+        Field(
+            "on",
+            Duration(3600.0, lo_open=True, noun="an on period"),
+            "onoff: how long each burst lasts.",
+            attr="on_s",
+        ),
+        Field(
+            "off",
+            Duration(3600.0, lo_open=True, noun="an off period"),
+            "onoff: how long each pause lasts.",
+            attr="off_s",
+        ),
+        Field(
+            "port",
+            Int(1024, 65535, "a port number"),
+            "The receiver's port (default: one per flow from 5300 up).",
+        ),
+    ],
+    model=model.Traffic,
 )
 
 SCENARIO = Obj(
@@ -776,7 +963,14 @@ SCENARIO = Obj(
         Field("topology", TOPOLOGY, "Nodes of the emulated network.", required=True),
         Field("links", LINKS, "Link behaviour."),
         Field("timeline", ListOf(EVENT), "Link and shaping changes during the run."),
-        Field("workload", WORKLOAD, "The EdgeLoc workload."),
+        Field(
+            "workload",
+            Either(WORKLOAD_KIND, WORKLOAD),
+            "The built-in workload: edgeloc (default), none (apps and traffic only), or a"
+            " mapping of EdgeLoc's settings.",
+        ),
+        Field("apps", ListOf(APP), "Processes you bring, each in a namespace of the topology."),
+        Field("traffic", ListOf(TRAFFIC), "Cross-traffic flows between nodes."),
         Field("record", RECORD, "Recording."),
         Field("report", REPORT, "Report."),
     ],
