@@ -745,6 +745,61 @@ def _recording(data: RunData, s: dict[str, Any]) -> Section:
     return sec
 
 
+def _run_json(folder: Path) -> dict[str, Any]:
+    try:
+        data = json.loads((folder / "run.json").read_text())
+    except (OSError, ValueError):
+        return {}
+    return data if isinstance(data, dict) else {}
+
+
+def _apps(folder: Path) -> Section | None:
+    """The apps a researcher brought (`apps:`): where each ran, when it was ready, how it
+    ended and what it used (run.json's `apps`)."""
+    apps = _run_json(folder).get("apps") or {}
+    if not apps:
+        return None
+    rows = []
+    for name, a in apps.items():
+        res = a.get("resources") or {}
+        ended = (
+            "stopped by the testbed"
+            if a.get("stopped_by_testbed") and a.get("exit_code") not in (0, None)
+            else f"exit {a.get('exit_code')}"
+        )
+        cpu = a.get("cpu_stat") or {}
+        throttled = f", throttled {cpu['nr_throttled']}/{cpu['nr_periods']}" if cpu else ""
+        rows.append(
+            [
+                name,
+                str(a.get("node")),
+                " ".join(a.get("command") or []),
+                _f(a.get("started_at_s"), "{:.1f} s"),
+                _f(a.get("ready_at_s"), "{:.1f} s") if a.get("ready") else "-",
+                ended,
+                f"{_f(res.get('user_s'), '{:.2f}')} + {_f(res.get('system_s'), '{:.2f}')} s"
+                + throttled,
+                _f((res.get("peak_rss_kb") or 0) / 1024, "{:.0f} MiB"),
+                str(a.get("log")),
+            ]
+        )
+    table = Table(
+        [
+            "app",
+            "node",
+            "command",
+            "started",
+            "ready",
+            "ended",
+            "CPU user + sys",
+            "peak memory",
+            "log",
+        ],
+        rows,
+    )
+    return Section("Apps").add(table)
+
+
 def _captures(sec: Section, folder: Path) -> None:
     """The run's packet captures (`record.pcap`), with what run.json says each holds."""
     files = sorted((folder / PCAP_DIR).glob("*.pcapng"))
@@ -903,7 +958,7 @@ def document(
     sections += [_latency(s, plots)]
     sections += [_acc_lat(s, plots), _realtime(s, plots), _gaps(s), _links(s, plots)]
     sections += [_paths(data.path.parent, s.get("per_vehicle"), s["links"].get("linktest"))]
-    sections += [_nodes(s), _recording(data, s)]
+    sections += [_apps(data.path.parent), _nodes(s), _recording(data, s)]
     return Document(title, s["headline"], [x for x in sections if x is not None])
 
 

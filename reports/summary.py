@@ -184,8 +184,26 @@ def method_errors(data: RunData) -> dict[str, dict[str, FrameErrors]]:
     return out
 
 
-def headline(comparison: dict[str, Any], run_id: str | None = None, partial: bool = False) -> str:
-    """`run X: EdgeLoc total error N m; reduction a% vs VO (paper 67.75%), ...`."""
+def edgeloc_vehicles(run: dict[str, Any]) -> int | None:
+    """How many vehicles the run's scenario gave EdgeLoc's nodes (None: a recording from
+    before `workload:` could be none, where every vehicle ran them)."""
+    if "edgeloc_vehicles" not in run:
+        return None
+    return len([v for v in str(run["edgeloc_vehicles"]).split(",") if v])
+
+
+def headline(
+    comparison: dict[str, Any],
+    run_id: str | None = None,
+    partial: bool = False,
+    vehicles: int | None = None,
+) -> str:
+    """`run X: EdgeLoc total error N m; reduction a% vs VO (paper 67.75%), ...`; for a run
+    with no EdgeLoc vehicle (`vehicles=0`: `workload: none`), what it recorded instead."""
+    head = f"run {run_id}: " if run_id else ""
+    tail = " [partial]" if partial else ""
+    if vehicles == 0:
+        return f"{head}no EdgeLoc workload (workload: none): see its apps and traffic" + tail
     totals = {t["method"]: t["ours"] for t in comparison["totals"]}
     parts = []
     for r in comparison["reductions"]:
@@ -193,8 +211,6 @@ def headline(comparison: dict[str, Any], run_id: str | None = None, partial: boo
         parts.append(f"{ours} vs {r['versus'].upper()} (paper {r['paper_pct']:.2f}%)")
     edge = totals.get("edgeloc")
     total = "n/a" if edge is None else f"{edge:.1f} m"
-    head = f"run {run_id}: " if run_id else ""
-    tail = " [partial]" if partial else ""
     return f"{head}EdgeLoc total error {total}; reduction " + ", ".join(parts) + tail
 
 
@@ -683,7 +699,12 @@ def summarize(data: RunData, splits: bool | str = True) -> dict[str, Any]:
             "methods": methods,
             "per_vehicle": per_vehicle,
             "paper_comparison": comparison,
-            "headline": headline(comparison, None if run_id is None else str(run_id), data.partial),
+            "headline": headline(
+                comparison,
+                None if run_id is None else str(run_id),
+                data.partial,
+                edgeloc_vehicles(data.run),
+            ),
             "latency": latency_summary(data),
             "learner": learner_summary(data),
             "accuracy_vs_latency": accuracy_vs_latency(errs.get("edgeloc")),

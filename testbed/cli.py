@@ -637,6 +637,54 @@ def link_test(
         con.ok(f"every link within tolerance ({report.seconds:.1f} s)")
 
 
+RunArg = Annotated[str, typer.Argument(help="Run id (see `testbed status`).", show_default=False)]
+NodeArg = Annotated[
+    str, typer.Argument(help="A node (namespace) of the run, e.g. av1.", show_default=False)
+]
+
+
+@app.command(
+    "exec",
+    context_settings={"allow_extra_args": True, "ignore_unknown_options": True},
+)
+def exec_(
+    run_id: RunArg,
+    node: NodeArg,
+    command: Annotated[
+        list[str],
+        typer.Argument(help="The command and its arguments, after --.", show_default=False),
+    ],
+) -> None:
+    """Run a command inside a live run's namespace with that run's ROS environment (domain,
+    Fast DDS profile, the node's unicast peers): your own ROS 2 tool meets the run's nodes.
+    The exit code is the command's; Ctrl-C goes to it. `python` is the testbed's interpreter.
+
+    Example: testbed exec 3fa2c1 av1 -- python my_listener.py --topic /av1/edgeloc/pose
+    """
+    from testbed.attach import Attachment
+
+    try:
+        Attachment.of(run_id, node).exec(command)
+    except KNOWN_ERRORS as err:
+        raise _fail(err) from None
+
+
+@app.command("env")
+def env_(run_id: RunArg, node: NodeArg) -> None:
+    """Print the ROS environment of a live run's node as shell `export` lines, for a shell
+    you opened in its namespace.
+
+    Example: ip netns exec el-3fa2c1-av1 bash ; eval "$(testbed env 3fa2c1 av1)" ; ros2 topic list
+    """
+    from testbed.attach import Attachment
+
+    try:
+        lines = Attachment.of(run_id, node).shell_lines()
+    except KNOWN_ERRORS as err:
+        raise _fail(err) from None
+    sys.stdout.write("\n".join(lines) + "\n")
+
+
 @app.command()
 def down(
     run_id: Annotated[

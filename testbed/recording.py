@@ -212,6 +212,7 @@ def finalise(
         "duration_s": f"{ended - started:.3f}",
         "compression": str(manifest.get("compression", "zstd")),
         "images": str(bool(manifest.get("images", False))).lower(),
+        "edgeloc_vehicles": ",".join(manifest.get("edgeloc_vehicles", [])),
         **{k: str(v) for k, v in manifest.get("versions", {}).items()},
         "host": json.dumps(manifest.get("host", {})),
         **(notes or {}),

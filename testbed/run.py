@@ -37,6 +37,7 @@ from nodes.recording import layout as names
 from nodes.recording.jsonfile import write_json
 from nodes.recording.parts import PartWriter
 from testbed import __version__, recording
+from testbed.apps import Apps
 from testbed.capacity import CapacityCheck, check_scenario
 from testbed.connectivity import EchoResult, vehicles_reach_cores
 from testbed.errors import TestbedError
@@ -65,6 +66,7 @@ class RunResult:
     captures: dict[str, Any] = field(default_factory=dict)  # link -> {path, packets, dropped}
     paths: list[dict[str, Any]] = field(default_factory=list)  # `corepath.vehicle_paths`
     core_path: dict[str, Any] | None = None  # `CorePath.describe()`, with a UPF
+    apps: dict[str, Any] = field(default_factory=dict)  # `Apps.summary()`
 
     @property
     def ok(self) -> bool:
@@ -91,6 +93,7 @@ class RunResult:
             "captures": self.captures,
             "paths": self.paths,
             "core_path": self.core_path,
+            "apps": self.apps,
         }
 
 
@@ -110,10 +113,11 @@ def _check(net: Net, player: TimelinePlayer | None = None) -> None:
 
 
 def play_timeline(
-    net: Net, folder: Path, progress: Progress, watch: Callable[[], None] | None = None
+    net: Net, folder: Path, progress: Progress, watch: Callable[[float], None] | None = None
 ) -> TimelinePlayer:
     """Play the scenario's timeline for its `duration`, checking for failures every 0.2 s
-    (`watch`, e.g. the node supervisor's check, raises when something else died)."""
+    (`watch(elapsed)`, e.g. the node supervisor's check and the apps' tick, raises when
+    something else died)."""
     assert net.control is not None
     scenario = net.scenario
 
@@ -133,7 +137,7 @@ def play_timeline(
         while (elapsed := player.elapsed()) < scenario.duration_s:
             _check(net, player)
             if watch is not None:
-                watch()
+                watch(elapsed)
             if elapsed >= next_line:
                 progress(f"  t={elapsed:5.1f} s of {scenario.duration_s:g} s")
                 next_line += PROGRESS_EVERY_S
@@ -277,6 +281,7 @@ class Recording:
                     {str(e.path) for e in scenario.timeline if isinstance(e, TraceEvent)}
                 ),
                 "timeline_events": len(scenario.timeline),
+                "edgeloc_vehicles": [v.name for v in scenario.edgeloc_vehicles()],
             },
         )
         write_json(folder / names.LINKS_CONFIG_FILE, links_config(net, backend))
@@ -482,15 +487,25 @@ class _Run:
         if not result.ok:
             return
         nodes = Supervisor(net, result.folder, progress)
+        apps = Apps(net, result.folder, nodes.env, nodes.peers_of, progress)
+        if not ros_ok and any(a.ros for a in scenario.apps):
+            progress(f"  warning: apps with ros: true get no ROS 2 here: {ros_why}")
         before = link_counters(net)  # the link test's bytes are not the workload's
         captured = start_captures(net, result.folder, progress)
+
+        def watch(elapsed: float) -> None:
+            nodes.check()
+            apps.tick(elapsed)
+
         try:
             if ros_ok:
                 nodes.start()
             _check(net)
+            apps.start_first()
+            _check(net)
             if self.recording is not None:
                 self.recording.start_counters(ros_ok)
-            player = play_timeline(net, result.folder, progress, watch=nodes.check)
+            player = play_timeline(net, result.folder, progress, watch=watch)
             result.timeline = {
                 "events": len(scenario.timeline),
                 "applied": len(player.applied),
@@ -498,8 +513,11 @@ class _Run:
                 "file": names.EVENTS_FILE,
             }
         finally:
-            # Nodes stop before teardown (they write their stats and close their MCAP
-            # parts); links still up for the last counters.
+            # Apps, then nodes stop before teardown (the nodes write their stats and close
+            # their MCAP parts; a recorder outlives the apps it records); links still up for
+            # the last counters.
+            if apps:
+                result.apps = apps.stop()
             if ros_ok:
                 result.nodes = nodes.stop()
             if self.recording is not None:

@@ -5,7 +5,13 @@ What runs where (one process per node, `python -m nodes.ros.<module>`):
 - every vehicle namespace: `sensor` (vehicle_sensor), `inference` (inference_request),
   `fusion` (fusion_node);
 - every core namespace: `edge` (edge_inference), serving the vehicles of its cell;
-- the first gNB namespace: `link_events`, which publishes the timeline's `events.jsonl`.
+- the first gNB namespace: `link_events`, which publishes the timeline's `events.jsonl`;
+- each namespace that `record.topics` names: `topics` (`nodes.ros.topic_recorder`), recording
+  the apps' topics there into its MCAP part, its only peer 127.0.0.1 so no recording traffic
+  crosses an emulated link.
+
+Only vehicles whose workload is `edgeloc` (all, unless the scenario's or the vehicle's
+`workload` is `none`) get the vehicle nodes, and only edge servers with such a vehicle the edge.
 
 Every process gets the run's ROS environment (`nodes.ros.env.RosEnv`: the run's domain id,
 UDP-only Fast DDS with 4 MiB buffers, unicast peers beyond its gNB plus 127.0.0.1 for the
@@ -58,6 +64,7 @@ from testbed import cgroups
 from testbed.cgroups import CpuBudget
 from testbed.errors import BadInput, TestbedError
 from testbed.replay import replay_config
+from testbed.scenario.model import TopicRecord
 from testbed.topology import Net
 
 Progress = Callable[[str], None]
@@ -71,6 +78,8 @@ STOP_GRACE_S = 10.0
 #: Log lines quoted when a node dies.
 TAIL_LINES = 15
 LOOPBACK = "127.0.0.1"
+#: The process that records `record.topics` in a namespace.
+RECORDER = "nodes.ros.topic_recorder"
 #: The least DNN-stage budget the kernel can enforce (1 ms quota per 1 s period).
 MIN_COMPUTE_CORES = 0.001
 
@@ -174,6 +183,29 @@ def applied_cores(requested: float | None) -> float | None:
     return None if requested is None else max(requested, MIN_PROCESS_CORES)
 
 
+def ros_peers(net: Net, node: str | None) -> list[str]:
+    """The unicast DDS peers of a ROS process in namespace `node` (see the module doc): a
+    vehicle's edge server; an edge server's vehicles; any other node (or None: a process
+    that talks to all, like link_events) every vehicle and edge server. Always 127.0.0.1,
+    for the other participants of its own namespace."""
+    topo = net.scenario.topology
+    role = topo.role_of(node) if node is not None else None
+    if role == "vehicle":
+        vehicle = next(v for v in topo.vehicles if v.name == node)
+        peers = [str(net.server_address(topo.cell_of_gnb(vehicle.gnb)))]
+    elif node is not None and node in topo.servers():
+        cells = [c for c in topo.cells if c.server == node]
+        peers = [
+            str(net.vehicle_address(v.name))
+            for v in topo.vehicles
+            if any(v.gnb == c.gnb for c in cells)
+        ]
+    else:
+        peers = [str(net.vehicle_address(v.name)) for v in topo.vehicles]
+        peers += [str(net.server_address(c)) for c in topo.cells]
+    return [*dict.fromkeys(peers), LOOPBACK]
+
+
 class Supervisor:
     """Starts, watches and stops the EdgeLoc nodes of one run (see the module doc).
 
@@ -217,41 +249,66 @@ class Supervisor:
                     host=host,
                     module=f"nodes.ros.{module}",
                     argv=[*base, *extra, "--stats", str(stats / f"{name}.json")],
-                    peers=[*peers, LOOPBACK],
+                    peers=peers,
                     log=logs / f"{name}.log",
                     stats=stats / f"{name}.json",
                 )
             )
 
         # One edge server per node that hosts one (cells may share an edge behind a UPF).
+        vehicles = self.net.scenario.edgeloc_vehicles()
         for server in topo.servers():
             cells = [c for c in topo.cells if c.server == server]
-            mine = [v.name for v in topo.vehicles if any(v.gnb == c.gnb for c in cells)]
-            vehicle_ips = [str(self.net.vehicle_address(v)) for v in mine]
-            if self.edge:
-                add(server, "edge", "edge_inference", ["--edge", server], vehicle_ips)
-        for v in topo.vehicles:
+            mine = [v.name for v in vehicles if any(v.gnb == c.gnb for c in cells)]
+            if self.edge and mine:
+                add(server, "edge", "edge_inference", ["--edge", server], self.peers_of(server))
+        for v in vehicles:
             cell = topo.cell_of_gnb(v.gnb)
-            server_ip = [str(self.net.server_address(cell))]
             who = ["--vehicle", v.name, "--edge", cell.server]
-            add(v.name, "fusion", "fusion_node", who, server_ip)
-            add(v.name, "inference", "inference_request", who, server_ip)
-            add(v.name, "sensor", "vehicle_sensor", who, server_ip)
+            peers = self.peers_of(v.name)
+            add(v.name, "fusion", "fusion_node", who, peers)
+            add(v.name, "inference", "inference_request", who, peers)
+            add(v.name, "sensor", "vehicle_sensor", who, peers)
         if topo.cells:
-            gnb = topo.cells[0].gnb
-            peers = [str(self.net.vehicle_address(v.name)) for v in topo.vehicles]
-            peers += [str(self.net.server_address(c)) for c in topo.cells]
             events = ["--events", str(self.folder / names.EVENTS_FILE)]
-            add(gnb, "link_events", "link_events", events, peers)
+            add(topo.cells[0].gnb, "link_events", "link_events", events, self.peers_of(None))
+        for host, topics in self._recorded_topics().items():
+            args = ["--record", str(names.part_path(self.folder, f"{host}.topics"))]
+            for t in topics:
+                args += ["--topic", t.topic] if t.topic is not None else ["--regex", str(t.regex)]
+            out.append(
+                NodeProcess(
+                    name=f"{host}.topics",
+                    host=host,
+                    module=RECORDER,
+                    argv=[*args, "--stats", str(stats / f"{host}.topics.json")],
+                    peers=[LOOPBACK],  # only its own namespace's publishers
+                    log=logs / f"{host}.topics.log",
+                    stats=stats / f"{host}.topics.json",
+                )
+            )
         return out
+
+    def _recorded_topics(self) -> dict[str, list[TopicRecord]]:
+        """`record.topics` by the namespace whose recorder records them (when recording)."""
+        record = self.net.scenario.record
+        out: dict[str, list[TopicRecord]] = {}
+        if record.enabled:
+            for t in record.topics:
+                out.setdefault(t.node, []).append(t)
+        return out
+
+    def peers_of(self, node: str | None) -> list[str]:
+        return ros_peers(self.net, node)
 
     # ---- start -------------------------------------------------------------------------
 
     def _budgets(self) -> None:
         """One unlimited cgroup per vehicle/core namespace that runs nodes; limits come later."""
         topo = self.net.scenario.topology
-        requests = {v.name: v.cpu for v in topo.vehicles}
-        requests.update({c.server: c.core_cpu for c in topo.cells})
+        requests = {v.name: v.cpu for v in self.net.scenario.edgeloc_vehicles()}
+        hosts = {n.host for n in self.plan()}
+        requests.update({c.server: c.core_cpu for c in topo.cells if c.server in hosts})
         ok, why = cgroups.available()
         ctl = cgroups.find_controller() if ok else None
         for host, cpu in requests.items():
@@ -290,8 +347,10 @@ class Supervisor:
             budget = self.budgets.get(n.host)
             if budget is not None and budget.group is not None:
                 budget.group.add(n.proc.pid)  # nsenter exec()s: the pid is the node's python
+        recorders = sum(n.module == RECORDER for n in self.nodes)
+        also = f", {recorders} topic recorder(s)" if recorders else ""
         self.progress(
-            f"EdgeLoc nodes: {len(self.nodes)} processes started "
+            f"ROS nodes: {len(self.nodes) - recorders} EdgeLoc processes{also} started "
             f"(ROS domain {self.env.domain_id}); waiting until they are ready"
         )
         pending = list(self.nodes)

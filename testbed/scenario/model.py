@@ -403,9 +403,19 @@ class Ready:
     protocol: Protocol = "tcp"
 
     def text(self) -> str:
+        """What it waits for: `a log line matching 'x' within 5 s`."""
         what = {"log": "a log line matching", "topic": "a message on", "port": "listening on"}
         value = f"{self.protocol} port {self.value}" if self.kind == "port" else repr(self.value)
         return f"{what[self.kind]} {value} within {self.timeout_s:g} s"
+
+    def missed(self) -> str:
+        """What did not happen: `no log line matched 'x' within 5 s`."""
+        within = f"within {self.timeout_s:g} s"
+        if self.kind == "log":
+            return f"no log line matched {self.value!r} {within}"
+        if self.kind == "topic":
+            return f"no message on {self.value} {within}"
+        return f"nothing listened on {self.protocol} port {self.value} {within}"
 
 
 @dataclass(frozen=True)
