@@ -7,6 +7,7 @@ on a background thread: a publisher only pays for serialising and a queue put.
 
 from __future__ import annotations
 
+import contextlib
 import importlib.metadata
 import queue
 import threading
@@ -158,7 +159,9 @@ class PartWriter:
         except Exception as err:  # reported by write/close: a node must not record silently
             self.error = f"{type(err).__name__}: {err}"
         finally:
-            self._file.close()
+            # A full disk fails this close too; the first error is the one `error` keeps.
+            with contextlib.suppress(OSError):
+                self._file.close()
 
 
 @dataclass
