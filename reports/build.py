@@ -800,6 +800,60 @@ def _apps(folder: Path) -> Section | None:
     return Section("Apps").add(table)
 
 
+def _mbit(bps: Any) -> str:
+    return "-" if bps is None else f"{bps / 1e6:.2f} Mbit/s"
+
+
+def _traffic(folder: Path) -> Section | None:
+    """The cross-traffic flows (`traffic:`): offered against carried, loss, delay, RTT, and
+    the sender's own lateness (run.json's `traffic`); their samples are /traffic/<flow>."""
+    flows = _run_json(folder).get("traffic") or {}
+    if not flows:
+        return None
+    rows = []
+    for name, f in flows.items():
+        offered = "unlimited" if f.get("rate_bps") is None else _mbit(f["rate_bps"])
+        until = "end" if f.get("stop_s") is None else f"{f['stop_s']:g} s"
+        rows.append(
+            [
+                name,
+                str(f.get("kind")),
+                f"{f.get('from')} -> {f.get('to')}",
+                f"{f.get('start_s', 0):g} s - {until}",
+                offered,
+                _mbit(f.get("sent_bps")),
+                _mbit(f.get("goodput_bps")),
+                _pct(f.get("loss")),
+                _f(f.get("delay_p50_ms"), "{:.1f} ms"),
+                _f(f.get("rtt_p50_ms"), "{:.1f} ms"),
+                _f(f.get("late_packets"), "{}"),
+            ]
+        )
+    sec = Section("Cross-traffic")
+    sec.add(
+        Table(
+            [
+                "flow",
+                "kind",
+                "path",
+                "when",
+                "offered",
+                "sent",
+                "goodput",
+                "loss",
+                "one-way delay p50",
+                "RTT p50",
+                "sent late",
+            ],
+            rows,
+        )
+    )
+    errors = {n: f["errors"] for n, f in flows.items() if f.get("errors")}
+    for name, errs in errors.items():
+        sec.add(Para(f"{name}: " + "; ".join(f"{k} ({v}x)" for k, v in errs.items()), "warning"))
+    return sec
+
+
 def _captures(sec: Section, folder: Path) -> None:
     """The run's packet captures (`record.pcap`), with what run.json says each holds."""
     files = sorted((folder / PCAP_DIR).glob("*.pcapng"))
@@ -958,7 +1012,8 @@ def document(
     sections += [_latency(s, plots)]
     sections += [_acc_lat(s, plots), _realtime(s, plots), _gaps(s), _links(s, plots)]
     sections += [_paths(data.path.parent, s.get("per_vehicle"), s["links"].get("linktest"))]
-    sections += [_apps(data.path.parent), _nodes(s), _recording(data, s)]
+    sections += [_apps(data.path.parent), _traffic(data.path.parent)]
+    sections += [_nodes(s), _recording(data, s)]
     return Document(title, s["headline"], [x for x in sections if x is not None])
 
 

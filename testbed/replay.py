@@ -131,13 +131,19 @@ class _PathPlan:
 
     def __init__(self, scenario: Scenario, vehicle: str | None) -> None:
         topo = scenario.topology
-        if not topo.vehicles:
-            raise BadInput(f"{scenario.name}: the scenario has no vehicle to replay")
-        names = [v.name for v in topo.vehicles]
+        vehicles = scenario.edgeloc_vehicles()
+        if not vehicles:
+            raise BadInput(
+                f"{scenario.name}: no vehicle runs EdgeLoc (workload: none), nothing to replay"
+            )
+        names = [v.name for v in vehicles]
         name = vehicle or names[0]
         if name not in names:
-            raise BadInput(f"no vehicle {name!r} in the scenario (vehicles: {', '.join(names)})")
-        self.vehicle = next(v for v in topo.vehicles if v.name == name)
+            raise BadInput(
+                f"no EdgeLoc vehicle {name!r} in the scenario (vehicles that run EdgeLoc: "
+                f"{', '.join(names)})"
+            )
+        self.vehicle = next(v for v in vehicles if v.name == name)
         self.cell = topo.cell_of_gnb(self.vehicle.gnb)
         self.air = self._link(scenario, "air", name)
         known = set(scenario.links.names())

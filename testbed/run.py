@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import contextlib
 import json
+import math
 import shutil
 import sys
 import time
@@ -47,6 +48,7 @@ from testbed.supervisor import Supervisor, ros_available
 from testbed.timeline import AppliedEvent, TimelinePlayer
 from testbed.topology import Net, build
 from testbed.topology.corepath import vehicle_paths
+from testbed.traffic import CrossTraffic
 
 Progress = Callable[[str], None]
 
@@ -67,6 +69,7 @@ class RunResult:
     paths: list[dict[str, Any]] = field(default_factory=list)  # `corepath.vehicle_paths`
     core_path: dict[str, Any] | None = None  # `CorePath.describe()`, with a UPF
     apps: dict[str, Any] = field(default_factory=dict)  # `Apps.summary()`
+    traffic: dict[str, Any] = field(default_factory=dict)  # `CrossTraffic.summary()`
 
     @property
     def ok(self) -> bool:
@@ -94,9 +97,12 @@ class RunResult:
             "paths": self.paths,
             "core_path": self.core_path,
             "apps": self.apps,
+            "traffic": self.traffic,
         }
 
 
+#: What `/traffic/<flow>` carries.
+TRAFFIC_TYPE = "edgeloc_interfaces/msg/TrafficSample"
 #: Seconds between progress lines while the timeline plays.
 PROGRESS_EVERY_S = 5.0
 #: How often the run looks at its links and timeline for a failure.
@@ -343,6 +349,44 @@ class Recording:
         except (OSError, ValueError) as err:
             self.progress(f"  warning: links.json not updated: {err}")
 
+    def record_traffic(self, traffic: CrossTraffic, ros_ok: bool) -> None:
+        """Write the flows' samples as `/traffic/<flow>` (TrafficSample) into their own part."""
+        if not traffic:
+            return
+        if not ros_ok:
+            self.progress("  warning: /traffic/* not recorded: rclpy/edgeloc_interfaces missing")
+            return
+        from edgeloc_interfaces.msg import TrafficSample
+        from rclpy.serialization import serialize_message
+
+        from nodes.ros.common import to_stamp
+
+        def number(value: Any) -> float:
+            return math.nan if value is None else float(value)
+
+        part = PartWriter(names.part_path(self.folder, "traffic"))
+        try:
+            for flow, s in traffic.samples():
+                t_ns = int(s.get("time_ns") or time.time_ns())
+                msg = TrafficSample(
+                    stamp=to_stamp(t_ns / 1e9),
+                    flow=flow.name,
+                    kind=flow.kind,
+                    role=str(s.get("role", "")),
+                    t=number(s.get("t")),
+                    bytes=int(s.get("bytes") or 0),
+                    packets=int(s.get("packets") or 0),
+                    rate_bps=number(s.get("rate_bps")),
+                    goodput_bps=number(s.get("goodput_bps")),
+                    loss=number(s.get("loss")),
+                    delay_ms=number(s.get("delay_ms")),
+                    rtt_ms=number(s.get("rtt_ms")),
+                    late=int(s.get("late") or 0),
+                )
+                part.write(f"/traffic/{flow.name}", TRAFFIC_TYPE, serialize_message(msg), t_ns)
+        finally:
+            part.close()
+
     def finish(self, status: str, nodes: dict[str, Any] | None) -> None:
         """Merge the parts into run.mcap (raises RecordingError if that fails)."""
         try:
@@ -493,15 +537,20 @@ class _Run:
         before = link_counters(net)  # the link test's bytes are not the workload's
         captured = start_captures(net, result.folder, progress)
 
+        traffic = CrossTraffic(net, result.folder, progress)
+
         def watch(elapsed: float) -> None:
             nodes.check()
             apps.tick(elapsed)
+            traffic.tick(elapsed)
 
         try:
             if ros_ok:
                 nodes.start()
             _check(net)
             apps.start_first()
+            if traffic:
+                traffic.start_receivers()
             _check(net)
             if self.recording is not None:
                 self.recording.start_counters(ros_ok)
@@ -516,6 +565,10 @@ class _Run:
             # Apps, then nodes stop before teardown (the nodes write their stats and close
             # their MCAP parts; a recorder outlives the apps it records); links still up for
             # the last counters.
+            if traffic:
+                result.traffic = traffic.stop()
+                if self.recording is not None:
+                    self.recording.record_traffic(traffic, ros_ok)
             if apps:
                 result.apps = apps.stop()
             if ros_ok:

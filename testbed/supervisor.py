@@ -307,7 +307,7 @@ class Supervisor:
         """One unlimited cgroup per vehicle/core namespace that runs nodes; limits come later."""
         topo = self.net.scenario.topology
         requests = {v.name: v.cpu for v in self.net.scenario.edgeloc_vehicles()}
-        hosts = {n.host for n in self.plan()}
+        hosts = {n.host for n in self.plan() if n.module != RECORDER}
         requests.update({c.server: c.core_cpu for c in topo.cells if c.server in hosts})
         ok, why = cgroups.available()
         ctl = cgroups.find_controller() if ok else None
@@ -350,7 +350,7 @@ class Supervisor:
         recorders = sum(n.module == RECORDER for n in self.nodes)
         also = f", {recorders} topic recorder(s)" if recorders else ""
         self.progress(
-            f"ROS nodes: {len(self.nodes) - recorders} EdgeLoc processes{also} started "
+            f"ROS nodes: {len(self.nodes) - recorders} EdgeLoc process(es){also} started "
             f"(ROS domain {self.env.domain_id}); waiting until they are ready"
         )
         pending = list(self.nodes)

@@ -75,7 +75,7 @@ class _ReplayEngine:
                 self.models[cfg.weights], self.datasets[dkey], cfg.codec
             )
         rows = []
-        for v in scenario.topology.vehicles:
+        for v in scenario.edgeloc_vehicles():
             model = latency_model(scenario, vehicle=v.name)
             try:
                 result = run_replay(
@@ -122,7 +122,7 @@ def _real_rows(
     procs = result.nodes.get("processes", {}) if isinstance(result.nodes, dict) else {}
     recorded = _report_summary(scenario, result.folder, progress)
     rows = []
-    for v in scenario.topology.vehicles:
+    for v in scenario.edgeloc_vehicles():
         fusion = procs.get(f"{v.name}.fusion", {}).get("stats", {})
         inference = procs.get(f"{v.name}.inference", {}).get("stats", {})
         errors = fusion.get("errors", {})
