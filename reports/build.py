@@ -27,7 +27,13 @@ from reports.document import Code, Document, Image, Para, Section, Table, to_mar
 from reports.html import to_html
 from reports.mcapread import ReportInputError, RunData, read_run
 from reports.plots import Plot, draw_all, safe
-from reports.summary import method_errors, summarize, summary_json
+from reports.summary import (
+    load_comparison,
+    load_windows,
+    method_errors,
+    summarize,
+    summary_json,
+)
 
 FORMATS = ("html", "md", "json")
 
@@ -854,6 +860,46 @@ def _traffic(folder: Path) -> Section | None:
     return sec
 
 
+def _load(s: dict[str, Any]) -> Section | None:
+    """EdgeLoc with and without the cross-traffic (`summary.load_comparison`)."""
+    load = s.get("load")
+    if not load:
+        return None
+    rows = []
+    for v, cmp in load["per_vehicle"].items():
+        for label, key in (("with load", "with_load"), ("without load", "without_load")):
+            r = cmp[key]
+            lat = r["latency_s"] or {}
+            rows.append(
+                [
+                    v,
+                    label,
+                    str(r["requests"]),
+                    str(r["answers"]),
+                    _ms(lat.get("median")) + " ms",
+                    _ms(lat.get("p95")) + " ms",
+                    _f(r["edgeloc_error_m"], "{:.3f} m"),
+                ]
+            )
+    headers = [
+        "vehicle",
+        "cross-traffic",
+        "requests",
+        "answers",
+        "latency p50",
+        "latency p95",
+        "EdgeLoc mean error",
+    ]
+    sec = Section("EdgeLoc under load")
+    sec.add(
+        Para(
+            "Requests and fused-pose errors while any traffic: flow ran, against the rest of "
+            "the run (one drive: its phases differ in more than the load)."
+        )
+    )
+    return sec.add(Table(headers, rows))
+
+
 def _captures(sec: Section, folder: Path) -> None:
     """The run's packet captures (`record.pcap`), with what run.json says each holds."""
     files = sorted((folder / PCAP_DIR).glob("*.pcapng"))
@@ -1012,7 +1058,7 @@ def document(
     sections += [_latency(s, plots)]
     sections += [_acc_lat(s, plots), _realtime(s, plots), _gaps(s), _links(s, plots)]
     sections += [_paths(data.path.parent, s.get("per_vehicle"), s["links"].get("linktest"))]
-    sections += [_apps(data.path.parent), _traffic(data.path.parent)]
+    sections += [_apps(data.path.parent), _traffic(data.path.parent), _load(s)]
     sections += [_nodes(s), _recording(data, s)]
     return Document(title, s["headline"], [x for x in sections if x is not None])
 
@@ -1067,6 +1113,7 @@ def build_report(
         raise ReportInputError(f"unknown report format(s) {sorted(unknown)}; use {list(FORMATS)}")
     data = read_run(folder / RUN_MCAP)
     s = summarize(data, splits=splits)
+    s["load"] = load_comparison(data, load_windows(_run_json(folder)))
     errs = method_errors(data)
     files: list[Path] = []
     tum = write_trajectories(data, folder)

@@ -250,6 +250,63 @@ def split_order(data: RunData) -> list[str]:
     return order
 
 
+def load_windows(run_json: dict[str, Any]) -> list[tuple[float, float]]:
+    """When cross-traffic ran, as wall-clock intervals (merged): each `traffic:` flow from its
+    start to its stop (or the end of the run), counted from the timeline's 0 s."""
+    flows = run_json.get("traffic") or {}
+    t0 = (run_json.get("timeline") or {}).get("started_epoch_s")
+    if not flows or t0 is None:
+        return []
+    end = float(run_json.get("duration_s") or math.inf)
+    spans = sorted(
+        (t0 + float(f.get("start_s") or 0.0), t0 + float(f.get("stop_s") or end))
+        for f in flows.values()
+    )
+    merged: list[tuple[float, float]] = []
+    for a, b in spans:
+        if merged and a <= merged[-1][1]:
+            merged[-1] = (merged[-1][0], max(merged[-1][1], b))
+        else:
+            merged.append((a, b))
+    return merged
+
+
+def load_comparison(data: RunData, windows: list[tuple[float, float]]) -> dict[str, Any] | None:
+    """Per vehicle, EdgeLoc with the cross-traffic on (`windows`) and off: requests, answers,
+    request latency and mean fused position error. None without windows or EdgeLoc data."""
+    if not windows or not data.vehicles:
+        return None
+    starts = np.array([a for a, _ in windows])
+    ends = np.array([b for _, b in windows])
+
+    def loaded(t: NDArray[np.float64]) -> NDArray[np.bool_]:
+        t = np.asarray(t, dtype=np.float64)[:, None]
+        return np.any((t >= starts) & (t < ends), axis=1)
+
+    errors = method_errors(data).get("edgeloc", {})
+    out: dict[str, Any] = {}
+    for v, vd in data.vehicles.items():
+        req_t = np.array([i.t for i in vd.inference], dtype=np.float64)
+        req_on = loaded(req_t) if len(req_t) else np.zeros(0, dtype=bool)
+        fe = errors.get(v)
+        err_on = loaded(fe.t) if fe is not None and len(fe.t) else None
+        rows: dict[str, Any] = {}
+        for label, want in (("with_load", True), ("without_load", False)):
+            reqs = [i for i, on in zip(vd.inference, req_on, strict=True) if on == want]
+            answered = [i.latency_s for i in reqs if i.ok and math.isfinite(i.latency_s)]
+            err = None
+            if fe is not None and err_on is not None and np.any(err_on == want):
+                err = float(np.mean(fe.position_m[err_on == want]))
+            rows[label] = {
+                "requests": len(reqs),
+                "answers": len(answered),
+                "latency_s": _series_stats(answered),
+                "edgeloc_error_m": err,
+            }
+        out[v] = rows
+    return {"windows": [[a, b] for a, b in windows], "per_vehicle": out}
+
+
 def latency_summary(data: RunData) -> dict[str, Any]:
     reqs = [i for vd in data.vehicles.values() for i in vd.inference]
     if not reqs:

@@ -494,6 +494,7 @@ class _Run:
                 "scenario": scenario.name,
                 "source": str(scenario.source) if scenario.source else None,
                 "seed": scenario.seed,
+                "duration_s": scenario.duration_s,
                 "testbed_version": __version__,
                 **result.to_dict(),
             },
@@ -560,6 +561,8 @@ class _Run:
                 "applied": len(player.applied),
                 "lateness": player.lateness(),
                 "file": names.EVENTS_FILE,
+                # what `traffic:` and `apps:` times count from, for the report
+                "started_epoch_s": player.started_epoch_s,
             }
         finally:
             # Apps, then nodes stop before teardown (the nodes write their stats and close

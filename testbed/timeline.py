@@ -173,6 +173,7 @@ class TimelinePlayer:
         self._go = threading.Event()
         self._done = threading.Event()
         self._thread: threading.Thread | None = None
+        self.started_epoch_s: float | None = None
 
     # -- life cycle -------------------------------------------------------------------------
 
@@ -204,6 +205,8 @@ class TimelinePlayer:
         if prepared:
             raise prepared[0]
         self.t0 = self.clock.now() if t0 is None else t0
+        # The wall clock at 0 s, for whoever places timeline times against recorded stamps.
+        self.started_epoch_s = time.time() - (self.clock.now() - self.t0)
         self._go.set()
         return self
 

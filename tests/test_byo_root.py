@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import json
 import re
+import shutil
 import subprocess
 import time
 from pathlib import Path
@@ -24,6 +25,7 @@ from tests.realrun import processes_mentioning, testbed_cli, testbed_popen
 pytestmark = [pytest.mark.root, pytest.mark.ros, pytest.mark.slow, pytest.mark.e2e]
 
 RATE_HZ = 20
+REPO = Path(__file__).resolve().parents[1]
 
 #: A third-party subscriber: counts fused poses (method "edgeloc") and publishes the count.
 SUBSCRIBER = """
@@ -276,4 +278,71 @@ traffic:
     assert summary is not None
     topics = {c.topic for c in summary.channels.values()}
     assert {"/traffic/cbr", "/traffic/bulk"} <= topics
+    _nothing_left(run_id, folder)
+
+
+def _shipped(name: str, folder: Path, replace: dict[str, str]) -> Path:
+    """scenarios/<name>.yaml with some lines changed (shorter), in `folder` with a copy of
+    scenarios/apps/ beside it (its apps' paths are relative to the file)."""
+    text = (REPO / "scenarios" / f"{name}.yaml").read_text()
+    for old, new in replace.items():
+        assert old in text, old
+        text = text.replace(old, new)
+    shutil.copytree(REPO / "scenarios" / "apps", folder / "apps", dirs_exist_ok=True)
+    path = folder / f"{name}.yaml"
+    path.write_text(text)
+    return path
+
+
+def test_byo_ros2_carries_a_third_party_talker_to_a_listener_across_gtp_u(
+    state_dir: Path, interfaces: None, tmp_path: Path
+) -> None:
+    path = _shipped(
+        "byo_ros2",
+        tmp_path,
+        {"duration: 20s": "duration: 12s", "at: 10s": "at: 6s", "at: 15s": "at: 9s"},
+    )
+    out = testbed_cli("run", str(path), "--runs-dir", str(tmp_path), "--no-capacity-check")
+    assert out.returncode == 0, out.stdout + out.stderr
+    run_id = _run_id(out.stdout.splitlines(keepends=True))
+    folder = tmp_path / run_id
+    heard = (folder / "logs" / "app.listener.log").read_text().count('listener: heard "hello')
+    from rosbags.highlevel import AnyReader
+
+    with AnyReader([folder / "run.mcap"]) as reader:
+        conns = [c for c in reader.connections if c.topic == "/chatter"]
+        data = [reader.deserialize(raw, c.msgtype).data for c, _, raw in reader.messages(conns)]
+    print(f"listener heard {heard}, /chatter recorded {len(data)} at the edge")
+    assert heard >= 0.8 * 10 * 8  # 10 Hz from 2 s to 12 s, less discovery
+    assert data and data[0].startswith("hello ") and abs(len(data) - heard) <= 3
+    _nothing_left(run_id, folder)
+
+
+def test_loaded_cell_reports_edgeloc_with_and_without_the_background_ues_load(
+    state_dir: Path, interfaces: None, tmp_path: Path
+) -> None:
+    path = _shipped(
+        "loaded_cell",
+        tmp_path,
+        {"duration: 60s": "duration: 30s", "start: 20s, stop: 40s": "start: 10s, stop: 20s"},
+    )
+    out = testbed_cli("run", str(path), "--runs-dir", str(tmp_path), "--no-capacity-check")
+    assert out.returncode == 0, out.stdout + out.stderr
+    run_id = _run_id(out.stdout.splitlines(keepends=True))
+    folder = tmp_path / run_id
+    load = json.loads((folder / "summary.json").read_text())["load"]["per_vehicle"]["av1"]
+    on, off = load["with_load"], load["without_load"]
+    print(
+        f"av1 with load: {on['answers']} answers, p50 {on['latency_s']['median'] * 1e3:.1f} ms,"
+        f" error {on['edgeloc_error_m']:.3f} m; without: {off['answers']} answers, p50"
+        f" {off['latency_s']['median'] * 1e3:.1f} ms, error {off['edgeloc_error_m']:.3f} m"
+    )
+    # Three UEs offering 30 Mbit/s in a ~22 Mbit/s uplink leave av1 a quarter of the slots.
+    assert on["latency_s"]["median"] > 1.15 * off["latency_s"]["median"]
+    report = (folder / "report.md").read_text()
+    assert "## EdgeLoc under load" in report and "| av1 | with load |" in report
+    flows = _flows(folder)
+    carried = sum(f["goodput_bps"] for f in flows.values())
+    print(f"background UEs carried {carried / 1e6:.1f} Mbit/s of 30 offered")
+    assert carried < 25e6 and all(f["loss"] > 0.1 for f in flows.values())
     _nothing_left(run_id, folder)
