@@ -267,19 +267,24 @@ def load_tree(data: dict[str, Any], file: Path, what: str) -> Scenario:
 
 def shorten(data: dict[str, Any], duration_s: float) -> dict[str, Any]:
     """A copy of a scenario tree cut to `duration_s`, its timeline scaled with it (event times
-    and outage lengths), so every phase of a long scenario is still played, briefly. Traces
-    play at their own pace: a shortened trace-driven run sees the start of its trace."""
+    and outage lengths, and the start and stop of apps and traffic flows), so every phase of a
+    long scenario is still played, briefly. Traces play at their own pace: a shortened
+    trace-driven run sees the start of its trace."""
     from testbed import units
 
     out = copy.deepcopy(data)
     full = units.parse_duration(str(data["duration"]))
     factor = min(1.0, duration_s / full)
     out["duration"] = f"{duration_s:g}s"
-    for event in out.get("timeline") or []:
+    timed = [(e, ("at", "for")) for e in out.get("timeline") or []]
+    timed += [
+        (e, ("start", "stop")) for e in [*(out.get("apps") or []), *(out.get("traffic") or [])]
+    ]
+    for event, keys in timed:
         if not isinstance(event, dict):
             continue
-        for k in ("at", "for"):
-            if k in event:
+        for k in keys:
+            if k in event and event[k] is not None:
                 scaled = units.parse_duration(str(event[k])) * factor
                 event[k] = f"{round(scaled, 3):g}s" if scaled else 0
     return out
