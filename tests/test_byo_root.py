@@ -122,6 +122,7 @@ apps:
     command: [python, apps/sub.py]
     ros: true
     ready: {topic: /av1/pose, timeout: 60s}
+    cpu: 0.5
 record:
   topics: [{regex: "^/byo/", node: av1}]
 """,
@@ -155,6 +156,10 @@ record:
     sub = run["apps"]["sub"]
     assert sub["stopped_by_testbed"] and sub["ready_at_s"] is not None
     assert sub["resources"]["user_s"] > 0 and sub["resources"]["peak_rss_kb"] > 10_000
+    from testbed import cgroups
+
+    if cgroups.available()[0]:  # its cpu: 0.5 was a real quota: the kernel counted periods
+        assert sub["cpu_cores"] == 0.5 and sub["cpu_stat"]["nr_periods"] > 0
     assert "| sub | av1 |" in (folder / "report.md").read_text()
 
     # record.topics: both counts in run.mcap, decoded by rosbags (not our reader).
