@@ -124,9 +124,22 @@ def validate(
                 con.error(line)
             continue
         scenarios.append((path, scenario))
+        extra = [
+            f"{n} {what}"
+            for n, what in (
+                (len(scenario.apps), "app(s)"),
+                (len(scenario.traffic), "traffic flow(s)"),
+                (len(scenario.record.topics), "recorded topic pattern(s)"),
+            )
+            if n
+        ]
+        if scenario.workload.kind == "none":
+            extra.append("no EdgeLoc workload")
         con.ok(
             f"{path}: valid ({len(scenario.topology.vehicles)} vehicle(s), "
-            f"{len(scenario.topology.cells)} cell(s), {len(scenario.timeline)} timeline event(s))"
+            f"{len(scenario.topology.cells)} cell(s), {len(scenario.timeline)} timeline event(s)"
+            + "".join(f", {e}" for e in extra)
+            + ")"
         )
     if host and scenarios and _validate_host(scenarios) and not bad:
         raise typer.Exit(EXIT_HOST)
