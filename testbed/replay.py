@@ -25,6 +25,7 @@ How the scenario becomes a latency model (for the first vehicle, or `vehicle=`):
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 import secrets
@@ -71,6 +72,7 @@ from testbed.scenario.model import (
     SetEvent,
     ShapeEvent,
     TraceEvent,
+    Traffic,
 )
 
 DEFAULT_GATE = GateSettings()  # beyond the paper; see nodes.edgeloc.gate
@@ -92,11 +94,18 @@ _ComputeCache: dict[tuple[str, str, bool], ComputeProfile] = {}
 # ---- scenario -> replay config ----------------------------------------------------------------
 
 
+#: The least part of its rate a hop keeps under cross-traffic (a saturated link still moves).
+MIN_LEFT = 0.02
+
+
 def replay_config(scenario: Scenario, gate: GateSettings | None = DEFAULT_GATE) -> ReplayConfig:
     """The plain replay settings of a scenario's workload."""
     w = scenario.workload
     lr = w.learner
-    times = sorted({0.0, *(e.at_s for e in scenario.timeline if e.at_s < scenario.duration_s)})
+    # Phases: between timeline events, and where cross-traffic starts or stops.
+    edges = [e.at_s for e in scenario.timeline]
+    edges += [t for f in scenario.traffic for t in (f.start_s, f.stop_s) if t is not None]
+    times = sorted({0.0, *(t for t in edges if t < scenario.duration_s)})
     return ReplayConfig(
         name=scenario.name,
         seed=scenario.seed,
@@ -154,6 +163,9 @@ class _PathPlan:
         # at the cell). GTP-U's 44 bytes per packet on N3 are left out (1-3% of a packet).
         self.wired = [scenario.links.get(n) for n in self.cell.path()]
         self.scenario = scenario
+        # Cross-traffic to or from a UE of this cell loads its radio and its wired hops.
+        self.cell_ues = {v.name for v in topo.vehicles if v.gnb == self.vehicle.gnb}
+        self.flows = [f for f in scenario.traffic if {f.src, f.dst} & self.cell_ues]
         self.traces: dict[tuple[str, str], tuple[TraceEvent, Trace]] = {}
         for e in scenario.timeline:
             if isinstance(e, TraceEvent):
@@ -178,6 +190,8 @@ class _PathPlan:
         for ev, trace in self.traces.values():
             for t in _trace_steps(ev, trace, horizon):
                 times.add(t)
+        for f in self.flows:
+            times.update((f.start_s, horizon if f.stop_s is None else f.stop_s))
         return sorted(t for t in times if 0.0 <= t < horizon)
 
     def states_at(self, t: float) -> tuple[PathState, PathState]:
@@ -211,9 +225,13 @@ class _PathPlan:
             elif isinstance(e, TraceEvent):
                 trace_on[(e.link, e.direction)] = e
 
-        def hop(link: LinkSpec, direction: str, cap: float | None) -> PathState:
+        active = [f for f in self.flows if f.start_s <= t < (f.stop_s or math.inf)]
+
+        def hop(link: LinkSpec, direction: str, cap: float | None, load: float = 0.0) -> PathState:
             p = prof[(link.name, direction)]
             rate = math.inf if p.rate_bps is None else float(p.rate_bps)
+            # What cross-traffic leaves of a shared hop (a floor: a saturated hop still moves).
+            rate = max(rate - load, rate * MIN_LEFT) if load else rate
             up = link.name not in down
             if (link.name, direction) in trace_on:
                 ev, trace = self.traces[(link.name, direction)]
@@ -221,6 +239,11 @@ class _PathPlan:
                 rate, up = (r, up) if r > 0 else (rate, False)
             if cap is not None:
                 rate = min(rate, cap)
+            air = None
+            if p.radio is not None:
+                others = self._ue_loads(active, direction)
+                share = cell_share(p.radio.goodput_bps(direction), others)  # type: ignore[arg-type]
+                air = RadioHop(p.radio, direction, share)  # type: ignore[arg-type]
             return PathState(
                 rate_bps=rate,
                 delay_s=p.fixed_delay_s,
@@ -228,7 +251,7 @@ class _PathPlan:
                 jitter_distribution=p.jitter_distribution,
                 loss=p.expected_loss,
                 up=up,
-                air=None if p.radio is None else RadioHop(p.radio, direction),  # type: ignore[arg-type]
+                air=air,
             )
 
         v, c = self.vehicle.name, self.cell.server
@@ -236,13 +259,46 @@ class _PathPlan:
         # A cap on the edge server is on its end of the last wired hop (its ingress is that
         # hop's uplink, its egress the downlink), a vehicle's on its air link.
         last = len(self.wired) - 1
-        ups = [hop(w, "uplink", ccap[1] if i == last else None) for i, w in enumerate(self.wired)]
-        downs = [
-            hop(w, "downlink", ccap[0] if i == last else None) for i, w in enumerate(self.wired)
+        ups = [
+            hop(w, "uplink", ccap[1] if i == last else None, self._wired_load(active, i, "uplink"))
+            for i, w in enumerate(self.wired)
         ]
-        uplink = PathState.fold([hop(self.air, "uplink", vcap[0]), *ups])
-        downlink = PathState.fold([*reversed(downs), hop(self.air, "downlink", vcap[1])])
+        downs = [
+            hop(
+                w,
+                "downlink",
+                ccap[0] if i == last else None,
+                self._wired_load(active, i, "downlink"),
+            )
+            for i, w in enumerate(self.wired)
+        ]
+        own_up = sum(wire_bps(f) for f in active if f.src == v)
+        own_down = sum(wire_bps(f) for f in active if f.dst == v)
+        air_up = hop(self.air, "uplink", vcap[0], own_up)
+        air_down = hop(self.air, "downlink", vcap[1], own_down)
+        uplink = PathState.fold([air_up, *ups])
+        downlink = PathState.fold([*reversed(downs), air_down])
         return uplink, downlink
+
+    def _ue_loads(self, active: list[Traffic], direction: str) -> list[float]:
+        """What the other UEs of the cell offer its radio in `direction`, one figure per UE."""
+        per_ue: dict[str, float] = {}
+        for f in active:
+            ue = f.src if direction == "uplink" else f.dst
+            if ue in self.cell_ues and ue != self.vehicle.name:
+                per_ue[ue] = per_ue.get(ue, 0.0) + wire_bps(f)
+        return list(per_ue.values())
+
+    def _wired_load(self, active: list[Traffic], index: int, direction: str) -> float:
+        """Cross-traffic on wired hop `index` of the path in `direction`: flows between a UE
+        of the cell and a node at or beyond that hop's far end."""
+        beyond = {link.upper for link in self.wired[index:]}  # links run gNB side first
+        load = 0.0
+        for f in active:
+            ue, far = (f.src, f.dst) if direction == "uplink" else (f.dst, f.src)
+            if ue in self.cell_ues and far in beyond:
+                load += wire_bps(f)
+        return load
 
     def schedules(self, horizon: float) -> tuple[PathSchedule, PathSchedule]:
         times, ups, downs = [], [], []
@@ -262,22 +318,33 @@ class RadioHop:
 
     Each message meets an idle UE (a fresh `Slots` stage: its SR wait, grants, HARQ and RLC
     as a real run's relay plays them), sent as the packets a ROS 2 node would send; a replay
-    asks ~10 times a second, so requests seldom queue behind each other.
+    asks ~10 times a second, so requests seldom queue behind each other. `share` is the part
+    of the cell's PRBs the UE gets while other UEs of its cell carry `traffic:`
+    (`cell_share`): its radio then has that part of its PRBs (a transport block is close to
+    linear in PRBs at a fixed MCS, as `netem.cell` shares them).
     """
 
     radio: Radio
     direction: Direction
+    share: float = 1.0
+
+    @property
+    def carried(self) -> Radio:
+        """The radio as this UE sees it: its share of the PRBs."""
+        if self.share >= 1.0:
+            return self.radio
+        return dataclasses.replace(self.radio, n_prb=max(1, round(self.radio.n_prb * self.share)))
 
     @property
     def rate_bps(self) -> float:
-        return self.radio.goodput_bps(self.direction)
+        return self.carried.goodput_bps(self.direction)
 
     def deliver(self, start_s: float, nbytes: int, rng: np.random.Generator) -> float:
         from netem.profile import LinkProfile
         from netem.stages import Slots
 
         stage = Slots(direction=self.direction, seed=int(rng.integers(1 << 31)))
-        stage.configure(LinkProfile(radio=self.radio, queue_packets=None))
+        stage.configure(LinkProfile(radio=self.carried, queue_packets=None))
         left = nbytes
         while left > 0:  # the message's packets, all there at once
             size = min(left, PACKET_PAYLOAD + PACKET_OVERHEAD)
@@ -288,6 +355,39 @@ class RadioHop:
             if stage.pop_ready(due):
                 done = due
         return done
+
+
+#: IPv4 + UDP headers of a traffic datagram; IPv4 + TCP with timestamps of a segment.
+UDP_HEADERS, TCP_HEADERS = 28, 52
+#: The payload of a full TCP segment on a 1500-byte link (what `wire_bps` scales by).
+TCP_SEGMENT = 1448
+
+
+def wire_bps(flow: Traffic) -> float:
+    """What a `traffic:` flow offers a link on average, headers included (inf: bulk TCP)."""
+    if flow.rate_bps is None:
+        return math.inf
+    if flow.kind == "tcp":
+        rate = flow.rate_bps * (TCP_SEGMENT + TCP_HEADERS) / TCP_SEGMENT
+    else:
+        rate = flow.rate_bps * (flow.size + UDP_HEADERS) / flow.size
+    if flow.kind == "onoff":
+        rate *= flow.on_s / (flow.on_s + flow.off_s)
+    return rate
+
+
+def cell_share(capacity_bps: float, others_bps: Sequence[float]) -> float:
+    """The part of a cell's capacity a UE with a burst to send gets beside other UEs offering
+    `others_bps`, as the `rr` scheduler shares it (water filling: a UE that wants less than an
+    equal share keeps what it wants, the rest is split equally). `pf` shares a saturated
+    cell the same way in the long run."""
+    users, left = len(others_bps) + 1, capacity_bps
+    for want in sorted(others_bps):
+        if want >= left / users:
+            break
+        left -= want
+        users -= 1
+    return left / users / capacity_bps
 
 
 def _trace_steps(ev: TraceEvent, trace: Trace, horizon: float) -> list[float]:
