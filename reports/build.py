@@ -28,6 +28,7 @@ from reports.html import to_html
 from reports.mcapread import ReportInputError, RunData, read_run
 from reports.plots import Plot, draw_all, safe
 from reports.summary import (
+    edgeloc_vehicles,
     load_comparison,
     load_windows,
     method_errors,
@@ -1053,10 +1054,15 @@ def document(
     title = f"EdgeLoc run {run_id}" + (f" — {scen}" if scen else "")
     if s["partial"]:
         title += " (partial)"
-    sections = [_overview(data, s), _failures(s), _accuracy(s, plots), _paper(s)]
-    sections += [_trajectories(data, plots, tum), _learner(data, s, plots), _splits(s, plots)]
-    sections += [_latency(s, plots)]
-    sections += [_acc_lat(s, plots), _realtime(s, plots), _gaps(s), _links(s, plots)]
+    sections = [_overview(data, s), _failures(s)]
+    if edgeloc_vehicles(s["run"]) != 0:  # a `workload: none` run has none of these
+        sections += [_accuracy(s, plots), _paper(s)]
+        sections += [_trajectories(data, plots, tum), _learner(data, s, plots)]
+        sections += [_splits(s, plots), _latency(s, plots)]
+        sections += [_acc_lat(s, plots), _realtime(s, plots), _gaps(s)]
+    else:
+        title = title.replace("EdgeLoc run", "Run", 1)
+    sections += [_links(s, plots)]
     sections += [_paths(data.path.parent, s.get("per_vehicle"), s["links"].get("linktest"))]
     sections += [_apps(data.path.parent), _traffic(data.path.parent), _load(s)]
     sections += [_nodes(s), _recording(data, s)]
