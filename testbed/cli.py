@@ -568,6 +568,15 @@ def sweep(
             show_default=False,
         ),
     ] = None,
+    seeds: Annotated[
+        int,
+        typer.Option(
+            "--seeds",
+            help="Run each variant N times, with the scenario's seed and the N-1 after it; the "
+            "report adds each figure's mean and 95% confidence interval, the plot error bars.",
+            min=1,
+        ),
+    ] = 1,
 ) -> None:
     """Run a grid of variants of a scenario (offline replay, or real runs with --real) and
     write one comparison: DIR/sweep.json, sweep.md (variant values -> per-method total and
@@ -586,11 +595,15 @@ def sweep(
       --set timeline[1].uplink=4mbit,8mbit --out runs/window-vs-squeeze
 
       sudo testbed sweep scenarios/smoke.yaml --set links.av1-gnb1.uplink.loss=0%,2% --real
+
+      testbed sweep scenarios/default.yaml --set workload.fusion.method=paper,ekf --seeds 5
     """
     from testbed.sweep import run_sweep
 
     try:
-        report = run_sweep(file, sets, out=out, real=real, progress=con.plain, duration=duration)
+        report = run_sweep(
+            file, sets, out=out, real=real, progress=con.plain, duration=duration, seeds=seeds
+        )
     except KNOWN_ERRORS as err:
         raise _fail(err) from None
     for name in ("sweep.md", "sweep.json", "sweep.png"):

@@ -24,6 +24,7 @@ from testbed.errors import BadInput, HostError, TestbedError
 from testbed.scenario.model import Scenario
 from testbed.sweep.grid import grid, label, load_tree, parse_set, read_tree, shorten, variant_tree
 from testbed.sweep.output import SweepReport, VariantResult, row_line, write_report
+from testbed.sweep.stats import MAX_SEEDS, derived_seed
 
 Progress = Callable[[str], None]
 
@@ -202,14 +203,19 @@ def run_sweep(
     progress: Progress = print,
     runs_root: Path = Path("runs"),
     duration: str | None = None,
+    seeds: int = 1,
 ) -> SweepReport:
-    """Check every variant, run them one by one, write the report; returns it.
+    """Check every variant, run them one by one, write the report; returns it. With
+    `seeds` > 1 each variant runs that many times, with the scenario's seed and the next ones
+    (`stats.derived_seed`), and the report adds each figure's mean and 95% interval.
 
     Raises `BadInput` / `ScenarioError` (exit 2) before anything runs when an option, a key or
     a value is wrong. A real variant that fails is recorded in its row and the sweep goes on;
     a host that cannot run (not root) stops it (`HostError`, exit 3).
     """
     t_start = time.perf_counter()
+    if not 1 <= seeds <= MAX_SEEDS:
+        raise BadInput(f"--seeds: expected 1 to {MAX_SEEDS} repetitions, found {seeds}")
     axes = [parse_set(s) for s in sets]
     variants = grid(axes)
     base = read_tree(file)
@@ -234,37 +240,49 @@ def run_sweep(
         out = runs_root / f"sweep-{secrets.token_hex(3)}"
     out.mkdir(parents=True, exist_ok=True)
     (out / "variants").mkdir(exist_ok=True)
-    report = SweepReport(str(file), "real" if real else "replay", axes, out=out)
+    report = SweepReport(str(file), "real" if real else "replay", axes, out=out, seeds=seeds)
     engine = _ReplayEngine()
+    repeats = f" x {seeds} seeds" if seeds > 1 else ""
     progress(
-        f"sweep of {file}: {len(variants)} variant(s) "
+        f"sweep of {file}: {len(variants)} variant(s){repeats} "
         f"({' x '.join(f'{a.key} ({len(a.values)})' for a in axes)}), "
         f"{'real runs' if real else 'offline replay'}; report in {out}/"
     )
-    for i, scenario in enumerate(scenarios):
+    for i, variant in enumerate(scenarios):
         values = label(axes, i)
         shown = ", ".join(f"{k}={v}" for k, v in values.items())
-        # The variant as a file beside the report: what ran, and what a run folder copies.
-        variant_file = out / "variants" / f"v{i + 1:02d}.yaml"
-        variant_file.write_text(
-            f"# {file} with {shown}\n"
-            + yaml.safe_dump(variant_tree(base, variants[i]), sort_keys=False)
-        )
-        scenario = dataclasses.replace(scenario, source=variant_file)
-        progress(f"variant {i + 1}/{len(scenarios)}: {shown}")
-        t0 = time.perf_counter()
-        try:
-            if real:
-                rows = _real_rows(scenario, out / "runs", i, values, progress)
-            else:
-                rows = engine.run(scenario, out / "replay" / f"v{i + 1:02d}", i, values)
-        except (BadInput, HostError):  # wrong for every variant, or this host cannot run any
-            raise
-        except (TestbedError, NetemError, RecordingError) as err:
-            rows = [_failed_row(i, values, v.name, str(err)) for v in scenario.topology.vehicles]
-        report.rows += rows
-        for r in rows:
-            progress(f"  {r.vehicle}: {row_line(r)} ({time.perf_counter() - t0:.1f} s)")
+        for k in range(seeds):
+            seed = derived_seed(variant.seed, k)
+            name = f"v{i + 1:02d}" + (f"-s{seed}" if seeds > 1 else "")
+            # The variant as a file beside the report: what ran, what a run folder copies.
+            tree = variant_tree(base, variants[i])
+            tree["seed"] = seed
+            variant_file = out / "variants" / f"{name}.yaml"
+            variant_file.write_text(
+                f"# {file} with {shown}" + (f", seed {seed}" if seeds > 1 else "") + "\n"
+                + yaml.safe_dump(tree, sort_keys=False)
+            )  # fmt: skip
+            scenario = dataclasses.replace(variant, source=variant_file, seed=seed)
+            progress(
+                f"variant {i + 1}/{len(scenarios)}: {shown}"
+                + (f" (seed {seed}, {k + 1}/{seeds})" if seeds > 1 else "")
+            )
+            t0 = time.perf_counter()
+            try:
+                if real:
+                    rows = _real_rows(scenario, out / "runs", i, values, progress)
+                else:
+                    rows = engine.run(scenario, out / "replay" / name, i, values)
+            except (BadInput, HostError):  # wrong for every variant, or no run can run here
+                raise
+            except (TestbedError, NetemError, RecordingError) as err:
+                vehicles = scenario.edgeloc_vehicles()
+                rows = [_failed_row(i, values, v.name, str(err)) for v in vehicles]
+            for r in rows:
+                r.seed = seed
+            report.rows += rows
+            for r in rows:
+                progress(f"  {r.vehicle}: {row_line(r)} ({time.perf_counter() - t0:.1f} s)")
     report.wall_s = time.perf_counter() - t_start
     write_report(report)
     return report

@@ -13,6 +13,7 @@ from pathlib import Path
 from typing import Any
 
 from testbed.sweep.grid import Axis, label
+from testbed.sweep.stats import across_seeds
 
 
 @dataclass
@@ -31,6 +32,7 @@ class VariantResult:
     lost: int
     wall_s: float
     error: str | None = None
+    seed: int = 0  # the scenario's seed this row ran with (`--seeds`)
 
     def to_dict(self) -> dict[str, Any]:
         return dataclasses.asdict(self)
@@ -44,6 +46,11 @@ class SweepReport:
     rows: list[VariantResult] = field(default_factory=list)
     out: Path = Path()
     wall_s: float = 0.0
+    seeds: int = 1  # repetitions of each variant, with derived seeds
+
+    def statistics(self) -> list[dict[str, Any]]:
+        """Per variant and vehicle, each metric's mean and 95% interval over the seeds."""
+        return across_seeds(self.rows)
 
     @property
     def failed(self) -> list[VariantResult]:
@@ -56,6 +63,8 @@ class SweepReport:
             "axes": [{"key": a.key, "values": list(a.texts)} for a in self.axes],
             "variants": [r.to_dict() for r in self.rows],
             "wall_s": round(self.wall_s, 3),
+            "seeds": self.seeds,
+            "statistics": self.statistics() if self.seeds > 1 else None,
             "notes": _notes(self.mode),
         }
 
@@ -98,9 +107,11 @@ def _num(x: float | None, fmt: str) -> str:
 def markdown(report: SweepReport) -> str:
     keys = [a.key for a in report.axes]
     multi = len({r.vehicle for r in report.rows}) > 1
+    seeded = report.seeds > 1
     head = [
         *keys,
         *(["vehicle"] if multi else []),
+        *(["seed"] if seeded else []),
         *(f"{m} total m" for m in ("edgeloc", "kalman", "dnn", "vo")),
         "edgeloc mean m",
         *(f"vs {m}" for m in ("vo", "dnn", "kalman")),
@@ -121,6 +132,7 @@ def markdown(report: SweepReport) -> str:
     for r in report.rows:
         if r.error:
             cells = [*(r.values[k] for k in keys), *([r.vehicle] if multi else [])]
+            cells += [str(r.seed)] if seeded else []
             cells += [f"failed: {r.error.splitlines()[0]}"] + [""] * (len(head) - len(cells) - 1)
             lines.append("| " + " | ".join(cells) + " |")
             continue
@@ -132,6 +144,7 @@ def markdown(report: SweepReport) -> str:
         cells = [
             *(r.values[k] for k in keys),
             *([r.vehicle] if multi else []),
+            *([str(r.seed)] if seeded else []),
             *(_num(r.methods[m]["total_m"], ".1f") for m in ("edgeloc", "kalman", "dnn", "vo")),
             _num(r.methods["edgeloc"]["mean_m"], ".2f"),
             *(_pct(r.reductions_pct[m]) for m in ("vo", "dnn", "kalman")),
@@ -140,9 +153,50 @@ def markdown(report: SweepReport) -> str:
             f"{r.requests} ({r.lost})",
         ]
         lines.append("| " + " | ".join(cells) + " |")
+    if seeded:
+        lines += ["", *_seed_table(report, keys, multi)]
     lines += ["", "Reductions are EdgeLoc's against each baseline (positive: EdgeLoc is better)."]
     lines += [f"- {n}" for n in _notes(report.mode)]
     return "\n".join(lines) + "\n"
+
+
+def _ci(stat: dict[str, Any] | None, fmt: str) -> str:
+    if stat is None:
+        return "-"
+    half = stat["ci95"]
+    width = fmt.lstrip("+")  # a half width has no sign
+    return format(stat["mean"], fmt) + ("" if half is None else " ± " + format(half, width))
+
+
+def _seed_table(report: SweepReport, keys: list[str], multi: bool) -> list[str]:
+    """Each variant's mean ± 95% interval (Student's t) over its seeds."""
+    head = [
+        *keys,
+        *(["vehicle"] if multi else []),
+        "seeds",
+        *(f"{m} total m" for m in ("edgeloc", "kalman", "dnn", "vo")),
+        *(f"vs {m} %" for m in ("vo", "dnn", "kalman")),
+        "mean latency ms",
+    ]
+    lines = [
+        f"## Across {report.seeds} seeds (mean ± 95% confidence interval)",
+        "",
+        "| " + " | ".join(head) + " |",
+        "|" + "|".join(" --- " for _ in head) + "|",
+    ]
+    for g in report.statistics():
+        m = g["metrics"]
+        n = len(g["seeds"]) - g["failed"]
+        cells = [
+            *(g["values"][k] for k in keys),
+            *([g["vehicle"]] if multi else []),
+            f"{n}" + (f" ({g['failed']} failed)" if g["failed"] else ""),
+            *(_ci(m[f"{x}_total_m"], ".1f") for x in ("edgeloc", "kalman", "dnn", "vo")),
+            *(_ci(m[f"reduction_vs_{x}_pct"], "+.1f") for x in ("vo", "dnn", "kalman")),
+            _ci(m["mean_latency_ms"], ".1f"),
+        ]
+        lines.append("| " + " | ".join(cells) + " |")
+    return lines
 
 
 def _pct(x: float | None) -> str:
@@ -166,24 +220,35 @@ def plot(report: SweepReport, path: Path) -> None:
     ]
     fig, (top, bottom) = plt.subplots(2, 1, figsize=(8, 6.5), sharex=True)
     styles = ["-", "--", ":", "-."]
+    stats = {(g["index"], g["vehicle"]): g["metrics"] for g in across_seeds(report.rows)}
+
+    def point(i: int, vehicle: str, metric: str) -> tuple[float, float]:
+        """Mean over the seeds (one seed: the row's value) and its 95% half width."""
+        stat = stats.get((i, vehicle), {}).get(metric)
+        if stat is None:
+            return math.nan, 0.0
+        return stat["mean"], stat["ci95"] or 0.0
+
     for vi, vehicle in enumerate(vehicles):
-        rows = {r.index: r for r in report.rows if r.vehicle == vehicle}
         style = styles[vi % len(styles)]
         suffix = f" ({vehicle})" if len(vehicles) > 1 else ""
         for ci, m in enumerate(("edgeloc", "kalman", "dnn", "vo")):
-            ys = [_nan(rows[i].methods[m]["total_m"]) if i in rows else math.nan for i in range(n)]
-            # One colour per method, one line style per vehicle.
-            top.plot(range(n), ys, style, marker="o", color=f"C{ci}", label=f"{m}{suffix}")
-        lat = [
-            _nan(None if rows.get(i) is None or rows[i].mean_latency_s is None
-                 else 1000 * rows[i].mean_latency_s)  # type: ignore[operator]
-            for i in range(n)
-        ]  # fmt: skip
-        bottom.plot(range(n), lat, style, marker="o", color="black", label=f"latency{suffix}")
+            ys, es = zip(*(point(i, vehicle, f"{m}_total_m") for i in range(n)), strict=True)
+            # One colour per method, one line style per vehicle; bars: 95% over the seeds.
+            top.errorbar(
+                range(n), ys, yerr=es, fmt=style, marker="o", color=f"C{ci}", capsize=3,
+                label=f"{m}{suffix}",
+            )  # fmt: skip
+        lat, lat_e = zip(*(point(i, vehicle, "mean_latency_ms") for i in range(n)), strict=True)
+        bottom.errorbar(
+            range(n), lat, yerr=lat_e, fmt=style, marker="o", color="black", capsize=3,
+            label=f"latency{suffix}",
+        )  # fmt: skip
     top.set_ylabel("total position error (m)")
     top.set_yscale("log")
     top.legend(fontsize=8, ncol=2)
-    top.set_title(f"sweep of {Path(report.scenario).name} ({report.mode})")
+    seeds = f", mean ± 95% over {report.seeds} seeds" if report.seeds > 1 else ""
+    top.set_title(f"sweep of {Path(report.scenario).name} ({report.mode}{seeds})")
     bottom.set_ylabel("mean request latency (ms)")
     bottom.set_xticks(range(n), ticks, fontsize=8)
     bottom.set_xlabel(" / ".join(a.key for a in report.axes))
