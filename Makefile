@@ -17,7 +17,7 @@ HAVE_APT_ROS := $(shell [ "$$ROS_DISTRO" = jazzy ] && $(PYTHON) -c 'import rclpy
 # Debian packages for the tc-backend VM tests (tests/vm/), needed only where the host kernel has
 # no sch_netem. INITRD=No: the kernel is only booted by qemu, so no initramfs/grub update.
 VM_DEBS := qemu-system-x86 linux-image-amd64 busybox-static
-.PHONY: sysdeps test-netem chromium tshark iperf3 report-screenshot
+.PHONY: sysdeps test-netem chromium tshark iperf3 ray report-screenshot
 
 help:
 	@echo "make scenario   set up (first time) and run $(SCENARIO)"
@@ -56,7 +56,7 @@ scenario:
 smoke: setup
 	$(BIN)/testbed run scenarios/smoke.yaml
 
-test: setup sysdeps chromium tshark iperf3
+test: setup sysdeps chromium tshark iperf3 ray
 	$(BIN)/python -m pytest -q
 
 # Installs $(VM_DEBS) when this kernel lacks sch_netem and they are missing (root only).
@@ -92,6 +92,10 @@ tshark:
 # installs it; a user without root gets those tests' skip reason instead).
 iperf3:
 	@$(call debian_tool,iperf3,the iperf3 comparisons of the traffic tests will skip)
+
+# Ray, the optional extra of `testbed sweep --engine ray`: installed for its tests only.
+ray: setup
+	@$(BIN)/python -c 'import ray' 2>/dev/null || $(BIN)/pip install --disable-pip-version-check -q -e '.[test,ray]'
 
 report-screenshot: setup chromium
 	REPORT_SCREENSHOT=$(CURDIR)/report-screenshot.png $(BIN)/python -m pytest -q tests/test_report_browser.py

@@ -568,6 +568,30 @@ def sweep(
             show_default=False,
         ),
     ] = None,
+    engine: Annotated[
+        str,
+        typer.Option(
+            "--engine",
+            help="local: run the variants one by one here; ray: each run is a Ray task on a "
+            "cluster (pip install '.[ray]'), its folder copied back into --out.",
+        ),
+    ] = "local",
+    address: Annotated[
+        str,
+        typer.Option(
+            "--address",
+            help="--engine ray: auto (a running cluster), HOST:PORT, or local (start a "
+            "one-host cluster for this sweep).",
+        ),
+    ] = "auto",
+    ray_resource: Annotated[
+        str,
+        typer.Option(
+            "--ray-resource",
+            help="--engine ray: the custom resource a real run takes one unit of (each "
+            "testbed host offers 1, so two real runs never share a host).",
+        ),
+    ] = "testbed",
     seeds: Annotated[
         int,
         typer.Option(
@@ -597,12 +621,25 @@ def sweep(
       sudo testbed sweep scenarios/smoke.yaml --set links.av1-gnb1.uplink.loss=0%,2% --real
 
       testbed sweep scenarios/default.yaml --set workload.fusion.method=paper,ekf --seeds 5
+
+      sudo testbed sweep scenarios/smoke.yaml --set seed=1,2,3,4 --real --engine ray
     """
     from testbed.sweep import run_sweep
+    from testbed.sweep.rayengine import RayOptions
 
+    if engine not in ("local", "ray"):
+        raise _fail(BadInput(f"--engine: expected local or ray, found {engine!r}"))
+    ray = RayOptions(address, ray_resource) if engine == "ray" else None
     try:
         report = run_sweep(
-            file, sets, out=out, real=real, progress=con.plain, duration=duration, seeds=seeds
+            file,
+            sets,
+            out=out,
+            real=real,
+            progress=con.plain,
+            duration=duration,
+            seeds=seeds,
+            ray=ray,
         )
     except KNOWN_ERRORS as err:
         raise _fail(err) from None

@@ -22,12 +22,14 @@ scenario, DNN outputs shared between variants that drive the same frames) or, wi
 as a real run (`testbed run`: namespaces, links, ROS 2 nodes). The report is `sweep.json`,
 `sweep.md` (one table) and `sweep.png` (errors and latency across the variants).
 
-The package: `grid` (axes, `--set` parsing, overrides on the YAML tree, `shorten`), `engines`
-(the replay engine, the real-run rows, `run_sweep`), `output` (the rows, the report and its
-three files).
+The package: `grid` (axes, `--set` parsing, overrides on the YAML tree, `shorten`), `jobs`
+(one run of a variant with one seed: the replay engine, the real-run rows), `engines`
+(`run_sweep`: the jobs one by one here), `rayengine` (the jobs as Ray tasks on a cluster,
+`--engine ray`), `stats` (`--seeds`: derived seeds, mean and 95% interval), `output` (the
+rows, the report and its three files).
 """
 
-from testbed.sweep.engines import METHODS, Progress, run_sweep
+from testbed.sweep.engines import run_sweep
 from testbed.sweep.grid import (
     MAX_VARIANTS,
     Axis,
@@ -43,6 +45,7 @@ from testbed.sweep.grid import (
     split_values,
     variant_tree,
 )
+from testbed.sweep.jobs import METHODS, Progress
 from testbed.sweep.output import SweepReport, VariantResult, markdown, plot, write_report
 
 __all__ = [

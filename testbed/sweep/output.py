@@ -8,12 +8,13 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 from testbed.sweep.grid import Axis, label
-from testbed.sweep.stats import across_seeds
+from testbed.sweep.stats import mean_ci
 
 
 @dataclass
@@ -270,3 +271,40 @@ def write_report(report: SweepReport) -> None:
     (out / "sweep.json").write_text(json.dumps(report.to_dict(), indent=2) + "\n")
     (out / "sweep.md").write_text(markdown(report))
     plot(report, out / "sweep.png")
+
+
+# ---- across seeds ------------------------------------------------------------------------
+
+
+def metrics(r: VariantResult) -> dict[str, float | None]:
+    """The figures of a row that `across_seeds` pools."""
+    out: dict[str, float | None] = {
+        f"{m}_total_m": r.methods[m]["total_m"] for m in ("edgeloc", "kalman", "dnn", "vo")
+    }
+    out["edgeloc_mean_m"] = r.methods["edgeloc"]["mean_m"]
+    out.update({f"reduction_vs_{m}_pct": r.reductions_pct[m] for m in ("vo", "dnn", "kalman")})
+    out["mean_latency_ms"] = None if r.mean_latency_s is None else 1000 * r.mean_latency_s
+    return out
+
+
+def across_seeds(rows: Sequence[VariantResult]) -> list[dict[str, Any]]:
+    """Per (variant, vehicle), each metric's mean and 95% interval over its seeds' rows (failed
+    rows left out, and counted)."""
+    groups: dict[tuple[int, str], list[VariantResult]] = {}
+    for r in rows:
+        groups.setdefault((r.index, r.vehicle), []).append(r)
+    out = []
+    for (index, vehicle), group in groups.items():
+        good = [metrics(r) for r in group if not r.error]
+        names = list(metrics(group[0])) if group else []
+        out.append(
+            {
+                "index": index,
+                "values": group[0].values,
+                "vehicle": vehicle,
+                "seeds": [r.seed for r in group],
+                "failed": len(group) - len(good),
+                "metrics": {k: mean_ci([g[k] for g in good]) for k in names},
+            }
+        )
+    return out

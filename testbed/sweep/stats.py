@@ -5,18 +5,15 @@ A variant run with `--seeds N` is repeated with the scenario's seed, then seed+1
 (`derived_seed`): every random choice of a run (the synthetic world, loss and jitter draws, the
 DNN's corrupted requests) follows its seed, so the N rows of a variant differ only by chance.
 `mean_ci` is the Student-t interval of the mean of N values (t quantile of N-1 degrees of
-freedom, `t975`); `across_seeds` pools the rows of each (variant, vehicle) into those figures
-for the report.
+freedom, `t975`); `output.across_seeds` pools the rows of each (variant, vehicle) into those
+figures for the report.
 """
 
 from __future__ import annotations
 
 import math
 from collections.abc import Sequence
-from typing import TYPE_CHECKING, Any
-
-if TYPE_CHECKING:  # output imports this module for its tables
-    from testbed.sweep.output import VariantResult
+from typing import Any
 
 #: The 97.5% quantile of Student's t for 1..30 degrees of freedom (a two-sided 95% interval).
 _T975 = (
@@ -62,37 +59,3 @@ def mean_ci(values: Sequence[float | None]) -> dict[str, Any] | None:
         sd = math.sqrt(sum((x - mean) ** 2 for x in xs) / (n - 1))
         half = t975(n - 1) * sd / math.sqrt(n)
     return {"mean": mean, "ci95": half, "n": n, "values": xs}
-
-
-def metrics(r: VariantResult) -> dict[str, float | None]:
-    """The figures of a row that `across_seeds` pools."""
-    out: dict[str, float | None] = {
-        f"{m}_total_m": r.methods[m]["total_m"] for m in ("edgeloc", "kalman", "dnn", "vo")
-    }
-    out["edgeloc_mean_m"] = r.methods["edgeloc"]["mean_m"]
-    out.update({f"reduction_vs_{m}_pct": r.reductions_pct[m] for m in ("vo", "dnn", "kalman")})
-    out["mean_latency_ms"] = None if r.mean_latency_s is None else 1000 * r.mean_latency_s
-    return out
-
-
-def across_seeds(rows: Sequence[VariantResult]) -> list[dict[str, Any]]:
-    """Per (variant, vehicle), each metric's mean and 95% interval over its seeds' rows (failed
-    rows left out, and counted)."""
-    groups: dict[tuple[int, str], list[VariantResult]] = {}
-    for r in rows:
-        groups.setdefault((r.index, r.vehicle), []).append(r)
-    out = []
-    for (index, vehicle), group in groups.items():
-        good = [metrics(r) for r in group if not r.error]
-        names = list(metrics(group[0])) if group else []
-        out.append(
-            {
-                "index": index,
-                "values": group[0].values,
-                "vehicle": vehicle,
-                "seeds": [r.seed for r in group],
-                "failed": len(group) - len(good),
-                "metrics": {k: mean_ci([g[k] for g in good]) for k in names},
-            }
-        )
-    return out

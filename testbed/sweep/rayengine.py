@@ -1,0 +1,307 @@
+"""A sweep's runs as Ray tasks (`testbed sweep --engine ray`): an existing distributed engine,
+not a scheduler of our own.
+
+Each `Job` (a variant with one seed) is one task, run on a worker host by the same code a local
+sweep runs (`engines.run_job`), in a temporary folder there; the task sends back its rows and
+its folder as a tar archive, which lands under the sweep's `--out` here (`runs/<id>/` of a real
+run with its run.mcap, summary.json and report, or `replay/<name>/`). A real run asks for one
+unit of a custom resource (`testbed`, settable: give each testbed host one, and two real-time
+runs never share a host); a replay asks for one CPU. A real run that fails is retried once, on
+another host of the cluster when there is one; its row then says so. Ctrl-C cancels every task
+and runs `testbed clean`'s removal of dead runs on each host that ran one, then stops the sweep
+(exit 130).
+
+Hosts need root for real runs, this checkout at the same path and its venv (with `pip install
+'.[ray]'`); README's "Sweeps on a Ray cluster" says how to start one.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import io
+import shutil
+import tarfile
+import tempfile
+import time
+from dataclasses import dataclass, replace
+from pathlib import Path
+from typing import Any
+
+from testbed.errors import BadInput, HostError
+from testbed.sweep.jobs import Job, Progress, run_job
+from testbed.sweep.output import VariantResult, row_line
+
+#: `--address local`: start a one-host Ray cluster in this process (and stop it at the end).
+LOCAL = "local"
+#: How long a cleaning task per host may take after Ctrl-C.
+CLEAN_TIMEOUT_S = 60.0
+
+
+@dataclass(frozen=True)
+class RayOptions:
+    """Where the cluster is (`auto`: a running one found by Ray; `local`; or HOST:PORT) and
+    the custom resource a real run asks one unit of."""
+
+    address: str = "auto"
+    resource: str = "testbed"
+
+
+def _ray() -> Any:
+    try:
+        import ray
+    except ImportError:
+        raise HostError(
+            "--engine ray needs Ray in this interpreter: pip install '.[ray]' (or ray>=2.9)"
+        ) from None
+    return ray
+
+
+def connect(options: RayOptions) -> tuple[Any, bool]:
+    """Ray, connected to the cluster; and whether this process started it (`local`)."""
+    ray = _ray()
+    if ray.is_initialized():
+        return ray, False
+    try:
+        if options.address == LOCAL:
+            # One host: it holds one unit of the resource, as a `ray start` of a host would.
+            ray.init(
+                resources={options.resource: 1},
+                include_dashboard=False,
+                logging_level="ERROR",
+                log_to_driver=False,
+            )
+            return ray, True
+        _reachable(options.address)
+        ray.init(address=options.address, logging_level="ERROR", log_to_driver=False)
+    except ConnectionError as err:
+        raise HostError(
+            f"no Ray cluster at {options.address!r} ({err}); start one with "
+            f"`ray start --head --resources='{{\"{options.resource}\": 1}}'` on a testbed host "
+            "(see the README), or use --address local for this host alone"
+        ) from None
+    return ray, False
+
+
+def _reachable(address: str) -> None:
+    """Fail fast on a HOST:PORT nobody listens at (Ray itself retries for a minute)."""
+    import socket
+
+    host, sep, port = address.rpartition(":")
+    if not sep or not port.isdigit():
+        return  # `auto` and the like: Ray finds the cluster (or says there is none) at once
+    try:
+        socket.create_connection((host.strip("[]"), int(port)), timeout=5).close()
+    except OSError as err:
+        raise ConnectionError(f"{address}: {err}") from None
+
+
+def _pack(folder: Path) -> bytes:
+    buf = io.BytesIO()
+    with tarfile.open(fileobj=buf, mode="w:gz") as tar:
+        if folder.exists():
+            tar.add(folder, arcname=".")
+    return buf.getvalue()
+
+
+def _unpack(data: bytes, into: Path) -> None:
+    into.mkdir(parents=True, exist_ok=True)
+    with tarfile.open(fileobj=io.BytesIO(data), mode="r:gz") as tar:
+        tar.extractall(into, filter="data")
+
+
+_ENGINES: list[Any] = []
+
+
+def _engine() -> Any:
+    """This worker's replay engine, kept between tasks (its model and DNN outputs are shared
+    by the variants that drive the same frames, as in a local sweep)."""
+    from testbed.sweep.jobs import _ReplayEngine
+
+    if not _ENGINES:
+        _ENGINES.append(_ReplayEngine())
+    return _ENGINES[0]
+
+
+def execute(job: Job, real: bool) -> tuple[list[VariantResult], bytes, str, list[str]]:
+    """The task: run `job` in a temporary folder on this host; its rows (folders relative to
+    that folder), the folder as tar.gz, this host's address and the run's progress lines."""
+    import socket
+
+    tmp = Path(tempfile.mkdtemp(prefix="edgeloc-sweep-"))
+    lines: list[str] = []
+    try:
+        variant_file = tmp / "variants" / f"{job.name}.yaml"
+        variant_file.parent.mkdir(parents=True)
+        variant_file.write_text(job.text)
+        here = replace(job, scenario=replace(job.scenario, source=variant_file))
+        rows = run_job(here, real, tmp, lines.append, None if real else _engine())
+        for r in rows:
+            if r.folder:
+                with contextlib.suppress(ValueError):
+                    r.folder = str(Path(r.folder).resolve().relative_to(tmp.resolve()))
+        return rows, _pack(tmp / ("runs" if real else "replay")), socket.gethostname(), lines
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+
+
+def clean_host() -> tuple[str, str]:
+    """The cleaning task: what `testbed clean` removes on this host (dead runs' leftovers)."""
+    import socket
+
+    from testbed.topology.teardown import clean
+
+    return socket.gethostname(), clean()
+
+
+def run_on_ray(
+    jobs: list[Job], real: bool, out: Path, progress: Progress, options: RayOptions
+) -> list[VariantResult]:
+    """Run every job as a Ray task; their rows in job order (see the module doc)."""
+    ray, started = connect(options)
+    try:
+        return _Sweep(ray, jobs, real, out, progress, options).run()
+    finally:
+        if started:
+            ray.shutdown()
+
+
+class _Sweep:
+    def __init__(
+        self,
+        ray: Any,
+        jobs: list[Job],
+        real: bool,
+        out: Path,
+        progress: Progress,
+        options: RayOptions,
+    ) -> None:
+        self.ray, self.jobs, self.real, self.out = ray, jobs, real, out
+        self.progress, self.options = progress, options
+        resources = ray.cluster_resources()
+        if real and resources.get(options.resource, 0) < 1:
+            raise HostError(
+                f"the Ray cluster has no {options.resource!r} resource: no host may run a "
+                f'real run (start each testbed host with --resources=\'{{"{options.resource}"'
+                ": 1}')"
+            )
+        self.task = ray.remote(execute)
+        self.hosts_used: set[str] = set()
+
+    def _submit(self, job: Job, avoid: str | None = None) -> Any:
+        opts: dict[str, Any] = {"max_retries": 0}
+        if self.real:
+            opts.update(num_cpus=0, resources={self.options.resource: 1})
+        else:
+            opts.update(num_cpus=1)
+        other = self._other_node(avoid) if avoid else None
+        if other is not None:
+            from ray.util.scheduling_strategies import NodeAffinitySchedulingStrategy
+
+            opts["scheduling_strategy"] = NodeAffinitySchedulingStrategy(other, soft=True)
+        return self.task.options(**opts).remote(job, self.real)
+
+    def _other_node(self, hostname: str) -> str | None:
+        """A live node of the cluster, holding the resource, on another host than `hostname`."""
+        for node in self.ray.nodes():
+            if not node.get("Alive"):
+                continue
+            if self.real and node.get("Resources", {}).get(self.options.resource, 0) < 1:
+                continue
+            if node.get("NodeManagerHostname") != hostname:
+                return str(node["NodeID"])
+        return None
+
+    def run(self) -> list[VariantResult]:
+        pending = {self._submit(job): (job, 1) for job in self.jobs}
+        results: dict[int, list[VariantResult]] = {}
+        states = {job.name: "queued" for job in self.jobs}
+        t0 = time.perf_counter()
+        try:
+            while pending:
+                ready, _ = self.ray.wait(list(pending), num_returns=1, timeout=5.0)
+                if not ready:
+                    running = sum(s == "queued" for s in states.values())
+                    self.progress(
+                        f"  {len(results)}/{len(self.jobs)} done, {running} queued or running "
+                        f"({time.perf_counter() - t0:.0f} s)"
+                    )
+                    continue
+                ref = ready[0]
+                job, attempt = pending.pop(ref)
+                try:
+                    rows, archive, host, lines = self.ray.get(ref)
+                except (BadInput, HostError):
+                    raise
+                except Exception as err:  # the task itself died (its host, its worker)
+                    rows, archive, host, lines = self._lost(job, err), b"", "?", []
+                self.hosts_used.add(host)
+                failed = any(r.error for r in rows)
+                if failed and self.real and attempt == 1:
+                    self.progress(f"{job.title}: failed on {host}; retrying once elsewhere")
+                    pending[self._submit(job, avoid=host)] = (job, 2)
+                    continue
+                self._land(rows, archive)
+                if attempt == 2:
+                    for r in rows:
+                        r.error = (r.error + " (after a retry)") if r.error else None
+                states[job.name] = "failed" if failed else "done"
+                results[self.jobs.index(job)] = rows
+                self.progress(f"{job.title}: on {host}")
+                for r in rows:
+                    self.progress(f"  {r.vehicle}: {row_line(r)}")
+                if failed:
+                    tail = [x for x in lines if x.strip()][-5:]
+                    for x in tail:
+                        self.progress(f"    {x.strip()}")
+        except KeyboardInterrupt:
+            self._cancel(list(pending))
+            raise
+        return [r for i in range(len(self.jobs)) for r in results.get(i, [])]
+
+    def _lost(self, job: Job, err: Exception) -> list[VariantResult]:
+        from testbed.sweep.jobs import _failed_row
+
+        why = f"the Ray task died: {type(err).__name__}: {str(err).splitlines()[0][:200]}"
+        rows = [
+            _failed_row(job.index, job.values, v.name, why) for v in job.scenario.edgeloc_vehicles()
+        ]
+        for r in rows:
+            r.seed = job.seed
+        return rows
+
+    def _land(self, rows: list[VariantResult], archive: bytes) -> None:
+        """Unpack a task's folder under `out` and point its rows at where it landed."""
+        where = self.out / ("runs" if self.real else "replay")
+        if archive:
+            _unpack(archive, where)
+        for r in rows:
+            if r.folder and not Path(r.folder).is_absolute():
+                r.folder = str(
+                    where / Path(r.folder).relative_to("runs" if self.real else "replay")
+                )
+
+    def _cancel(self, refs: list[Any]) -> None:
+        """Ctrl-C: cancel every task, then remove what killed runs left on each host."""
+        self.progress(f"interrupted: cancelling {len(refs)} task(s) and cleaning the hosts")
+        for ref in refs:
+            with contextlib.suppress(Exception):
+                self.ray.cancel(ref, force=True)
+        if not self.real:
+            return
+        # A cancelled run's worker must be gone before its run counts as dead to `clean`.
+        with contextlib.suppress(Exception):
+            self.ray.wait(refs, num_returns=len(refs), timeout=15.0)
+        from ray.util.scheduling_strategies import NodeAffinitySchedulingStrategy
+
+        cleaner = self.ray.remote(clean_host)
+        refs_clean = [
+            cleaner.options(
+                num_cpus=0,
+                scheduling_strategy=NodeAffinitySchedulingStrategy(n["NodeID"], soft=False),
+            ).remote()
+            for n in self.ray.nodes()
+            if n.get("Alive")
+        ]
+        with contextlib.suppress(Exception):
+            for host, text in self.ray.get(refs_clean, timeout=CLEAN_TIMEOUT_S):
+                self.progress(f"  {host}: {text}")
