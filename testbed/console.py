@@ -15,6 +15,11 @@ err = Console(
 )
 
 
+def is_plain() -> bool:
+    """Whether output is plain lines (CI, a pipe): no colours, no live displays."""
+    return _plain
+
+
 def plain(text: str) -> None:
     out.print(text, markup=False)
 

@@ -144,6 +144,58 @@ def execute(job: Job, real: bool) -> tuple[list[VariantResult], bytes, str, list
         shutil.rmtree(tmp, ignore_errors=True)
 
 
+class _Board:
+    """A rich progress display, one line per job with its state, in a terminal; nothing (the
+    sweep's plain progress lines) in CI or a pipe."""
+
+    MAX_LINES = 30  # beyond this many jobs, one line for all of them
+
+    def __init__(self, jobs: list[Job]) -> None:
+        from testbed import console
+
+        self.live = not console.is_plain()
+        self.bar: Any = None
+        self.rows: dict[str, Any] = {}
+        self.total: Any = None
+        if not self.live:
+            return
+        from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
+
+        self.bar = Progress(
+            TextColumn("{task.description}"), BarColumn(), TimeElapsedColumn(),
+            console=console.out,
+        )  # fmt: skip
+        if len(jobs) <= self.MAX_LINES:
+            for job in jobs:
+                self.rows[job.name] = self.bar.add_task(f"{job.title}: queued", total=1)
+        self.total = self.bar.add_task(f"sweep: 0/{len(jobs)} done", total=len(jobs))
+
+    def __enter__(self) -> _Board:
+        if self.bar is not None:
+            self.bar.start()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        if self.bar is not None:
+            self.bar.stop()
+
+    def print(self, text: str) -> None:
+        self.bar.console.print(text, markup=False, highlight=False)
+
+    def state(self, job: Job, text: str, done: bool = False) -> None:
+        if self.bar is None:
+            return
+        if job.name in self.rows:
+            self.bar.update(self.rows[job.name], description=f"{job.title}: {text}",
+                            completed=1 if done else 0)  # fmt: skip
+        if done:
+            self.bar.advance(self.total)
+            n = int(self.bar.tasks[self.total].completed)
+            self.bar.update(
+                self.total, description=f"sweep: {n}/{self.bar.tasks[self.total].total:g} done"
+            )
+
+
 def clean_host() -> tuple[str, str]:
     """The cleaning task: what `testbed clean` removes on this host (dead runs' leftovers)."""
     import socket
@@ -186,6 +238,7 @@ class _Sweep:
             )
         self.task = ray.remote(execute)
         self.hosts_used: set[str] = set()
+        self.board: _Board
 
     def _submit(self, job: Job, avoid: str | None = None) -> Any:
         opts: dict[str, Any] = {"max_retries": 0}
@@ -212,19 +265,26 @@ class _Sweep:
         return None
 
     def run(self) -> list[VariantResult]:
+        with _Board(self.jobs) as board:
+            self.board = board
+            return self._run()
+
+    def _say(self, text: str) -> None:
+        self.board.print(text) if self.board.live else self.progress(text)
+
+    def _run(self) -> list[VariantResult]:
         pending = {self._submit(job): (job, 1) for job in self.jobs}
         results: dict[int, list[VariantResult]] = {}
-        states = {job.name: "queued" for job in self.jobs}
         t0 = time.perf_counter()
         try:
             while pending:
                 ready, _ = self.ray.wait(list(pending), num_returns=1, timeout=5.0)
                 if not ready:
-                    running = sum(s == "queued" for s in states.values())
-                    self.progress(
-                        f"  {len(results)}/{len(self.jobs)} done, {running} queued or running "
-                        f"({time.perf_counter() - t0:.0f} s)"
-                    )
+                    if not self.board.live:
+                        self.progress(
+                            f"  {len(results)}/{len(self.jobs)} done, {len(pending)} queued or "
+                            f"running ({time.perf_counter() - t0:.0f} s)"
+                        )
                     continue
                 ref = ready[0]
                 job, attempt = pending.pop(ref)
@@ -237,22 +297,22 @@ class _Sweep:
                 self.hosts_used.add(host)
                 failed = any(r.error for r in rows)
                 if failed and self.real and attempt == 1:
-                    self.progress(f"{job.title}: failed on {host}; retrying once elsewhere")
+                    self._say(f"{job.title}: failed on {host}; retrying once elsewhere")
+                    self.board.state(job, f"retrying (failed on {host})")
                     pending[self._submit(job, avoid=host)] = (job, 2)
                     continue
                 self._land(rows, archive)
                 if attempt == 2:
                     for r in rows:
                         r.error = (r.error + " (after a retry)") if r.error else None
-                states[job.name] = "failed" if failed else "done"
                 results[self.jobs.index(job)] = rows
-                self.progress(f"{job.title}: on {host}")
+                self.board.state(job, f"{'failed' if failed else 'done'} on {host}", done=True)
+                self._say(f"{job.title}: on {host}")
                 for r in rows:
-                    self.progress(f"  {r.vehicle}: {row_line(r)}")
+                    self._say(f"  {r.vehicle}: {row_line(r)}")
                 if failed:
-                    tail = [x for x in lines if x.strip()][-5:]
-                    for x in tail:
-                        self.progress(f"    {x.strip()}")
+                    for x in [x for x in lines if x.strip()][-5:]:
+                        self._say(f"    {x.strip()}")
         except KeyboardInterrupt:
             self._cancel(list(pending))
             raise
@@ -282,7 +342,7 @@ class _Sweep:
 
     def _cancel(self, refs: list[Any]) -> None:
         """Ctrl-C: cancel every task, then remove what killed runs left on each host."""
-        self.progress(f"interrupted: cancelling {len(refs)} task(s) and cleaning the hosts")
+        self._say(f"interrupted: cancelling {len(refs)} task(s) and cleaning the hosts")
         for ref in refs:
             with contextlib.suppress(Exception):
                 self.ray.cancel(ref, force=True)
@@ -304,4 +364,4 @@ class _Sweep:
         ]
         with contextlib.suppress(Exception):
             for host, text in self.ray.get(refs_clean, timeout=CLEAN_TIMEOUT_S):
-                self.progress(f"  {host}: {text}")
+                self._say(f"  {host}: {text}")
