@@ -87,3 +87,25 @@ def test_a_seeded_sweep_repeats_each_variant_and_reports_mean_and_interval(
 def test_seeds_out_of_range_are_bad_input(tmp_path: Path) -> None:
     with pytest.raises(BadInput, match="--seeds"):
         run_sweep(SMOKE, ["seed=1"], out=tmp_path, progress=lambda _: None, seeds=0)
+
+
+def test_a_variant_whose_runs_all_fail_is_reported_not_averaged(tmp_path: Path) -> None:
+    from testbed.sweep.grid import parse_set
+    from testbed.sweep.jobs import _failed_row
+    from testbed.sweep.output import SweepReport, markdown
+
+    ok = run_sweep(
+        SMOKE, ["seed=7"], out=tmp_path / "ok", progress=lambda _: None, duration="4s", seeds=2
+    )
+    failed = [_failed_row(1, {"seed": "9"}, "av1", "the edge server died") for _ in range(3)]
+    for k, r in enumerate(failed):
+        r.seed = 9 + k
+    axes = [parse_set("seed=7,9")]
+    report = SweepReport("smoke.yaml", "real", axes, rows=[*ok.rows, *failed], seeds=3)
+    stats = {g["index"]: g for g in report.statistics()}
+    assert stats[1]["failed"] == 3
+    assert all(v is None for v in stats[1]["metrics"].values())  # nothing averaged
+    assert stats[0]["metrics"]["edgeloc_total_m"]["n"] == 2
+    md = markdown(report)
+    assert "| 9 | 0 (3 failed) | - |" in md
+    assert md.count("failed: the edge server died") == 3

@@ -288,15 +288,19 @@ class _Sweep:
                     continue
                 ref = ready[0]
                 job, attempt = pending.pop(ref)
+                died = False
                 try:
                     rows, archive, host, lines = self.ray.get(ref)
                 except (BadInput, HostError):
                     raise
                 except Exception as err:  # the task itself died (its host, its worker)
                     rows, archive, host, lines = self._lost(job, err), b"", "?", []
+                    died = True
                 self.hosts_used.add(host)
                 failed = any(r.error for r in rows)
-                if failed and self.real and attempt == 1:
+                # A real run that failed, or any task whose host or worker died, runs again
+                # once (a replay that fails would fail the same way anywhere).
+                if failed and (self.real or died) and attempt == 1:
                     self._say(f"{job.title}: failed on {host}; retrying once elsewhere")
                     self.board.state(job, f"retrying (failed on {host})")
                     pending[self._submit(job, avoid=host)] = (job, 2)
