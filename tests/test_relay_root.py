@@ -488,13 +488,15 @@ def test_a_radio_uplink_sends_in_uplink_slots_with_the_oracles_delays(pair) -> N
     assert len(got) >= 790
 
     # Every datagram arrives just after the end of an uplink window (the relay's exit, then
-    # the receiving stack): never inside the downlink part of the period.
+    # the receiving stack): never inside the downlink part of the period, which would put it
+    # 0.5-4 ms after an end. How just after is this host's wake-up spread, measured on the plain
+    # path (a CI run on a busy 2-core VM once gave a p95 of 0.608 ms).
     def after_an_end(t: float) -> float:
         return min((t - e) % period for e in ends)
 
     plain = PlainPath.measure(pair, times[:200])
     late = sorted(after_an_end(r) for _, r in got)
-    assert late[int(0.95 * len(late))] < 0.0006, late[-10:]
+    assert late[int(0.95 * len(late))] < 0.0006 + plain.iqr, (str(plain), late[-10:])
     assert late[int(0.99 * len(late))] < 0.0006 + plain.tail, late[-10:]
     # One-way delays against the closed form, less the path without the radio, within what
     # this host's wake-ups allow: a slot (0.5 ms) more or less of grant lead would be off by
