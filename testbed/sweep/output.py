@@ -34,6 +34,8 @@ class VariantResult:
     wall_s: float
     error: str | None = None
     seed: int = 0  # the scenario's seed this row ran with (`--seeds`)
+    host: str = ""  # the Ray engine's: the host whose task gave this row ("" here)
+    attempts: int = 1  # 2: the Ray engine ran it again after a failure or a dead host
 
     def to_dict(self) -> dict[str, Any]:
         return dataclasses.asdict(self)

@@ -19,10 +19,12 @@ from __future__ import annotations
 
 import contextlib
 import io
+import os
 import shutil
 import tarfile
 import tempfile
 import time
+from collections.abc import MutableMapping
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
@@ -64,7 +66,9 @@ def connect(options: RayOptions) -> tuple[Any, bool]:
     try:
         if options.address == LOCAL:
             # One host: it holds one unit of the resource, as a `ray start` of a host would.
+            # Ray's "local" starts a new cluster even where `ray start` left one's address.
             ray.init(
+                address="local",
                 resources={options.resource: 1},
                 include_dashboard=False,
                 logging_level="ERROR",
@@ -72,14 +76,52 @@ def connect(options: RayOptions) -> tuple[Any, bool]:
             )
             return ray, True
         _reachable(options.address)
+        if token_auth_if_token():
+            # Ray read RAY_AUTH_MODE at import; this is how `ray start` makes it read it again.
+            with contextlib.suppress(ImportError, AttributeError):
+                from ray._raylet import Config
+
+                Config.initialize("")
         ray.init(address=options.address, logging_level="ERROR", log_to_driver=False)
     except ConnectionError as err:
+        if _token_refused(err):
+            raise HostError(
+                f"the Ray cluster at {options.address!r} wants a token this host did not send "
+                "or it refused: copy the head's ~/.ray/auth_token here (or set RAY_AUTH_TOKEN), "
+                "and leave RAY_AUTH_MODE unset or 'token'"
+            ) from None
         raise HostError(
             f"no Ray cluster at {options.address!r} ({err}); start one with "
             f"`ray start --head --resources='{{\"{options.resource}\": 1}}'` on a testbed host "
             "(see the README), or use --address local for this host alone"
         ) from None
     return ray, False
+
+
+def token_auth_if_token(
+    environ: MutableMapping[str, str] | None = None, home: Path | None = None
+) -> bool:
+    """Turn Ray's token authentication on for this process when a token is at hand and
+    RAY_AUTH_MODE says nothing, as `ray start` does for the hosts: a head started where a
+    token exists (Ray saves one in ~/.ray at the first local cluster) refuses a driver that
+    sends none. Returns whether it is on."""
+    env = os.environ if environ is None else environ
+    if "RAY_AUTH_MODE" in env:
+        return env["RAY_AUTH_MODE"].lower() == "token"
+    path = env.get("RAY_AUTH_TOKEN_PATH") or str((home or Path.home()) / ".ray" / "auth_token")
+    if env.get("RAY_AUTH_TOKEN") or Path(path).is_file():
+        env["RAY_AUTH_MODE"] = "token"
+        return True
+    return False
+
+
+def _token_refused(err: BaseException | None) -> bool:
+    """Whether Ray's failure to connect was, underneath, its authentication."""
+    while err is not None:
+        if type(err).__name__ == "AuthenticationError" or "InvalidAuthToken" in str(err):
+            return True
+        err = err.__cause__ or err.__context__
+    return False
 
 
 def _reachable(address: str) -> None:
@@ -134,7 +176,10 @@ def execute(job: Job, real: bool) -> tuple[list[VariantResult], bytes, str, list
         variant_file.parent.mkdir(parents=True)
         variant_file.write_text(job.text)
         here = replace(job, scenario=replace(job.scenario, source=variant_file))
-        rows = run_job(here, real, tmp, lines.append, None if real else _engine())
+        if real:
+            rows = _run_apart(here, tmp, lines)
+        else:
+            rows = run_job(here, False, tmp, lines.append, _engine())
         for r in rows:
             if r.folder:
                 with contextlib.suppress(ValueError):
@@ -142,6 +187,58 @@ def execute(job: Job, real: bool) -> tuple[list[VariantResult], bytes, str, list
         return rows, _pack(tmp / ("runs" if real else "replay")), socket.gethostname(), lines
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
+
+
+def _run_apart(job: Job, tmp: Path, lines: list[str]) -> list[VariantResult]:
+    """A real run in a fresh interpreter, child of this Ray worker and killed with it.
+
+    Not in the worker itself: building namespaces forks (pyroute2), and a forked copy of a Ray
+    worker that is sent SIGTERM runs Ray's exit in the copy, which makes the raylet kill the
+    worker mid-run (seen as WorkerCrashedError in about one run in three on a busy host)."""
+    import pickle
+    import subprocess
+    import sys
+
+    from netem.proc import die_with_parent
+
+    proc = subprocess.run(
+        [sys.executable, "-m", "testbed.sweep.rayengine"],
+        input=pickle.dumps((job, tmp)),
+        capture_output=True,
+        preexec_fn=die_with_parent,  # only a prctl between fork and exec
+        check=False,
+    )
+    lines += proc.stderr.decode(errors="replace").splitlines()
+    if proc.returncode != 0 or not proc.stdout:
+        tail = "; ".join(x for x in lines[-5:] if x.strip())
+        raise RuntimeError(f"the run's process exited with {proc.returncode}: {tail}")
+    kind, value = pickle.loads(proc.stdout)
+    if kind == "raise":
+        raise value
+    return value  # type: ignore[no-any-return]
+
+
+def _child() -> int:
+    """`python -m testbed.sweep.rayengine`: one real run (a pickled job and folder on stdin);
+    progress lines on stderr, the pickled rows (or the BadInput/HostError) on stdout."""
+    import pickle
+    import sys
+
+    job, tmp = pickle.loads(sys.stdin.buffer.read())
+    # The answer goes to the real stdout; anything the run prints joins the progress lines.
+    answer = os.fdopen(os.dup(1), "wb")
+    os.dup2(2, 1)
+
+    def say(line: str) -> None:
+        print(line, file=sys.stderr, flush=True)
+
+    try:
+        out: tuple[str, Any] = ("rows", run_job(job, True, tmp, say))
+    except (BadInput, HostError) as err:
+        out = ("raise", err)
+    answer.write(pickle.dumps(out))
+    answer.close()
+    return 0
 
 
 class _Board:
@@ -238,6 +335,7 @@ class _Sweep:
             )
         self.task = ray.remote(execute)
         self.hosts_used: set[str] = set()
+        self.deaths = 0  # tasks whose worker or host died under them
         self.board: _Board
 
     def _submit(self, job: Job, avoid: str | None = None) -> Any:
@@ -296,19 +394,24 @@ class _Sweep:
                 except Exception as err:  # the task itself died (its host, its worker)
                     rows, archive, host, lines = self._lost(job, err), b"", "?", []
                     died = True
+                    self.deaths += 1
                 self.hosts_used.add(host)
                 failed = any(r.error for r in rows)
                 # A real run that failed, or any task whose host or worker died, runs again
                 # once (a replay that fails would fail the same way anywhere).
                 if failed and (self.real or died) and attempt == 1:
-                    self._say(f"{job.title}: failed on {host}; retrying once elsewhere")
-                    self.board.state(job, f"retrying (failed on {host})")
+                    where = "its Ray task died" if died else f"failed on {host}"
+                    self._say(f"{job.title}: {where}; retrying once elsewhere")
+                    if died:
+                        self._say(f"  {rows[0].error}")
+                    self.board.state(job, f"retrying ({where})")
                     pending[self._submit(job, avoid=host)] = (job, 2)
                     continue
                 self._land(rows, archive)
-                if attempt == 2:
-                    for r in rows:
-                        r.error = (r.error + " (after a retry)") if r.error else None
+                for r in rows:
+                    r.host, r.attempts = host, attempt
+                    if attempt == 2 and r.error:
+                        r.error += " (after a retry)"
                 results[self.jobs.index(job)] = rows
                 self.board.state(job, f"{'failed' if failed else 'done'} on {host}", done=True)
                 self._say(f"{job.title}: on {host}")
@@ -320,6 +423,11 @@ class _Sweep:
         except KeyboardInterrupt:
             self._cancel(list(pending))
             raise
+        if self.real and self.deaths:
+            # A run whose worker died was killed mid-way: its namespaces and nodes are still up
+            # wherever its host still is.
+            self._say(f"{self.deaths} task(s) died mid-run: cleaning the hosts")
+            self._clean_hosts()
         return [r for i in range(len(self.jobs)) for r in results.get(i, [])]
 
     def _lost(self, job: Job, err: Exception) -> list[VariantResult]:
@@ -355,6 +463,10 @@ class _Sweep:
         # A cancelled run's worker must be gone before its run counts as dead to `clean`.
         with contextlib.suppress(Exception):
             self.ray.wait(refs, num_returns=len(refs), timeout=15.0)
+        self._clean_hosts()
+
+    def _clean_hosts(self) -> None:
+        """`testbed clean`'s removal of dead runs, on every live node of the cluster."""
         from ray.util.scheduling_strategies import NodeAffinitySchedulingStrategy
 
         cleaner = self.ray.remote(clean_host)
@@ -366,6 +478,16 @@ class _Sweep:
             for n in self.ray.nodes()
             if n.get("Alive")
         ]
-        with contextlib.suppress(Exception):
-            for host, text in self.ray.get(refs_clean, timeout=CLEAN_TIMEOUT_S):
+        deadline = time.monotonic() + CLEAN_TIMEOUT_S
+        for ref in refs_clean:  # one by one: a node that just died must not hide the others
+            try:
+                host, text = self.ray.get(ref, timeout=max(1.0, deadline - time.monotonic()))
+            except Exception as err:
+                self._say(f"  a host could not be cleaned ({type(err).__name__}): run "
+                          "`testbed clean` there")  # fmt: skip
+            else:
                 self._say(f"  {host}: {text}")
+
+
+if __name__ == "__main__":
+    raise SystemExit(_child())
