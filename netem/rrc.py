@@ -1,0 +1,146 @@
+"""RRC states of one UE and the delay the first packet after a quiet spell pays.
+
+Pure: packet times go in, extra delays come out; the link stage that holds packets back by
+them is elsewhere.
+
+Nouns:
+- `RrcState`: RRC_CONNECTED, RRC_INACTIVE, RRC_IDLE (TS 38.331 §4.2.1).
+- `Rrc`: one UE's state machine. After `inactivity_s` without a packet the network suspends
+  the connection (RRCRelease with suspendConfig, TS 38.331 §5.3.8): CONNECTED -> INACTIVE.
+  After a further `idle_after_s` it releases it: INACTIVE -> IDLE. The first packet in
+  INACTIVE pays an RRC resume (TS 38.331 §5.3.13, TS 38.300 §9.2.2.4), in IDLE a random
+  access and RRC setup (TS 38.331 §5.3.3); packets sent while that promotion runs wait for
+  its end, and later ones pay nothing until the next quiet spell.
+- `Promotion`: one such promotion, for logs and reports.
+
+Only the packets given to `on_packet` count as traffic (both directions of the UE's link
+should be fed to one `Rrc`), and paging (a downlink packet to an idle UE) costs the same as
+the UE's own setup here.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from enum import StrEnum
+
+from netem.errors import NetemError
+
+
+class RrcError(NetemError, ValueError):
+    """An RRC setting out of range, or packets given out of time order."""
+
+
+class RrcState(StrEnum):
+    CONNECTED = "connected"
+    INACTIVE = "inactive"
+    IDLE = "idle"
+
+
+@dataclass(frozen=True)
+class Promotion:
+    """A packet at `start_s` found the UE in `from_state`; connected again at `end_s`."""
+
+    start_s: float
+    end_s: float
+    from_state: RrcState
+
+
+class Rrc:
+    """One UE's RRC state machine, driven by its packets' times.
+
+    Defaults, all assumptions:
+    - `inactivity_s` 10 s: a common operator setting of the RRC inactivity timer (the timer
+      is the gNB's, 3GPP does not fix it).
+    - `idle_after_s` 60 s: how long the network keeps a UE suspended before releasing it to
+      IDLE is its own policy too (the periodic RNA update, T380, is 5 min or more); 0 models a
+      network without INACTIVE, which releases straight to IDLE; math.inf one that never does.
+    - `resume_s` 30 ms: resume request, resume and resume complete take one or two round
+      trips over the air, ~20-40 ms (the project's spec); ITU-R M.2410 asks 20 ms of the
+      control plane from idle to active.
+    - `setup_s` 150 ms: random access and RRC setup from IDLE, ~100-300 ms measured (the
+      project's spec).
+
+    The UE starts in `initial` at `t0_s` (CONNECTED: as if its last packet was then).
+    """
+
+    def __init__(
+        self,
+        inactivity_s: float = 10.0,
+        idle_after_s: float = 60.0,
+        resume_s: float = 0.030,
+        setup_s: float = 0.150,
+        initial: RrcState | str = RrcState.CONNECTED,
+        t0_s: float = 0.0,
+    ) -> None:
+        if not (math.isfinite(inactivity_s) and 0.0 < inactivity_s <= 3600.0):
+            raise RrcError(f"inactivity_s must be > 0 and <= 3600 s, got {inactivity_s!r}")
+        if math.isnan(idle_after_s) or idle_after_s < 0.0:
+            raise RrcError(f"idle_after_s must be >= 0 s (inf: never idle), got {idle_after_s!r}")
+        for name, value in (("resume_s", resume_s), ("setup_s", setup_s)):
+            if not (math.isfinite(value) and 0.0 <= value <= 10.0):
+                raise RrcError(f"{name} must be 0..10 s, got {value!r}")
+        if not math.isfinite(t0_s):
+            raise RrcError(f"t0_s must be a finite time, got {t0_s!r}")
+        try:
+            start = RrcState(initial)
+        except ValueError:
+            known = ", ".join(s.value for s in RrcState)
+            raise RrcError(f"unknown RRC state {initial!r} (known: {known})") from None
+        self.inactivity_s = inactivity_s
+        self.idle_after_s = idle_after_s
+        self.resume_s = resume_s
+        self.setup_s = setup_s
+        # The state follows from when the UE last had traffic; a UE that starts INACTIVE or
+        # IDLE is given a last activity that far back.
+        self._last_activity = {
+            RrcState.CONNECTED: t0_s,
+            RrcState.INACTIVE: t0_s - inactivity_s,
+            RrcState.IDLE: -math.inf,
+        }[start]
+        self._last_packet = t0_s
+        self._promotion: Promotion | None = None
+        self.promotions: list[Promotion] = []
+
+    def _quiet_state(self, t: float) -> RrcState:
+        """The state at `t` from the timers alone (no promotion under way)."""
+        quiet = t - self._last_activity
+        if quiet < self.inactivity_s:
+            return RrcState.CONNECTED
+        # Written as a comparison of the quiet time with each timer, so inf timers work.
+        if quiet - self.inactivity_s < self.idle_after_s:
+            return RrcState.INACTIVE
+        return RrcState.IDLE
+
+    def state_at(self, t: float) -> RrcState:
+        """The state at `t` (not before the last packet): during a promotion the UE is still in
+        the state it is leaving, connected from the promotion's end."""
+        if t < self._last_packet:
+            raise RrcError(
+                f"state_at({t:g}) is before the last packet ({self._last_packet:g} s): the "
+                f"state machine keeps no history"
+            )
+        if self._promotion is not None and t < self._promotion.end_s:
+            return self._promotion.from_state
+        return self._quiet_state(t)
+
+    def on_packet(self, t: float) -> float:
+        """A packet sent at `t` (in time order); the extra delay it waits for the connection."""
+        if not math.isfinite(t) or t < self._last_packet:
+            raise RrcError(
+                f"packet at {t!r} s is before the previous one ({self._last_packet:g} s)"
+            )
+        self._last_packet = t
+        if self._promotion is not None and t < self._promotion.end_s:
+            # A promotion already under way: wait for its end, not a second one.
+            return self._promotion.end_s - t
+        state = self._quiet_state(t)
+        if state is RrcState.CONNECTED:
+            self._last_activity = t
+            return 0.0
+        cost = self.resume_s if state is RrcState.INACTIVE else self.setup_s
+        self._promotion = Promotion(t, t + cost, state)
+        self.promotions.append(self._promotion)
+        # The inactivity timer starts again when the packet goes, at the end of the promotion.
+        self._last_activity = t + cost
+        return cost
