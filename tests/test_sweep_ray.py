@@ -159,6 +159,25 @@ def test_a_driver_sends_a_token_where_one_is_at_hand_as_ray_start_does(tmp_path:
     assert token_auth_if_token(given, home=tmp_path / "nowhere")
 
 
+def test_only_the_folders_of_dead_tasks_are_removed(tmp_path: Path) -> None:
+    from testbed.state import ProcessRef
+    from testbed.sweep.rayengine import OWNER_FILE, TASK_PREFIX, remove_dead_task_folders
+
+    gone = subprocess.Popen(["true"])
+    dead = ProcessRef.of(gone.pid)
+    gone.wait()
+    me = ProcessRef.of(os.getpid())
+    for name, owner in (("dead", dead), ("live", me), ("unmarked", None)):
+        folder = tmp_path / f"{TASK_PREFIX}{name}"
+        (folder / "runs").mkdir(parents=True)
+        if owner is not None:
+            (folder / OWNER_FILE).write_text(f"{owner.pid} {owner.start}\n")
+    (tmp_path / "other").mkdir()
+    assert remove_dead_task_folders(tmp_path) == 1
+    left = sorted(p.name for p in tmp_path.iterdir())
+    assert left == ["edgeloc-sweep-live", "edgeloc-sweep-unmarked", "other"]
+
+
 def test_an_unknown_engine_and_a_missing_cluster_are_clear_errors(tmp_path: Path) -> None:
     bad = _sweep(str(SMOKE), "--set", "seed=1", "--engine", "spark", "--out", str(tmp_path))
     assert bad.returncode == 2 and "--engine: expected local or ray" in bad.stderr
@@ -187,6 +206,7 @@ def test_a_worker_killed_mid_run_costs_nothing(state_dir: Path, tmp_path: Path) 
 
     args = [str(SMOKE), "--set", "seed=7,8", "--duration", "6s", "--real"]
     before = set(list_netns())
+    task_folders = set(Path(tempfile.gettempdir()).glob("edgeloc-sweep-*"))
     with two_host_cluster(tmp_path) as cluster:
         proc = subprocess.Popen(
             [sys.executable, "-m", "testbed.cli", "sweep", *args, "--engine", "ray",
@@ -221,6 +241,7 @@ def test_a_worker_killed_mid_run_costs_nothing(state_dir: Path, tmp_path: Path) 
         for name in ("run.mcap", "run.json", "summary.json", "report.md"):
             assert (folder / name).is_file(), (folder, name)
     assert [n for n in set(list_netns()) - before if n.startswith("el-")] == []
+    assert set(Path(tempfile.gettempdir()).glob("edgeloc-sweep-*")) <= task_folders
     assert not [p for p in processes_mentioning("nodes.ros.")
                 if any(f"el-{r}-" in Path(f"/proc/{p}/cmdline").read_text(errors="replace")
                        or r in Path(f"/proc/{p}/cmdline").read_text(errors="replace")

@@ -30,6 +30,7 @@ from pathlib import Path
 from typing import Any
 
 from testbed.errors import BadInput, HostError
+from testbed.state import ProcessRef
 from testbed.sweep.jobs import Job, Progress, run_job
 from testbed.sweep.output import VariantResult, row_line
 
@@ -37,6 +38,9 @@ from testbed.sweep.output import VariantResult, row_line
 LOCAL = "local"
 #: How long a cleaning task per host may take after Ctrl-C.
 CLEAN_TIMEOUT_S = 60.0
+#: A task's temporary folder on its host, and the file in it that names the worker.
+TASK_PREFIX = "edgeloc-sweep-"
+OWNER_FILE = ".owner"
 
 
 @dataclass(frozen=True)
@@ -169,9 +173,12 @@ def execute(job: Job, real: bool) -> tuple[list[VariantResult], bytes, str, list
     that folder), the folder as tar.gz, this host's address and the run's progress lines."""
     import socket
 
-    tmp = Path(tempfile.mkdtemp(prefix="edgeloc-sweep-"))
+    tmp = Path(tempfile.mkdtemp(prefix=TASK_PREFIX))
     lines: list[str] = []
     try:
+        # Whose folder this is: a worker killed mid-run cannot remove it, `clean_host` can.
+        me = ProcessRef.of(os.getpid(), "sweep task")
+        (tmp / OWNER_FILE).write_text(f"{me.pid} {me.start}\n")
         variant_file = tmp / "variants" / f"{job.name}.yaml"
         variant_file.parent.mkdir(parents=True)
         variant_file.write_text(job.text)
@@ -309,7 +316,24 @@ def clean_host() -> tuple[str, str]:
         check=False,
     )
     said = [x for x in (done.stdout + done.stderr).splitlines() if x.strip()]
+    gone = remove_dead_task_folders(Path(tempfile.gettempdir()))
+    if gone:
+        said.append(f"{gone} folder(s) of dead sweep tasks removed")
     return socket.gethostname(), "; ".join(said[-3:]) or f"testbed clean: exit {done.returncode}"
+
+
+def remove_dead_task_folders(where: Path) -> int:
+    """Remove the temporary folders of sweep tasks whose worker is gone; how many."""
+    gone = 0
+    for folder in where.glob(f"{TASK_PREFIX}*"):
+        try:
+            pid, start = (int(x) for x in (folder / OWNER_FILE).read_text().split())
+        except (OSError, ValueError):
+            continue  # not one of ours, or not yet marked: leave it
+        if not ProcessRef(pid, start).alive():
+            shutil.rmtree(folder, ignore_errors=True)
+            gone += 1
+    return gone
 
 
 def run_on_ray(
