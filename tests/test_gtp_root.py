@@ -211,11 +211,14 @@ def test_ue_mtu_route_and_a_1_mib_tcp_transfer_each_way() -> None:
     assert not gnb["drops"] and not upf["drops"], (gnb["drops"], upf["drops"])
     assert gnb["sent"]["inner_bytes"] > len(payload) and upf["sent"]["inner_bytes"] > len(answer)
     # Each end hands the UE's TCP segments on coalesced (software GRO into its TUN), and the
-    # bytes above arrived intact through them: most of the ~750 segments of each MiB went
-    # into the TUN inside super-packets of several (the ACKs pass alone).
+    # bytes above arrived intact through them. How many of a MiB's ~750 segments meet in one
+    # read depends on the host's speed (this one: ~710; a CI VM: 495), so the bound asks for
+    # a quarter of them in super-packets of 3 or more on average; without GRO both are 0.
+    segments = len(payload) // 1416
     for end in (upf, gnb):
         got = end["received"]
-        assert got["gro_packets"] > 500 and got["gro_frames"] * 4 < got["gro_packets"], got
+        assert got["gro_packets"] > segments // 4, got
+        assert got["gro_frames"] * 3 < got["gro_packets"], got
 
 
 def test_an_unknown_ue_is_not_tunnelled() -> None:
