@@ -11,7 +11,8 @@ Nouns:
 - `Channel`: one UE's links to every site under one TR 38.901 scenario (UMa or UMi-Street
   Canyon). `step(t, x, y, serving)` moves the UE and returns a `RadioSample`: the RSRP of
   every site, the serving cell's SINR against the others (interference) and thermal noise,
-  the CQI that SINR reports, the MCS link adaptation picks for it and that MCS's BLER.
+  the CQI that SINR reports, the MCS link adaptation picks for it and that MCS's BLER; and
+  the same for the uplink (the UE's power at the serving gNB against the gNB's noise).
 - `RadioSample`: one step's result (frozen).
 - `Gudmundson`: one log-normal shadowing process, exponentially correlated in the distance
   travelled (one per UE, site and LOS state).
@@ -84,6 +85,13 @@ TARGET_BLER = 0.1
 #: Steepness of the BLER curve around an MCS's threshold, per dB (an assumption): BLER goes
 #: from 90% to 1% over ~3.4 dB, the width of an AWGN curve of a long LDPC-coded block.
 BLER_SLOPE_PER_DB = 2.0
+#: A UE's maximum output power: power class 3, 23 dBm (TS 38.101-1 Table 6.2.1-1), the class
+#: of phones and of most vehicle modems.
+UE_POWER_DBM = 23.0
+#: UE and gNB noise figures of 3GPP's system-level evaluations below 6 GHz: 9 dB and 5 dB
+#: (TR 36.814 Table A.2.1.1-2 for the UE; TR 38.802 Table A.2.1-1 and ITU-R M.2412 for the BS).
+UE_NOISE_FIGURE_DB = 9.0
+GNB_NOISE_FIGURE_DB = 5.0
 
 
 class ChannelError(NetemError, ValueError):
@@ -378,7 +386,8 @@ class RadioSample:
     """One step of a `Channel`: where the UE was, what it received, what the link runs at.
 
     `rsrp_dbm` and `los` have one entry per site; `sinr_db`, `cqi`, `mcs` and `bler` are the
-    serving cell's (`mcs` and `bler` are what a `netem.nr.Radio` takes).
+    serving cell's downlink (`mcs` and `bler` are what a `netem.nr.Radio` takes), the `ul_`
+    fields its uplink's.
     """
 
     t: float
@@ -391,6 +400,10 @@ class RadioSample:
     cqi: int
     mcs: int
     bler: float
+    ul_sinr_db: float
+    ul_cqi: int
+    ul_mcs: int
+    ul_bler: float
 
     @property
     def strongest(self) -> str:
@@ -431,9 +444,15 @@ class Channel:
     The serving cell's SINR counts every other site on the same carrier as interference at
     full load (each of them sends on every resource element, the worst case and the usual
     system-level assumption), plus thermal noise over the serving channel's bandwidth with
-    the UE's noise figure. 9 dB is the UE noise figure of 3GPP's system-level evaluations
-    below 6 GHz (TR 36.814 Table A.2.1.1-2). The SINR gives the CQI (`cqi_from_sinr`), the
-    CQI the MCS (`mcs_from_cqi`), and the MCS and SINR the BLER (`bler`).
+    the UE's noise figure (`UE_NOISE_FIGURE_DB`). The SINR gives the CQI (`cqi_from_sinr`),
+    the CQI the MCS (`mcs_from_cqi`), and the MCS and SINR the BLER (`bler`).
+
+    The uplink: the UE sends `ue_power_dbm` spread over the serving channel's resource
+    elements (it is given the whole carrier when it sends; the cell shares it in time), over
+    the same path loss and shadowing (reciprocity), against the gNB's noise
+    (`GNB_NOISE_FIGURE_DB`). Other cells' UEs are not modelled, so the uplink is noise-limited:
+    an optimistic uplink wherever neighbours are loaded. The uplink MCS follows from its SINR
+    through the same tables (a gNB picks it from SRS measurements, not a CQI report).
 
     The random state advances by the distance moved since the previous step, so the samples
     depend only on the seed, the UE's name and the sequence of positions, not on the times.
@@ -447,9 +466,11 @@ class Channel:
         seed: int = 0,
         ue: str = "ue",
         ue_height_m: float = 1.5,
-        noise_figure_db: float = 9.0,
+        noise_figure_db: float = UE_NOISE_FIGURE_DB,
         shadowing: bool = True,
         bler_slope_per_db: float = BLER_SLOPE_PER_DB,
+        ue_power_dbm: float = UE_POWER_DBM,
+        gnb_noise_figure_db: float = GNB_NOISE_FIGURE_DB,
     ) -> None:
         self._scenario = _scenario(model)
         if los not in LOS_MODES:
@@ -462,8 +483,14 @@ class Channel:
                 f"ue_height_m must be {low:g}..{high:g} m (TR 38.901 Table 7.4.1-1), "
                 f"got {ue_height_m:g}"
             )
-        if not 0.0 <= noise_figure_db <= 30.0:
-            raise ChannelError(f"noise_figure_db must be 0..30 dB, got {noise_figure_db:g}")
+        for name, value in (
+            ("noise_figure_db", noise_figure_db),
+            ("gnb_noise_figure_db", gnb_noise_figure_db),
+        ):
+            if not 0.0 <= value <= 30.0:
+                raise ChannelError(f"{name} must be 0..30 dB, got {value:g}")
+        if not -40.0 <= ue_power_dbm <= 40.0:
+            raise ChannelError(f"ue_power_dbm must be -40..40 dBm, got {ue_power_dbm:g}")
         if bler_slope_per_db <= 0:
             raise ChannelError(f"bler_slope_per_db must be > 0, got {bler_slope_per_db:g}")
         seen: dict[str, Site] = {}
@@ -487,6 +514,8 @@ class Channel:
         self.ue = ue
         self.ue_height_m = ue_height_m
         self.noise_figure_db = noise_figure_db
+        self.gnb_noise_figure_db = gnb_noise_figure_db
+        self.ue_power_dbm = ue_power_dbm
         self.shadowing = shadowing
         self.bler_slope_per_db = bler_slope_per_db
         self._links = {site.name: _Link(site, self._scenario, seed, ue) for site in sites}
@@ -515,6 +544,7 @@ class Channel:
         self._last = (t, x, y)
         rsrp: dict[str, float] = {}
         los: dict[str, bool] = {}
+        loss: dict[str, float] = {}  # path loss + shadowing, the same both ways
         for name, link in self._links.items():
             s = link.site
             d2d = math.hypot(x - s.x, y - s.y)
@@ -529,17 +559,14 @@ class Channel:
                 in_los = self.los_mode == "los"
             pl = path_loss_db(self.model, in_los, d2d, s.height_m, self.ue_height_m, s.carrier_ghz)
             sf = (sf_los if in_los else sf_nlos) if self.shadowing else 0.0
+            loss[name] = pl + sf
             rsrp[name] = s.tx_power_dbm - 10.0 * math.log10(s.re_per_symbol) - pl - sf
             los[name] = in_los
         # Per resource element: the serving cell's RSRP against the neighbours' (on the same
         # carrier) and the noise of one resource element's share of the channel.
-        noise_re_mw = 10.0 ** (
-            (
-                thermal_noise_dbm(serving_site.bandwidth_mhz * 1e6, self.noise_figure_db)
-                - 10.0 * math.log10(serving_site.re_per_symbol)
-            )
-            / 10.0
-        )
+        re_db = 10.0 * math.log10(serving_site.re_per_symbol)
+        bandwidth_hz = serving_site.bandwidth_mhz * 1e6
+        noise_re_mw = 10.0 ** ((thermal_noise_dbm(bandwidth_hz, self.noise_figure_db) - re_db) / 10)
         interference_mw = sum(
             10.0 ** (rsrp[name] / 10.0)
             for name, link in self._links.items()
@@ -548,6 +575,15 @@ class Channel:
         sinr_db = rsrp[serving] - 10.0 * math.log10(interference_mw + noise_re_mw)
         cqi = cqi_from_sinr(sinr_db)
         mcs = mcs_from_cqi(cqi)
+        # Per resource element the UE's power and the gNB's noise both take the same share of
+        # the carrier, so the uplink SNR is the whole carrier's.
+        ul_sinr_db = (
+            self.ue_power_dbm
+            - loss[serving]
+            - thermal_noise_dbm(bandwidth_hz, self.gnb_noise_figure_db)
+        )
+        ul_cqi = cqi_from_sinr(ul_sinr_db)
+        ul_mcs = mcs_from_cqi(ul_cqi)
         return RadioSample(
             t=t,
             x=x,
@@ -559,6 +595,10 @@ class Channel:
             cqi=cqi,
             mcs=mcs,
             bler=bler(mcs, sinr_db, self.bler_slope_per_db),
+            ul_sinr_db=ul_sinr_db,
+            ul_cqi=ul_cqi,
+            ul_mcs=ul_mcs,
+            ul_bler=bler(ul_mcs, ul_sinr_db, self.bler_slope_per_db),
         )
 
 

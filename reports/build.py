@@ -575,7 +575,12 @@ def _links(s: dict[str, Any], plots: dict[str, Plot | None]) -> Section:
                 f"{_f(late.get('p99_ms'), '{:.2f}')} ms, max {_f(late.get('max_ms'), '{:.2f}')} ms."
             )
         )
-    if ls["events"]:
+    # The channel's radio changes (several a second) are counted, not listed.
+    events = [e for e in ls["events"] if e["action"] != "channel"]
+    by_channel = len(ls["events"]) - len(events)
+    if by_channel:
+        sec.add(Para(f"The channel changed the air links' radio {by_channel} time(s)."))
+    if events:
         sec.add(
             Table(
                 ["t s", "scheduled s", "late ms", "action", "target", "direction", "changes"],
@@ -589,12 +594,12 @@ def _links(s: dict[str, Any], plots: dict[str, Plot | None]) -> Section:
                         e["direction"],
                         ", ".join(f"{k}={v}" for k, v in e["changes"].items()),
                     ]
-                    for e in ls["events"]
+                    for e in events
                 ],
                 caption="timeline events applied to the links",
             )
         )
-    else:
+    elif not by_channel:
         sec.add(_not_recorded("link events", "/links/events"))
     if ls["rates"]:
         sec.add(
@@ -705,6 +710,62 @@ def _radio_table(lt: dict[str, Any]) -> Table | None:
         caption="radio directions against the closed-form oracle (one-way delay of sparse "
         f"probes, net of the wired delay and the path without the link){timer}",
     )
+
+
+def _radio(s: dict[str, Any], plots: dict[str, Plot | None]) -> Section | None:
+    """The vehicles' radio along their routes (runs with `channel:`)."""
+    radio = s.get("radio") or {}
+    vehicles = radio.get("vehicles") or {}
+    if not vehicles:
+        return None
+    ch = radio.get("channel") or {}
+    sec = Section("Radio along the route")
+    source = f"trace {ch['trace']}" if ch.get("trace") else f"TR 38.901 {ch.get('model', '?')}"
+    sec.add(
+        Para(
+            f"The channel ({source}, LOS {ch.get('los', '?')}, a step every "
+            f"{_ms(ch.get('step_s'))} ms) set each vehicle's air link from where it was; "
+            f"{len(ch.get('sites') or [])} cell site(s)."
+        )
+    )
+
+    def db(block: Any, key: str) -> str:
+        return _f((block or {}).get(key), "{:.1f}")
+
+    sec.add(
+        Table(
+            [
+                "vehicle",
+                "coverage",
+                "cells",
+                "handovers",
+                "DL SINR p5/median dB",
+                "UL SINR p5/median dB",
+                "mean MCS DL/UL",
+                "mean BLER DL/UL",
+            ],
+            [
+                [
+                    v,
+                    _pct(r.get("coverage")),
+                    ", ".join(f"{c} {_pct(x)}" for c, x in (r.get("cells") or {}).items()),
+                    str(len(r.get("handovers") or [])),
+                    f"{db(r.get('sinr_db'), 'p5')} / {db(r.get('sinr_db'), 'median')}",
+                    f"{db(r.get('ul_sinr_db'), 'p5')} / {db(r.get('ul_sinr_db'), 'median')}",
+                    f"{_f(r.get('mean_mcs'), '{:.1f}')} / {_f(r.get('mean_ul_mcs'), '{:.1f}')}",
+                    f"{_pct(r.get('mean_bler'))} / {_pct(r.get('mean_ul_bler'))}",
+                ]
+                for v, r in vehicles.items()
+            ],
+            caption="per vehicle, from /radio/<vehicle>: coverage is the share of steps at "
+            "downlink CQI 1 or better",
+        )
+    )
+    for key in sorted(k for k in plots if k.startswith("radio:")):
+        plot = plots[key]
+        if plot is not None:
+            sec.add(Image(plot))
+    return sec
 
 
 def _nodes(s: dict[str, Any]) -> Section:
@@ -1062,7 +1123,7 @@ def document(
         sections += [_acc_lat(s, plots), _realtime(s, plots), _gaps(s)]
     else:
         title = title.replace("EdgeLoc run", "Run", 1)
-    sections += [_links(s, plots)]
+    sections += [_links(s, plots), _radio(s, plots)]
     sections += [_paths(data.path.parent, s.get("per_vehicle"), s["links"].get("linktest"))]
     sections += [_apps(data.path.parent), _traffic(data.path.parent), _load(s)]
     sections += [_nodes(s), _recording(data, s)]

@@ -36,6 +36,7 @@ from nodes.recording.layout import (
     LINK_EVENTS_TOPIC,
     RUN_MCAP,
     VEHICLE_TOPICS,
+    radio_topic,
 )
 from reports.errors import ReportInputError
 
@@ -139,6 +140,35 @@ class LinkEventRec:
 
 
 @dataclass
+class RadioSeries:
+    """One vehicle's channel steps (`/radio/<vehicle>`, RadioState), in time order."""
+
+    vehicle: str
+    t: NDArray[np.float64]  # stamps, wall clock
+    cell: list[str]  # serving cell per step
+    x: NDArray[np.float64]
+    y: NDArray[np.float64]
+    rsrp_dbm: NDArray[np.float64]
+    sinr_db: NDArray[np.float64]
+    cqi: NDArray[np.float64]
+    mcs: NDArray[np.float64]
+    bler: NDArray[np.float64]
+    ul_sinr_db: NDArray[np.float64]
+    ul_mcs: NDArray[np.float64]
+    ul_bler: NDArray[np.float64]
+
+    @classmethod
+    def from_rows(cls, vehicle: str, rows: list[tuple[Any, ...]]) -> RadioSeries:
+        rows = sorted(rows, key=lambda r: r[0])
+        a = np.array([[r[0], *r[2:]] for r in rows], dtype=np.float64).reshape(-1, 11)
+        cols = [a[:, i] for i in range(11)]
+        return cls(vehicle, cols[0], [str(r[1]) for r in rows], *cols[1:])
+
+    def __len__(self) -> int:
+        return len(self.t)
+
+
+@dataclass
 class CounterSeries:
     """Cumulative counters of one direction of one link, sampled over time."""
 
@@ -206,6 +236,7 @@ class RunData:
     counters: list[CounterSeries]
     first_log_time: float | None
     last_log_time: float | None
+    radio: dict[str, RadioSeries] = field(default_factory=dict)  # vehicle -> /radio/<vehicle>
 
     @property
     def t0(self) -> float:
@@ -281,6 +312,7 @@ def read_run(path: Path | str) -> RunData:
     link_events: list[LinkEventRec] = []
     counter_rows: dict[tuple[str, str], list[tuple[float, ...]]] = defaultdict(list)
     counter_backend: dict[tuple[str, str], str] = {}
+    radio_rows: dict[str, list[tuple[Any, ...]]] = defaultdict(list)
     seen_footer = seen_data_end = False
     first_log: float | None = None
     last_log: float | None = None
@@ -328,9 +360,19 @@ def read_run(path: Path | str) -> RunData:
                 continue
             log_t = rec.log_time * 1e-9
             try:
-                _take(
-                    ch.topic, msg, log_t, rows, vehicle, link_events, counter_rows, counter_backend
-                )
+                if ch.topic.startswith(RADIO_PREFIX):
+                    radio_rows[ch.topic[len(RADIO_PREFIX) :]].append(_radio_row(msg))
+                else:
+                    _take(
+                        ch.topic,
+                        msg,
+                        log_t,
+                        rows,
+                        vehicle,
+                        link_events,
+                        counter_rows,
+                        counter_backend,
+                    )
             except (AttributeError, TypeError, ValueError):
                 # A known topic with another type than the report expects: count it as
                 # undecodable instead of failing the whole report.
@@ -411,6 +453,28 @@ def read_run(path: Path | str) -> RunData:
         counters=counters,
         first_log_time=first_log,
         last_log_time=last_log,
+        radio={v: RadioSeries.from_rows(v, r) for v, r in sorted(radio_rows.items())},
+    )
+
+
+#: Where the channel's steps are recorded: `/radio/<vehicle>` (`layout.radio_topic`).
+RADIO_PREFIX = radio_topic("")
+
+
+def _radio_row(msg: Any) -> tuple[Any, ...]:
+    return (
+        _stamp(msg),
+        str(msg.cell),
+        float(msg.x),
+        float(msg.y),
+        float(msg.rsrp_dbm),
+        float(msg.sinr_db),
+        float(msg.cqi),
+        float(msg.mcs),
+        float(msg.bler),
+        float(msg.ul_sinr_db),
+        float(msg.ul_mcs),
+        float(msg.ul_bler),
     )
 
 

@@ -559,6 +559,60 @@ def radio_cdfs(summary: dict[str, Any], out: Path) -> Plot | None:
     )
 
 
+def radio_map(data: RunData, summary: dict[str, Any], vehicle: str, out: Path) -> Plot | None:
+    """The route coloured by downlink SINR, the cells' sites, the handover points; beside
+    it SINR and MCS of both directions over run time (`/radio/<vehicle>`)."""
+    r = data.radio.get(vehicle)
+    if r is None or not len(r):
+        return None
+    radio = summary.get("radio") or {}
+    sites = ((radio.get("channel") or {}).get("sites")) or []
+    info = (radio.get("vehicles") or {}).get(vehicle) or {}
+    fig = Figure(figsize=(12, 5))
+    ax = fig.add_subplot(1, 2, 1)
+    dots = ax.scatter(r.x, r.y, c=r.sinr_db, s=3, cmap="viridis", vmin=-10, vmax=30)
+    fig.colorbar(dots, ax=ax, label="downlink SINR (dB)")
+    for s in sites:
+        ax.plot(s["x"], s["y"], marker="^", ms=11, color="black", ls="none")
+        ax.annotate(s["name"], (s["x"], s["y"]), textcoords="offset points", xytext=(6, 6))
+    changed = [i for i in range(1, len(r)) if r.cell[i] != r.cell[i - 1]]
+    if changed:
+        ax.plot(r.x[changed], r.y[changed], "rx", ms=10, mew=2, ls="none", label="handover")
+        ax.legend(fontsize=8)
+    ax.set_aspect("equal", adjustable="datalim")
+    ax.set_xlabel("x (m)")
+    ax.set_ylabel("y (m)")
+    ax.grid(alpha=0.3)
+    ax.set_title(f"{vehicle}: route by SINR, cell sites")
+    t = r.t - data.t0
+    top = fig.add_subplot(2, 2, 2)
+    top.plot(t, r.sinr_db, lw=0.8, label="downlink")
+    top.plot(t, r.ul_sinr_db, lw=0.8, label="uplink")
+    top.set_ylabel("SINR (dB)")
+    top.grid(alpha=0.3)
+    top.legend(fontsize=8)
+    low = fig.add_subplot(2, 2, 4, sharex=top)
+    low.step(t, r.mcs, where="post", lw=0.9, label="downlink")
+    low.step(t, r.ul_mcs, where="post", lw=0.9, label="uplink")
+    low.set_ylabel("MCS")
+    low.set_xlabel("run time (s)")
+    low.set_ylim(-1, 29)
+    low.grid(alpha=0.3)
+    for ho in info.get("handovers") or []:
+        for a in (top, low):
+            a.axvline(ho["t_s"], color="red", lw=0.8, ls="--")
+    fig.tight_layout()
+    cover = info.get("coverage")
+    covered = f" In coverage {cover:.0%} of the run." if isinstance(cover, float) else ""
+    return Plot(
+        _save(fig, out, f"radio_{safe(vehicle)}.png"),
+        f"Radio of {vehicle} along its route",
+        "Left: the route, each channel step coloured by its downlink SINR, and the cell sites "
+        "(triangles; crosses where the serving cell changed). Right: SINR and the MCS link "
+        "adaptation ran, downlink and uplink, over the run (dashed: handovers)." + covered,
+    )
+
+
 def draw_all(
     data: RunData, errs: dict[str, dict[str, FrameErrors]], summary: dict[str, Any], out: Path
 ) -> dict[str, Plot | None]:
@@ -578,6 +632,8 @@ def draw_all(
         vd = data.vehicles[v]
         plots[f"split:{v}"] = split_over_time(data, vd, summary, out)
         plots[f"trajectory:{v}"] = trajectory(data, vd, out)
+    for v in list(data.radio)[:MAX_VEHICLE_FIGURES]:
+        plots[f"radio:{v}"] = radio_map(data, summary, v, out)
     return plots
 
 

@@ -50,6 +50,10 @@ report can be compared with the run's own. Keys of summary.json (`version` 1):
   timeline (the recorder's `edgeloc.timeline`: events, applied, failed, lateness),
   linktest (the link self-test table, attachment linktest.json, or null),
   linktest_ran (the recorder's "true"/"false", null if not said)};
+- `radio` (runs with `channel:`): {vehicles: {vehicle: {steps, coverage, cells {cell:
+  share}, handovers [{t_s, from, to}], sinr_db and ul_sinr_db {min, p5, median, p95, max},
+  mean_mcs, mean_ul_mcs, mean_bler, mean_ul_bler}}, channel (model, los, step_s, sites [{name,
+  x, y}])} from `/radio/<vehicle>`; {} without it;
 - `splits`: EdgeLoc with the learned split choice, every fixed split and the per-phase oracle,
   replayed on the run's drive under the run's own measured request latencies
   (`reports.splits`: the keys of `nodes.edgeloc.compare.SplitComparison.to_dict` plus
@@ -375,7 +379,11 @@ def learner_phases(data: RunData) -> list[dict[str, Any]]:
     # nodes come up, so the first decisions can precede it by a fraction of a second, and
     # cutting there would report a phase of one or two plays.
     cuts = sorted(
-        {e.t - t0 for e in data.link_events if e.scheduled_s > 0 and 0.0 < e.t - t0 < end}
+        {
+            e.t - t0
+            for e in data.link_events
+            if e.scheduled_s > 0 and 0.0 < e.t - t0 < end and e.action != "channel"
+        }
     )
     bounds = [min(0.0, decisions[0][0]), *cuts, end]
     out = []
@@ -641,6 +649,50 @@ def links_summary(data: RunData) -> dict[str, Any]:
     }
 
 
+def _spread(x: NDArray[np.float64]) -> dict[str, float | None]:
+    """min, p5, median, p95, max: a cell edge shows in the low end."""
+    a = x[np.isfinite(x)]
+    keys = ("min", "p5", "median", "p95", "max")
+    if not len(a):
+        return dict.fromkeys(keys)
+    values = np.percentile(a, [0, 5, 50, 95, 100])
+    return {k: _r(float(v), 3) for k, v in zip(keys, values, strict=True)}
+
+
+def radio_summary(data: RunData) -> dict[str, Any]:
+    """Per vehicle of a `channel:` run, from `/radio/<vehicle>`: steps, coverage (share of
+    steps at downlink CQI >= 1), the serving cells' shares, handovers (changes of serving
+    cell, with their times), and SINR and MCS figures of both directions; `sites` as the
+    recorder's `edgeloc.run` metadata gives them. {} without the topic."""
+    if not data.radio:
+        return {}
+    t0 = data.t0
+    out: dict[str, Any] = {}
+    for v, r in data.radio.items():
+        if not len(r):
+            continue
+        cells = Counter(r.cell)
+        handovers = [
+            {"t_s": _r(float(r.t[i]) - t0), "from": r.cell[i - 1], "to": r.cell[i]}
+            for i in range(1, len(r))
+            if r.cell[i] != r.cell[i - 1]
+        ]
+        out[v] = {
+            "steps": len(r),
+            "coverage": _r(float(np.mean(r.cqi >= 1))),
+            "cells": {c: _r(n / len(r)) for c, n in sorted(cells.items())},
+            "handovers": handovers,
+            "sinr_db": _spread(r.sinr_db),
+            "ul_sinr_db": _spread(r.ul_sinr_db),
+            "mean_mcs": _r(float(np.mean(r.mcs))),
+            "mean_ul_mcs": _r(float(np.mean(r.ul_mcs))),
+            "mean_bler": _r(float(np.mean(r.bler))),
+            "mean_ul_bler": _r(float(np.mean(r.ul_bler))),
+        }
+    channel = data.run.get("channel")
+    return {"vehicles": out, "channel": channel if isinstance(channel, dict) else None}
+
+
 #: Keys under which the recorder may put a process's last log lines.
 LOG_KEYS = ("last_log_lines", "log_tail", "last_log", "log_lines")
 
@@ -768,6 +820,7 @@ def summarize(data: RunData, splits: bool | str = True) -> dict[str, Any]:
             "realtime": realtime_summary(data),
             "dnn_gaps": dnn_gaps(data),
             "links": links_summary(data),
+            "radio": radio_summary(data),
             "splits": split_block,
             "nodes": data.nodes,
             "failures": failures(data),

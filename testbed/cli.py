@@ -135,12 +135,21 @@ def validate(
         ]
         if scenario.workload.kind == "none":
             extra.append("no EdgeLoc workload")
+        by_channel = sum(getattr(e, "origin", "") == "channel" for e in scenario.timeline)
+        if by_channel:
+            extra.append(f"{by_channel} radio change(s) from the channel")
         con.ok(
             f"{path}: valid ({len(scenario.topology.vehicles)} vehicle(s), "
-            f"{len(scenario.topology.cells)} cell(s), {len(scenario.timeline)} timeline event(s)"
+            f"{len(scenario.topology.cells)} cell(s), "
+            f"{len(scenario.timeline) - by_channel} timeline event(s)"
             + "".join(f", {e}" for e in extra)
             + ")"
         )
+        if scenario.channel is not None:
+            from testbed.mobility import coverage_notes
+
+            for note in coverage_notes(scenario):
+                con.plain(f"note: {path}: {note}")
     if host and scenarios and _validate_host(scenarios) and not bad:
         raise typer.Exit(EXIT_HOST)
     if bad:

@@ -215,6 +215,7 @@ def finalise(
         "edgeloc_vehicles": ",".join(manifest.get("edgeloc_vehicles", [])),
         **{k: str(v) for k, v in manifest.get("versions", {}).items()},
         "host": json.dumps(manifest.get("host", {})),
+        **({"channel": json.dumps(manifest["channel"])} if manifest.get("channel") else {}),
         **(notes or {}),
     }
     timeline = _lateness(folder)

@@ -103,7 +103,8 @@ def replay_config(scenario: Scenario, gate: GateSettings | None = DEFAULT_GATE) 
     w = scenario.workload
     lr = w.learner
     # Phases: between timeline events, and where cross-traffic starts or stops.
-    edges = [e.at_s for e in scenario.timeline]
+    # The channel's radio changes (`testbed.mobility`, several a second) are not phases.
+    edges = [e.at_s for e in scenario.timeline if getattr(e, "origin", "") != "channel"]
     edges += [t for f in scenario.traffic for t in (f.start_s, f.stop_s) if t is not None]
     times = sorted({0.0, *(t for t in edges if t < scenario.duration_s)})
     return ReplayConfig(

@@ -37,7 +37,7 @@ from nodes.recording import RecordingError
 from nodes.recording import layout as names
 from nodes.recording.jsonfile import write_json
 from nodes.recording.parts import PartWriter
-from testbed import __version__, recording
+from testbed import __version__, mobility, recording
 from testbed.apps import Apps
 from testbed.capacity import CapacityCheck, check_scenario
 from testbed.connectivity import EchoResult, vehicles_reach_cores
@@ -103,6 +103,7 @@ class RunResult:
 
 #: What `/traffic/<flow>` carries.
 TRAFFIC_TYPE = "edgeloc_interfaces/msg/TrafficSample"
+RADIO_TYPE = "edgeloc_interfaces/msg/RadioState"
 #: Seconds between progress lines while the timeline plays.
 PROGRESS_EVERY_S = 5.0
 #: How often the run looks at its links and timeline for a failure.
@@ -128,15 +129,23 @@ def play_timeline(
     scenario = net.scenario
 
     def shown(event: AppliedEvent) -> None:
-        progress(f"  {event.text()}")
+        # The channel's radio changes come several a second: events.jsonl and /links/events
+        # have each; the console only the failed ones.
+        if event.kind != "channel" or event.error:
+            progress(f"  {event.text()}")
 
     player = TimelinePlayer(
         scenario.timeline, net.control, on_event=shown, log_path=folder / names.EVENTS_FILE
     )
+    by_channel = sum(getattr(e, "origin", "") == "channel" for e in scenario.timeline)
+    radio = f" and {by_channel} radio change(s) from the channel" if by_channel else ""
     progress(
-        f"playing the timeline: {len(scenario.timeline)} event(s) over "
+        f"playing the timeline: {len(scenario.timeline) - by_channel} event(s){radio} over "
         f"{scenario.duration_s:g} s (Ctrl-C stops the run and tears it down)"
     )
+    if scenario.channel is not None:
+        for note in mobility.coverage_notes(scenario):
+            progress(f"  note: {note}")
     player.start()
     try:
         next_line = PROGRESS_EVERY_S
@@ -288,6 +297,7 @@ class Recording:
                 ),
                 "timeline_events": len(scenario.timeline),
                 "edgeloc_vehicles": [v.name for v in scenario.edgeloc_vehicles()],
+                "channel": mobility.describe(scenario),
             },
         )
         write_json(folder / names.LINKS_CONFIG_FILE, links_config(net, backend))
@@ -384,6 +394,50 @@ class Recording:
                     late=int(s.get("late") or 0),
                 )
                 part.write(f"/traffic/{flow.name}", TRAFFIC_TYPE, serialize_message(msg), t_ns)
+        finally:
+            part.close()
+
+    def record_radio(self, started_epoch_s: float | None, ros_ok: bool) -> None:
+        """Write each vehicle's channel steps up to now as `/radio/<vehicle>` (RadioState),
+        stamped where the timeline placed them, into their own part."""
+        scenario = self.net.scenario
+        if scenario.channel is None or started_epoch_s is None:
+            return
+        if not ros_ok:
+            self.progress("  warning: /radio/* not recorded: rclpy/edgeloc_interfaces missing")
+            return
+        from edgeloc_interfaces.msg import RadioState
+        from rclpy.serialization import serialize_message
+
+        from nodes.recording.layout import radio_topic
+        from nodes.ros.common import to_stamp
+
+        played = min(scenario.duration_s, time.time() - started_epoch_s)
+        part = PartWriter(names.part_path(self.folder, "radio"))
+        try:
+            for plan in mobility.plans(scenario).values():
+                for s in plan.steps:
+                    if s.t > played:
+                        break
+                    t = started_epoch_s + s.t
+                    msg = RadioState(
+                        stamp=to_stamp(t),
+                        vehicle=plan.vehicle,
+                        cell=s.serving,
+                        x=s.x,
+                        y=s.y,
+                        rsrp_dbm=s.rsrp_dbm,
+                        sinr_db=s.sinr_db,
+                        cqi=s.cqi,
+                        mcs=s.mcs,
+                        bler=s.bler,
+                        ul_sinr_db=s.ul_sinr_db,
+                        ul_mcs=s.ul_mcs,
+                        ul_bler=s.ul_bler,
+                    )
+                    part.write(
+                        radio_topic(plan.vehicle), RADIO_TYPE, serialize_message(msg), int(t * 1e9)
+                    )
         finally:
             part.close()
 
@@ -572,6 +626,8 @@ class _Run:
                 result.traffic = traffic.stop()
                 if self.recording is not None:
                     self.recording.record_traffic(traffic, ros_ok)
+            if self.recording is not None and result.timeline:
+                self.recording.record_radio(result.timeline.get("started_epoch_s"), ros_ok)
             if apps:
                 result.apps = apps.stop()
             if ros_ok:

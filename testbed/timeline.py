@@ -99,6 +99,10 @@ class AppliedEvent:
 
 def describe(event: Event) -> tuple[str, str, str]:
     """(kind, target, detail) of an event, as logs and progress lines show it."""
+    if isinstance(event, SetEvent) and event.origin == "channel":
+        radio = event.changes["radio"]
+        mcs, bler = getattr(radio, "mcs", "?"), getattr(radio, "bler", "?")
+        return "channel", event.link, f"{event.direction}: mcs={mcs}, bler={bler}"
     if isinstance(event, SetEvent):
         fields = ", ".join(f"{k}={v}" for k, v in event.changes.items())
         return "set", event.link, f"{event.direction}: {fields}"

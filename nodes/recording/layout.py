@@ -38,6 +38,11 @@ LINK_COUNTERS_TOPIC = "/links/counters"
 VEHICLE_TOPICS = ("gt", "vo", "dnn_answer", "pose", "split_decision", "detector", "inference")
 
 
+def radio_topic(vehicle: str) -> str:
+    """Where a vehicle's channel steps are recorded (`channel:` scenarios), e.g. `/radio/av1`."""
+    return f"/radio/{vehicle}"
+
+
 def vehicle_topic(vehicle: str, name: str) -> str:
     """A vehicle's topic, e.g. `/av1/pose`."""
     return f"/{vehicle}/{name}"

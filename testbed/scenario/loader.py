@@ -25,7 +25,7 @@ from netem.nr import RADIO_PROFILES, Radio
 from netem.profile import GilbertElliott, LinkProfile
 from netem.traces import TraceError, TraceProblem, default_format
 from testbed import units
-from testbed.scenario import model, radios, schema_v1
+from testbed.scenario import channel, model, radios, schema_v1
 from testbed.scenario.issues import ROOT_PATH, Issue, ScenarioError, did_you_mean
 from testbed.scenario.kinds import Context, Invalid, Items, Section, item
 from testbed.scenario.programs import Programs
@@ -300,6 +300,9 @@ class _Builder:
         links = self._links()
         timeline = self._timeline()
         workload = self._workload()
+        channel.check_sites(self.ctx, self.root)
+        channel.check_timeline(self.ctx, self.root, self.link_kinds)
+        channel_spec = channel.spec(self.ctx, self.root, self.base_dir, self.display_dir)
         record = self.root.get("record")
         if record is not None:
             self._check_pcap(record)
@@ -311,7 +314,7 @@ class _Builder:
             return None
         report = self.root.get("report")
         built_record = record.obj.build(record) if record else model.Record()
-        return model.Scenario(
+        scenario = model.Scenario(
             name=self.root["name"],
             seed=self.root["seed"],
             duration_s=self.root["duration"],
@@ -323,9 +326,11 @@ class _Builder:
             report=report.obj.build(report) if report else model.Report(),
             apps=apps,
             traffic=traffic,
+            channel=channel_spec,
             source=self.path,
             version=self.root["version"],
         )
+        return channel.apply(self.ctx, self.root, scenario)
 
     # -- topology --
 
@@ -536,6 +541,8 @@ class _Builder:
     def _cell(self, cell: Section) -> model.Cell:
         """A cell, its scheduler written as its own field or in its `radio` (not both)."""
         built: model.Cell = schema_v1.CELL.build(cell)
+        if cell.written("site"):
+            built = dataclasses.replace(built, site=channel.site(cell))  # type: ignore[arg-type]
         if cell.written("edge"):
             built = dataclasses.replace(built, edge=_edge_name(cell), placement=_placement(cell))
         radio = cell.get("radio")

@@ -16,6 +16,10 @@ the gNB tunnels its UEs' packets in GTP-U over N3 to the UPF, which sends them o
 edge server; `placement: cell` puts the edge at the cell site instead (local breakout), reached
 from the gNB over its own N6 link without crossing N3. Vehicles of such cells get addresses from
 the topology's UE pool.
+
+A cell may stand somewhere (`CellSite`, or "auto": along the route); with a `channel`, each
+vehicle's route through those sites sets its air link's MCS and BLER over the run
+(`testbed.mobility` makes those changes, `SetEvent`s with origin "channel").
 """
 
 from __future__ import annotations
@@ -85,9 +89,23 @@ class Vehicle:
 
 
 @dataclass(frozen=True)
+class CellSite:
+    """Where a cell's antenna stands in the workload's world frame (metres, the frame of the
+    dataset's ground-truth poses), how high, and its total transmit power and carrier
+    (defaults: `netem.channel.Site`'s, a 3.5 GHz macro cell on a 25 m mast at 46 dBm)."""
+
+    x: float
+    y: float
+    height_m: float = 25.0
+    tx_power_dbm: float = 46.0
+    carrier_ghz: float = 3.5
+
+
+@dataclass(frozen=True)
 class Cell:
     """A gNB and what is behind it: a core (`core`), or a UPF and an edge server (`upf`,
-    `edge`, `placement`); see the module doc."""
+    `edge`, `placement`); see the module doc. `site`: where it stands (None: nowhere, the
+    cell has no position; "auto": placed along the route by `testbed.mobility`)."""
 
     gnb: str
     core: str | None = None
@@ -97,6 +115,7 @@ class Cell:
     upf: str | None = None
     edge: str | None = None
     placement: Placement = "core"
+    site: CellSite | Literal["auto"] | None = None
 
     @property
     def tunnelled(self) -> bool:
@@ -225,6 +244,10 @@ class Links:
 # ---- timeline -------------------------------------------------------------------------------
 
 
+#: Who wrote a `set` event: the scenario's timeline, or the channel (`testbed.mobility`).
+EventOrigin = Literal["timeline", "channel"]
+
+
 @dataclass(frozen=True)
 class SetEvent:
     """Change profile fields of one link direction (or both) in place."""
@@ -234,6 +257,7 @@ class SetEvent:
     direction: Literal["uplink", "downlink", "both"]
     changes: dict[str, object]  # LinkProfile field -> value in SI units
     line: int = 0
+    origin: EventOrigin = "timeline"
 
 
 @dataclass(frozen=True)
@@ -456,6 +480,24 @@ class Traffic:
 
 
 @dataclass(frozen=True)
+class ChannelSpec:
+    """How the vehicles' routes become their radio (`testbed.mobility`, `netem.channel`):
+    a TR 38.901 model and LOS mode, the sampling step (link adaptation's period), shadowing,
+    the UE's height, power and noise figure and the gNBs' noise figure; or `trace`, a
+    recorded radio (`time_s,ue,rsrp_dbm,sinr_db,mcs[,cell]` rows) instead of the model."""
+
+    model: str = "uma"
+    los: str = "auto"
+    step_s: float = 0.01
+    shadowing: bool = True
+    ue_height_m: float = 1.5
+    ue_power_dbm: float = 23.0
+    noise_figure_db: float = 9.0
+    gnb_noise_figure_db: float = 5.0
+    trace: Path | None = None
+
+
+@dataclass(frozen=True)
 class Scenario:
     name: str
     seed: int
@@ -468,6 +510,7 @@ class Scenario:
     report: Report = field(default_factory=Report)
     apps: tuple[App, ...] = ()
     traffic: tuple[Traffic, ...] = ()
+    channel: ChannelSpec | None = None  # None: the radios are what the file writes
     source: Path | None = None  # the file it was loaded from
     version: int = SCHEMA_VERSION
 

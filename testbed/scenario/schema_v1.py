@@ -15,6 +15,7 @@ from __future__ import annotations
 from typing import Any
 
 from netem.cell import SCHEDULERS
+from netem.channel import CARRIER_RANGE_GHZ, LOS_MODES, MODELS, UE_HEIGHT_RANGE_M
 from netem.nr import RADIO_PROFILES, UL_ACCESS
 from netem.profile import JITTER_DISTRIBUTIONS, GilbertElliott, LinkProfile
 from testbed.scenario import model
@@ -408,6 +409,33 @@ EDGE = Obj(
     ],
 )
 
+SITE = Obj(
+    "Where a cell's antenna stands, in the world frame of the workload's poses (metres).",
+    [
+        Field("x", Float(noun="a position in metres"), "East, metres.", required=True),
+        Field("y", Float(noun="a position in metres"), "North, metres.", required=True),
+        Field(
+            "height",
+            Float(0.0, 300.0, lo_open=True, noun="an antenna height in metres"),
+            "Antenna height above ground, metres (TR 38.901: UMa 25, UMi 10).",
+            attr="height_m",
+        ),
+        Field(
+            "tx_power",
+            Float(-10.0, 70.0, noun="a transmit power in dBm"),
+            "Total transmit power over the channel, dBm (a macro cell: 46).",
+            attr="tx_power_dbm",
+        ),
+        Field(
+            "carrier",
+            Float(*CARRIER_RANGE_GHZ, noun="a carrier frequency in GHz"),
+            "Carrier frequency, GHz (FR1; band n78: 3.5). Cells on one carrier interfere.",
+            attr="carrier_ghz",
+        ),
+    ],
+    model=model.CellSite,
+)
+
 CELL = Obj(
     "A cell: a gNB and what is behind it: a core (`core`: one node that routes and hosts the"
     " edge server, plain IP), or the 5G core path (`upf` and `edge`: GTP-U over N3 to the"
@@ -442,6 +470,14 @@ CELL = Obj(
             Either(Enum(tuple(RADIO_PROFILES)), CELL_RADIO),
             "The cell-level part of its air links' radios (TDD pattern, numerology, PRBs,"
             " scheduler): a named radio, or a mapping of those fields.",
+            attr=None,
+        ),
+        Field(
+            "site",
+            Either(Enum(("auto",)), SITE),
+            "Where the cell stands: {x, y, height, tx_power, carrier}, or auto (spread along"
+            " the route). With `channel:`, the vehicles' positions against the sites set their"
+            " radio.",
             attr=None,
         ),
     ],
@@ -934,6 +970,65 @@ TRAFFIC = Obj(
     model=model.Traffic,
 )
 
+CHANNEL = Obj(
+    "The radio channel from each vehicle's route: TR 38.901 path loss, LOS and shadowing from"
+    " its distance to the cell sites, then SINR -> CQI -> MCS and BLER (TS 38.214) on its air"
+    " link, both directions, every `step`. Needs a `site` on every cell and an NR `radio` on"
+    " the air links.",
+    [
+        Field(
+            "model",
+            Enum(MODELS),
+            "TR 38.901 scenario: uma (urban macro) or umi (urban micro, street canyon).",
+        ),
+        Field(
+            "los",
+            Enum(LOS_MODES),
+            "Line of sight: auto (drawn from TR 38.901's LOS probability, correlated along the"
+            " route), los or nlos everywhere.",
+        ),
+        Field(
+            "step",
+            Duration(10.0, 0.001, noun="a sampling step"),
+            "How often the channel is sampled and link adaptation may change the MCS.",
+            attr="step_s",
+        ),
+        Field("shadowing", Bool(), "Log-normal shadowing (TR 38.901 Table 7.4.1-1), seeded."),
+        Field(
+            "ue_height",
+            Float(*UE_HEIGHT_RANGE_M, noun="a UE height in metres"),
+            "The vehicle's antenna height, metres.",
+            attr="ue_height_m",
+        ),
+        Field(
+            "ue_power",
+            Float(-40.0, 40.0, noun="a transmit power in dBm"),
+            "The UE's uplink power, dBm (power class 3: 23).",
+            attr="ue_power_dbm",
+        ),
+        Field(
+            "noise_figure",
+            Float(0.0, 30.0, noun="a noise figure in dB"),
+            "The UE receiver's noise figure, dB.",
+            attr="noise_figure_db",
+        ),
+        Field(
+            "gnb_noise_figure",
+            Float(0.0, 30.0, noun="a noise figure in dB"),
+            "The gNB receiver's noise figure, dB.",
+            attr="gnb_noise_figure_db",
+        ),
+        Field(
+            "trace",
+            Str("a path to a radio trace CSV, relative to the scenario file"),
+            "A recorded radio instead of the model: CSV rows time_s,ue,rsrp_dbm,sinr_db,mcs"
+            " (a drive test's export); each vehicle plays its own rows.",
+            attr=None,
+        ),
+    ],
+    model=model.ChannelSpec,
+)
+
 SCENARIO = Obj(
     "An edgeloc-testbed scenario (schema v1): topology, links, timeline, workload.",
     [
@@ -963,6 +1058,7 @@ SCENARIO = Obj(
         Field("topology", TOPOLOGY, "Nodes of the emulated network.", required=True),
         Field("links", LINKS, "Link behaviour."),
         Field("timeline", ListOf(EVENT), "Link and shaping changes during the run."),
+        Field("channel", CHANNEL, "Radio from the vehicles' routes and the cells' sites."),
         Field(
             "workload",
             Either(WORKLOAD_KIND, WORKLOAD),

@@ -98,6 +98,10 @@ def run_sweep(
             variant_file = out / "variants" / f"{name}.yaml"
             variant_file.write_text(text)
             scenario = dataclasses.replace(variant, source=variant_file, seed=seed)
+            if scenario.channel is not None:  # the channel's radio depends on the seed
+                from testbed.mobility import with_channel
+
+                scenario = with_channel(scenario)
             title = f"variant {i + 1}/{len(scenarios)}: {shown}" + (
                 f" (seed {seed}, {k + 1}/{seeds})" if seeds > 1 else ""
             )

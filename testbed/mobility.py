@@ -1,0 +1,511 @@
+"""Vehicles' routes drive their radio: the channel's changes to their air links.
+
+The workload already knows where each vehicle is at every frame (its dataset's ground-truth
+poses); with a scenario `channel:`, this module makes the network know it too. Every `step`
+it places the vehicle on its route, samples `netem.channel.Channel` against the cells' sites
+(TR 38.901 path loss, LOS and shadowing, SINR with the other sites as interference, CQI,
+MCS and BLER, TS 38.214) and turns the samples into `set` events on the vehicle's air link,
+one wherever link adaptation would change what the radio runs at. Those events join the
+timeline (origin "channel"), so the real run's relays and the replay's slot model play the
+same radio.
+
+Nouns:
+- `Route`: a vehicle's positions over the run, from the workload's dataset (every vehicle
+  drives the scenario's one drive, as the real run's sensor nodes do).
+- `RadioStep`: one sample of a vehicle's radio (serving cell, RSRP, SINR, MCS, BLER, both
+  directions), what a `/radio/<vehicle>` recording and the report's map show.
+- `RadioPlan`: one vehicle's steps over the run.
+
+`plans(scenario)` samples every vehicle; `with_channel(scenario)` returns the scenario with
+the channel's radio on its air links (the initial radio, then the events). The loader calls
+it, so a loaded scenario already carries them. Same seed, same sites and same route give the
+same plans: every random stream of the channel is seeded from the scenario's seed and the
+vehicle's name.
+
+Until handover lands (issue #19 part 3) a vehicle is served by the cell it attaches to all
+run long; the other sites are interference.
+"""
+
+from __future__ import annotations
+
+import bisect
+import dataclasses
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from netem.channel import (
+    CQI_SINR_DB,
+    N_PRB_30KHZ,
+    Channel,
+    ChannelError,
+    RadioTrace,
+    Site,
+    bler,
+    cqi_from_sinr,
+    mcs_from_cqi,
+)
+from netem.nr import Radio
+from testbed.errors import BadInput
+from testbed.scenario.model import (
+    Cell,
+    ChannelSpec,
+    Event,
+    LinkSpec,
+    Scenario,
+    SetEvent,
+    Vehicle,
+    Workload,
+)
+
+#: An `auto` site stands this far to the right of the road, abeam the point of the route the
+#: vehicle passes at (k + 1/2) / N of the run for the k-th of N cells: a mast at the kerb of
+#: the next block, not in the lane.
+AUTO_OFFSET_M = 25.0
+#: The largest BLER a radio is given: `netem.nr.Radio` takes BLER < 1, and at 99% with HARQ's
+#: retransmissions a UE out of coverage loses nearly everything, as one would before a radio
+#: link failure (which is not modelled).
+MAX_BLER = 0.99
+#: Link adaptation changes the MCS at once; the BLER between two MCS changes moves
+#: continuously, so a change of BLER is only sent when it crosses one of these levels (each
+#: about a factor 3 apart): a few hundred events a run instead of one per step.
+BLER_LEVELS = (0.001, 0.01, 0.03, 0.1, 0.3, 0.9)
+#: The dataset is opened for this much longer than the run, as the sensor node opens it.
+DATASET_MARGIN_S = 60.0
+#: Link adaptation follows the SINR through a first-order filter of this time constant, as a
+#: gNB filters CSI reports before it picks an MCS (an assumption: 3GPP leaves the filter to
+#: the vendor). It also smooths what the channel model has and a real UE's measurement does
+#: not: exponentially correlated shadowing is rough below a metre (0.3 dB from one 10 ms step
+#: to the next at 10 m/s), which would change the MCS back and forth every few steps.
+LA_TIME_CONSTANT_S = 0.2
+
+
+class LinkAdaptation:
+    """The MCS and BLER a link runs at, from SINR samples in time order: the filtered SINR
+    (`LA_TIME_CONSTANT_S`) gives the CQI, the CQI the MCS, and that MCS's BLER at the filtered
+    SINR is the link's (capped at `MAX_BLER`)."""
+
+    def __init__(self, time_constant_s: float = LA_TIME_CONSTANT_S) -> None:
+        self.time_constant_s = time_constant_s
+        self.sinr_db: float | None = None
+        self._t: float | None = None
+
+    def step(self, t: float, sinr_db: float) -> tuple[int, int, float]:
+        """(cqi, mcs, bler) after a sample of `sinr_db` at `t`."""
+        if self.sinr_db is None or self._t is None:
+            self.sinr_db = sinr_db
+        else:
+            a = 1.0 - math.exp(-(t - self._t) / self.time_constant_s)
+            self.sinr_db += a * (sinr_db - self.sinr_db)
+        self._t = t
+        cqi = cqi_from_sinr(self.sinr_db)
+        mcs = mcs_from_cqi(cqi)
+        return cqi, mcs, min(MAX_BLER, bler(mcs, self.sinr_db))
+
+
+class MobilityError(BadInput):
+    """The channel cannot be computed for this scenario (the message says why)."""
+
+
+@dataclass(frozen=True)
+class Route:
+    """Positions (m, world frame) and headings (rad) over time (s from the run's start)."""
+
+    t: np.ndarray
+    x: np.ndarray
+    y: np.ndarray
+    yaw: np.ndarray
+
+    @classmethod
+    def of_workload(cls, workload: Workload, seed: int, duration_s: float) -> Route:
+        """The drive of the scenario's dataset: the synthetic one of `seed`, or the recorded
+        folder's ground truth (its first stamp taken as the run's start)."""
+        from nodes.edgeloc.dataset import DatasetError, open_dataset
+
+        try:
+            dataset = open_dataset(
+                workload.dataset,
+                seed=seed,
+                rate_hz=workload.rate_hz,
+                duration_s=duration_s + DATASET_MARGIN_S,
+                corruption=workload.corruption,
+            )
+            t, poses = dataset.timestamps, dataset.gt_poses
+        except (DatasetError, OSError, ValueError) as err:
+            raise MobilityError(f"no route for the channel: {err}") from None
+        if len(t) < 2:
+            raise MobilityError("no route for the channel: the dataset has fewer than 2 poses")
+        t = np.asarray(t, dtype=np.float64) - float(t[0])
+        yaw = np.unwrap(np.asarray(poses[:, 2], dtype=np.float64))
+        return cls(t, poses[:, 0].astype(np.float64), poses[:, 1].astype(np.float64), yaw)
+
+    def at(self, t: float | np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(x, y, yaw) at `t`, linear between poses, held at the ends."""
+        return (
+            np.interp(t, self.t, self.x),
+            np.interp(t, self.t, self.y),
+            np.interp(t, self.t, self.yaw),
+        )
+
+
+@dataclass(frozen=True)
+class RadioStep:
+    """One sample of a vehicle's radio: where it was, its serving cell and what that cell's
+    link ran at, downlink and uplink (`ul_`). `rsrp_dbm` is the serving cell's; `sinr_db`
+    the sample's, `cqi`, `mcs` and `bler` what link adaptation made of it (`LinkAdaptation`;
+    a trace's own MCS)."""
+
+    t: float
+    x: float
+    y: float
+    serving: str
+    rsrp_dbm: float
+    sinr_db: float
+    cqi: int
+    mcs: int
+    bler: float
+    ul_sinr_db: float
+    ul_mcs: int
+    ul_bler: float
+
+
+@dataclass(frozen=True)
+class RadioPlan:
+    """One vehicle's radio over the run, on its air link `link`."""
+
+    vehicle: str
+    link: str
+    steps: tuple[RadioStep, ...]
+
+    def coverage(self) -> float:
+        """Share of the steps at which the serving cell's downlink reaches CQI 1 (SINR at or
+        above CQI 1's threshold): in coverage."""
+        return sum(s.cqi >= 1 for s in self.steps) / len(self.steps) if self.steps else 0.0
+
+    def changes(self, direction: str) -> list[tuple[float, int, float]]:
+        """(t, mcs, bler) wherever the MCS changes or the BLER crosses a `BLER_LEVELS` level
+        in `direction`, the first at the first step."""
+        out: list[tuple[float, int, float]] = []
+        last: tuple[int, int] | None = None
+        for s in self.steps:
+            mcs, value = (s.mcs, s.bler) if direction == "downlink" else (s.ul_mcs, s.ul_bler)
+            key = (mcs, bisect.bisect(BLER_LEVELS, value))
+            if key != last:
+                out.append((s.t, mcs, float(f"{value:.4g}")))
+                last = key
+        return out
+
+
+def air_link(scenario: Scenario, vehicle: Vehicle) -> LinkSpec:
+    return scenario.links.get(f"{vehicle.name}-{vehicle.gnb}")
+
+
+def bandwidth_mhz(radio: Radio) -> int:
+    """The FR1 channel bandwidth whose 30 kHz PRB count is the radio's (TS 38.101-1 Table
+    5.3.2-1): what the channel spreads power and noise over."""
+    if radio.numerology != 1:
+        raise MobilityError(
+            f"the channel models 30 kHz carriers (numerology 1); a radio has numerology "
+            f"{radio.numerology}"
+        )
+    for mhz, prbs in N_PRB_30KHZ.items():
+        if prbs == radio.n_prb:
+            return mhz
+    allowed = ", ".join(str(p) for p in N_PRB_30KHZ.values())
+    raise MobilityError(
+        f"the channel needs a radio's PRBs to fill a channel bandwidth (TS 38.101-1 Table "
+        f"5.3.2-1 at 30 kHz: {allowed}), got {radio.n_prb}"
+    )
+
+
+def sites(scenario: Scenario, route: Route) -> list[Site]:
+    """Every cell's site: as written, or (auto) abeam the route at (k + 1/2) / N of the run,
+    `AUTO_OFFSET_M` to the right. A cell's bandwidth is its first air link's radio's."""
+    cells = scenario.topology.cells
+    out: list[Site] = []
+    for k, cell in enumerate(cells):
+        site = cell.site
+        if site is None:
+            raise MobilityError(f"cell {cell.gnb} has no site; the channel needs one per cell")
+        radio = _cell_radio(scenario, cell)
+        if site == "auto":
+            x, y, yaw = route.at((k + 0.5) / len(cells) * scenario.duration_s)
+            out.append(
+                Site(
+                    cell.gnb,
+                    float(x + math.sin(yaw) * AUTO_OFFSET_M),
+                    float(y - math.cos(yaw) * AUTO_OFFSET_M),
+                    bandwidth_mhz=bandwidth_mhz(radio),
+                )
+            )
+        else:
+            out.append(
+                Site(
+                    cell.gnb,
+                    site.x,
+                    site.y,
+                    height_m=site.height_m,
+                    tx_power_dbm=site.tx_power_dbm,
+                    carrier_ghz=site.carrier_ghz,
+                    bandwidth_mhz=bandwidth_mhz(radio),
+                )
+            )
+    return out
+
+
+def _cell_radio(scenario: Scenario, cell: Cell) -> Radio:
+    for v in scenario.topology.vehicles:
+        if v.gnb == cell.gnb:
+            radio = air_link(scenario, v).downlink.radio
+            if radio is not None:
+                return radio
+    from netem.nr import RADIO_PROFILES
+    from testbed.scenario.radios import DEFAULT_PROFILE
+
+    return RADIO_PROFILES[DEFAULT_PROFILE]  # a cell without vehicles only interferes
+
+
+def step_times(spec: ChannelSpec, duration_s: float) -> np.ndarray:
+    n = max(1, math.ceil(duration_s / spec.step_s - 1e-9))
+    return np.arange(n, dtype=np.float64) * spec.step_s
+
+
+def plans(scenario: Scenario, route: Route | None = None) -> dict[str, RadioPlan]:
+    """Every vehicle's radio over the run (vehicle name -> plan); {} without a channel."""
+    spec = scenario.channel
+    if spec is None:
+        return {}
+    route = route or Route.of_workload(scenario.workload, scenario.seed, scenario.duration_s)
+    times = step_times(spec, scenario.duration_s)
+    xs, ys, _ = route.at(times)
+    if spec.trace is not None:
+        trace = _trace(spec.trace)
+    else:
+        all_sites = sites(scenario, route)
+    out: dict[str, RadioPlan] = {}
+    for v in scenario.topology.vehicles:
+        link = air_link(scenario, v).name
+        if spec.trace is not None:
+            steps = _trace_steps(trace, v, times, xs, ys)
+        else:
+            steps = _model_steps(spec, all_sites, scenario.seed, v, times, xs, ys)
+        out[v.name] = RadioPlan(v.name, link, steps)
+    return out
+
+
+def _model_steps(
+    spec: ChannelSpec,
+    all_sites: Sequence[Site],
+    seed: int,
+    vehicle: Vehicle,
+    times: np.ndarray,
+    xs: np.ndarray,
+    ys: np.ndarray,
+) -> tuple[RadioStep, ...]:
+    try:
+        channel = Channel(
+            all_sites,
+            model=spec.model,
+            los=spec.los,
+            seed=seed,
+            ue=vehicle.name,
+            ue_height_m=spec.ue_height_m,
+            noise_figure_db=spec.noise_figure_db,
+            shadowing=spec.shadowing,
+            ue_power_dbm=spec.ue_power_dbm,
+            gnb_noise_figure_db=spec.gnb_noise_figure_db,
+        )
+    except ChannelError as err:
+        raise MobilityError(f"channel: {err}") from None
+    out = []
+    down, up = LinkAdaptation(), LinkAdaptation()
+    for t, x, y in zip(times.tolist(), xs.tolist(), ys.tolist(), strict=True):
+        s = channel.step(t, x, y, vehicle.gnb)
+        cqi, mcs, b = down.step(t, s.sinr_db)
+        _, ul_mcs, ul_b = up.step(t, s.ul_sinr_db)
+        out.append(
+            RadioStep(
+                t,
+                x,
+                y,
+                s.serving,
+                s.rsrp_dbm[s.serving],
+                s.sinr_db,
+                cqi,
+                mcs,
+                b,
+                s.ul_sinr_db,
+                ul_mcs,
+                ul_b,
+            )
+        )
+    return tuple(out)
+
+
+def _trace(path: Path) -> RadioTrace:
+    try:
+        return RadioTrace.load(path)
+    except ChannelError as err:
+        raise MobilityError(str(err)) from None
+
+
+def _trace_steps(
+    trace: RadioTrace, vehicle: Vehicle, times: np.ndarray, xs: np.ndarray, ys: np.ndarray
+) -> tuple[RadioStep, ...]:
+    """A recorded radio: at each step the vehicle's sample in force (its first one before
+    that), its MCS and the BLER of that MCS at its SINR, for both directions (a drive test
+    records one link; the uplink gets the same)."""
+    if vehicle.name not in trace.ues:
+        raise MobilityError(
+            f"{trace.source}: no rows for vehicle {vehicle.name!r} (UEs in the trace: "
+            f"{', '.join(trace.ues)})"
+        )
+    first = trace.samples[vehicle.name][0]
+    out = []
+    for t, x, y in zip(times.tolist(), xs.tolist(), ys.tolist(), strict=True):
+        s = trace.at(vehicle.name, t) or first
+        b = min(MAX_BLER, bler(s.mcs, s.sinr_db))
+        cqi = cqi_from_sinr(s.sinr_db)
+        serving = s.cell or vehicle.gnb
+        out.append(
+            RadioStep(t, x, y, serving, s.rsrp_dbm, s.sinr_db, cqi, s.mcs, b, s.sinr_db, s.mcs, b)
+        )
+    return tuple(out)
+
+
+def with_channel(scenario: Scenario, route: Route | None = None) -> Scenario:
+    """`scenario` with its vehicles' radio from the channel: each air link starts with the
+    first step's MCS and BLER, then a `set` event (origin "channel") carries each change.
+    The timeline's own radio changes on those links keep their other fields and take the
+    channel's MCS and BLER of their time (a `both` one becomes one per direction). Calling
+    it again (after a change of seed, say) replaces the radio the first call gave."""
+    found = plans(scenario, route)
+    if not found:
+        return scenario
+    links = {link.name: link for link in scenario.links.links}
+    # The changes of an earlier call go: a scenario given another seed gets its own radio.
+    timeline: list[Event] = [
+        e for e in scenario.timeline if not (isinstance(e, SetEvent) and e.origin == "channel")
+    ]
+    for plan in found.values():
+        spec = links[plan.link]
+        for direction in ("uplink", "downlink"):
+            radio = spec.profile(direction).radio  # type: ignore[arg-type]
+            if radio is None:
+                raise MobilityError(
+                    f"the channel sets the MCS of {plan.link}'s {direction} radio, and it "
+                    "has none: give the air links an NR radio (links.air.radio)"
+                )
+            changes = plan.changes(direction)
+            _, mcs, b = changes[0]
+            start = dataclasses.replace(radio, mcs=mcs, bler=b)
+            profile = spec.profile(direction).replace(radio=start)  # type: ignore[arg-type]
+            spec = dataclasses.replace(spec, **{direction: profile})
+            timeline = _merge(timeline, plan.link, direction, radio, changes[1:], (mcs, b))
+        links[plan.link] = spec
+    return dataclasses.replace(
+        scenario,
+        links=dataclasses.replace(
+            scenario.links, links=tuple(links[n.name] for n in scenario.links.links)
+        ),
+        timeline=tuple(sorted(timeline, key=lambda e: e.at_s)),
+    )
+
+
+def _merge(
+    timeline: list[Event],
+    link: str,
+    direction: str,
+    radio: Radio,
+    changes: list[tuple[float, int, float]],
+    now: tuple[int, float],
+) -> list[Event]:
+    """The timeline with the channel's `changes` of `link`'s `direction` woven in."""
+    out: list[Event] = []
+    mine: list[SetEvent] = []
+    for e in timeline:
+        if (
+            isinstance(e, SetEvent)
+            and e.link == link
+            and e.direction in (direction, "both")
+            and "radio" in e.changes
+        ):
+            if e.direction == "both":  # the other direction's copy stays in the timeline
+                other = "downlink" if direction == "uplink" else "uplink"
+                out.append(dataclasses.replace(e, direction=other))
+            mine.append(dataclasses.replace(e, direction=direction))  # type: ignore[arg-type]
+        else:
+            out.append(e)
+    # In time order; at one instant the timeline's change first, then the channel's on it.
+    merged: list[tuple[float, int, object]] = [(e.at_s, 0, e) for e in mine]
+    merged += [(t, 1, (mcs, b)) for t, mcs, b in changes]
+    merged.sort(key=lambda item: (item[0], item[1]))
+    base = radio
+    for t, kind, item in merged:
+        if kind == 0:
+            assert isinstance(item, SetEvent)
+            written = item.changes["radio"]
+            assert isinstance(written, Radio)
+            base = written
+            fitted = dataclasses.replace(base, mcs=now[0], bler=now[1])
+            out.append(dataclasses.replace(item, changes={**item.changes, "radio": fitted}))
+        else:
+            assert isinstance(item, tuple)
+            now = item
+            out.append(
+                SetEvent(
+                    t,
+                    link,
+                    direction,  # type: ignore[arg-type]
+                    {"radio": dataclasses.replace(base, mcs=now[0], bler=now[1])},
+                    origin="channel",
+                )
+            )
+    return out
+
+
+def coverage_notes(scenario: Scenario) -> list[str]:
+    """One line per vehicle whose route leaves its cell's coverage (downlink CQI 0, below
+    SINR -6.7 dB): never covered at all (most likely sites placed away from the route), or
+    for what share of the run."""
+    out = []
+    for plan in plans(scenario).values():
+        covered = plan.coverage()
+        if covered == 0.0:
+            out.append(
+                f"{plan.vehicle}'s route never reaches its cell's coverage (downlink SINR "
+                f"below CQI 1's {CQI_SINR_DB[0]:g} dB all run): are the sites where the "
+                "route is? (`site: auto` places them along it)"
+            )
+        elif covered < 1.0:
+            out.append(
+                f"{plan.vehicle} is out of its cell's coverage for {1 - covered:.0%} of the run "
+                f"(downlink SINR below {CQI_SINR_DB[0]:g} dB; its link runs at MCS 0 with BLER "
+                f"up to {MAX_BLER:g} there)"
+            )
+    return out
+
+
+def describe(scenario: Scenario) -> dict[str, object] | None:
+    """The channel as a run records it (`edgeloc.run` metadata, for the report's map): model,
+    LOS mode, step, trace, and where every site stood (auto ones placed). None without one."""
+    spec = scenario.channel
+    if spec is None:
+        return None
+    placed: list[dict[str, object]] = []
+    if spec.trace is None:
+        route = Route.of_workload(scenario.workload, scenario.seed, scenario.duration_s)
+        placed = [
+            {"name": s.name, "x": round(s.x, 3), "y": round(s.y, 3), "height_m": s.height_m}
+            for s in sites(scenario, route)
+        ]
+    return {
+        "model": spec.model,
+        "los": spec.los,
+        "step_s": spec.step_s,
+        "trace": None if spec.trace is None else spec.trace.name,
+        "sites": placed,
+    }
