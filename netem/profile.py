@@ -1,10 +1,13 @@
 """What one direction of an emulated link does to packets.
 
 A `LinkProfile` is pure data: rate, delay, jitter and its distribution, loss (random or
-Gilbert-Elliott), queue limit, whether reordering is allowed, and an optional NR air interface
-(`netem.nr.Radio`, userspace backend only). Backends (`tc`, `userspace`)
-turn a profile into qdiscs or relay stages; the timeline changes a live link by handing the
-backend a new profile, which it applies in place.
+Gilbert-Elliott), queue limit, whether reordering is allowed, an optional NR air interface
+(`netem.nr.Radio`) and optional RRC timers (`netem.rrc.RrcSettings`), both userspace backend
+only. Backends (`tc`, `userspace`) turn a profile into qdiscs or relay stages; the timeline
+changes a live link by handing the backend a new profile, which it applies in place.
+
+RRC states are the UE's, not a direction's: one state machine serves both directions of a
+link, so the two profiles of a link carry the same `rrc` (`check_link`).
 """
 
 from __future__ import annotations
@@ -16,6 +19,7 @@ from typing import Any, Literal
 
 from netem.errors import ProfileError
 from netem.nr import NrError, Radio
+from netem.rrc import RrcError, RrcSettings
 
 JitterDistribution = Literal["normal", "uniform", "pareto"]
 JITTER_DISTRIBUTIONS: tuple[str, ...] = ("normal", "uniform", "pareto")
@@ -60,6 +64,9 @@ class LinkProfile:
     reorder: bool = False
     #: The NR air interface (TDD slots, transport blocks, grant lead); userspace backend only.
     radio: Radio | None = None
+    #: RRC states (CONNECTED/INACTIVE/IDLE) and what a packet after a quiet spell pays to
+    #: reconnect; None: always connected. Userspace backend only; the same in both directions.
+    rrc: RrcSettings | None = None
 
     def replace(self, **changes: Any) -> LinkProfile:
         """A copy with `changes` applied (the timeline's `set` action)."""
@@ -82,6 +89,8 @@ class LinkProfile:
         out = dataclasses.asdict(self)
         if self.radio is not None:
             out["radio"] = self.radio.to_dict()
+        if self.rrc is not None:
+            out["rrc"] = self.rrc.to_dict()
         return out
 
     @classmethod
@@ -93,6 +102,9 @@ class LinkProfile:
         radio = data.get("radio")
         if isinstance(radio, dict):
             data["radio"] = Radio.from_dict(radio)
+        rrc = data.get("rrc")
+        if isinstance(rrc, dict):
+            data["rrc"] = RrcSettings.from_dict(rrc)
         return cls(**data)
 
 
@@ -159,3 +171,27 @@ def check_profile(profile: LinkProfile, backend: Literal["tc", "userspace"] = "u
             profile.radio.check()
         except (NrError, TypeError) as exc:
             raise ProfileError(f"link profile field `radio`: {exc}") from None
+    if profile.rrc is not None:
+        if backend == "tc":
+            raise ProfileError(
+                "link profile field `rrc`: RRC states run in the userspace relay only (tc's "
+                "qdiscs cannot hold a quiet link's first packet back); use backend userspace"
+            )
+        if not isinstance(profile.rrc, RrcSettings):
+            raise bad("rrc", profile.rrc, "RRC settings (inactivity_s, idle_after_s, ...) or null")
+        try:
+            profile.rrc.check()
+        except RrcError as exc:
+            raise ProfileError(f"link profile field `rrc`: {exc}") from None
+
+
+def check_link(uplink: LinkProfile, downlink: LinkProfile) -> None:
+    """Raise `ProfileError` unless the two directions of one link agree on what is the UE's
+    rather than a direction's: its RRC state machine, which both directions' packets drive
+    (TS 38.331 §4.2.1: the RRC state is the UE's)."""
+    if uplink.rrc != downlink.rrc:
+        raise ProfileError(
+            f"link profile field `rrc` differs between uplink ({uplink.rrc}) and downlink "
+            f"({downlink.rrc}): one RRC state machine serves both directions of a link; give "
+            "both the same settings (a relay `set` that names rrc changes both)"
+        )

@@ -36,6 +36,16 @@ Control: a unix stream socket; one JSON object per line in, one JSON reply per l
 Errors come back as {"ok": false, "error": "..."}; the relay keeps running. `set` changes only
 the fields given (the others keep their value) and applies in place: queued packets stay.
 
+RRC states (a profile's `rrc`, `netem.rrc`) are the UE's, not a direction's: each link has one
+state machine that both its directions' packets drive (`netem.stages.share_rrc`), so its two
+profiles always carry the same `rrc`: a `set` that names `rrc` changes it in both directions
+(its reply shows both profiles), and a link whose two profiles differ in it is refused. The
+UE is connected when its link comes up (it has just attached) and when a `set` switches RRC
+states on; its timers run from then.
+`counters` reports the link's RRC state and promotions under "rrc" (null without RRC states),
+and each direction's share of them (promotions its packets started, packets held) under its
+own "rrc".
+
 One relay can carry several links (`attach`; each its own two TUN ends and pipelines; every
 request but `ping` and `attach` names its `link`, the first one by default). Links that name
 the same `cell` (`--cell` for the first) share that cell's NR slots (`netem.cell.Cell`), per
@@ -61,12 +71,12 @@ from collections.abc import Callable
 from typing import Any
 
 from netem.cell import SCHEDULERS, Cell, CellError
-from netem.errors import NetemError
+from netem.errors import NetemError, ProfileError
 from netem.gso import VNET_LEN, Frame, ip_packets
 from netem.pcap import PcapngWriter
 from netem.proc import PR_SET_TIMERSLACK, die_with_parent, prctl, renice
-from netem.profile import PROFILE_FIELDS, LinkProfile, check_profile
-from netem.stages import Pipeline, Slots
+from netem.profile import PROFILE_FIELDS, LinkProfile, check_link, check_profile
+from netem.stages import Pipeline, RrcLink, RrcStage, Slots, share_rrc
 from netem.traces import TRACE_FORMATS, load_trace
 from netem.tun import MAX_MTU, TunConfig, TunError, open_tun_in
 
@@ -278,6 +288,13 @@ class Relay:
     def _add_port(self, port: Port, cell: str | None) -> None:
         if port.name in self.ports:
             raise ControlError(f"this relay already carries a link named {port.name!r}")
+        try:
+            # One RRC state machine for the UE of this link, whichever direction its packets go.
+            rrc = share_rrc(port.pipelines["uplink"], port.pipelines["downlink"])
+        except ProfileError as exc:
+            raise ControlError(f"link {port.name}: {exc}") from None
+        if rrc is not None:
+            rrc.start(self.clock())  # the link is up: its UE has just attached, connected
         if cell is not None:
             for d, pipeline in port.pipelines.items():
                 stage = pipeline.stage("slots")
@@ -324,6 +341,12 @@ class Relay:
             ]
         return out
 
+    @staticmethod
+    def _rrc(port: Port) -> RrcLink | None:
+        """The RRC state of the link's UE (None: pipelines made without an RRC stage)."""
+        stage = next((s for s in port.pipelines["uplink"].stages if isinstance(s, RrcStage)), None)
+        return None if stage is None else stage.link
+
     def _port(self, request: dict[str, Any]) -> Port:
         name = request.get("link", self.first)
         if name not in self.ports:
@@ -357,6 +380,7 @@ class Relay:
             raise ControlError(f"attach needs {exc.args[0]!r}") from None
         for profile in profiles.values():
             check_profile(profile)
+        check_link(profiles["uplink"], profiles["downlink"])  # before any TUN end is opened
         seed = str(request.get("seed", name))
         uplink = Pipeline.from_profile(profiles["uplink"], f"{seed}:uplink", "uplink")
         downlink = Pipeline.from_profile(profiles["downlink"], f"{seed}:downlink", "downlink")
@@ -483,13 +507,23 @@ class Relay:
                 )
             targets = self._directions(request)
             new = {}
-            for d in targets:
-                merged = {**port.pipelines[d].profile.to_dict(), **changes}
+            for d in DIRECTIONS:
+                current = port.pipelines[d].profile.to_dict()
+                if d in targets:
+                    merged = {**current, **changes}
+                elif "rrc" in changes:
+                    # The RRC state is the UE's (TS 38.331 §4.2.1): one machine, one setting.
+                    merged = {**current, "rrc": changes["rrc"]}
+                else:
+                    continue
                 profile = LinkProfile.from_dict(merged)
                 check_profile(profile)
                 new[d] = profile
             for d, profile in new.items():  # all validated first: both or neither change
                 port.pipelines[d].apply(profile)
+            rrc = self._rrc(port)
+            if rrc is not None:
+                rrc.start(self.clock())  # RRC states switched on: connected from now
             return {"profiles": {d: p.to_dict() for d, p in new.items()}}
         if op == "outage":
             seconds = request.get("seconds")
@@ -545,9 +579,11 @@ class Relay:
             f"p{q}": late[min(len(late) - 1, int(q / 100 * len(late)))] if late else None
             for q in (50, 90, 99)
         }
+        rrc = self._rrc(port)
         return {
             "uplink": port.pipelines["uplink"].snapshot(),
             "downlink": port.pipelines["downlink"].snapshot(),
+            "rrc": None if rrc is None else rrc.counters(self.clock()),
             "cell": port.cell,
             "scheduler": self.scheduler if port.cell is not None else None,
             "relay": {

@@ -12,6 +12,8 @@ Nouns:
   access and RRC setup (TS 38.331 §5.3.3); packets sent while that promotion runs wait for
   its end, and later ones pay nothing until the next quiet spell.
 - `Promotion`: one such promotion, for logs and reports.
+- `RrcSettings`: the four timers as plain data, what a `netem.profile.LinkProfile` carries
+  (`rrc`) to the relay, whose `netem.stages.RrcStage` holds packets back by them.
 
 Only the packets given to `on_packet` count as traffic (both directions of the UE's link
 should be fed to one `Rrc`), and paging (a downlink packet to an idle UE) costs the same as
@@ -20,9 +22,11 @@ the UE's own setup here.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass
 from enum import StrEnum
+from typing import Any
 
 from netem.errors import NetemError
 
@@ -144,3 +148,46 @@ class Rrc:
         # The inactivity timer starts again when the packet goes, at the end of the promotion.
         self._last_activity = t + cost
         return cost
+
+
+@dataclass(frozen=True)
+class RrcSettings:
+    """The RRC timers of a link's UE, as plain data: it travels in a `LinkProfile` (`rrc`) to
+    the relay as JSON, and `machine()` makes the `Rrc` that applies them (defaults and
+    meaning: `Rrc`). `idle_after_s` may be math.inf (never released to IDLE), written as
+    null in JSON, which has no infinity.
+    """
+
+    inactivity_s: float = 10.0
+    idle_after_s: float = 60.0
+    resume_s: float = 0.030
+    setup_s: float = 0.150
+
+    def check(self) -> None:
+        """Raise `RrcError` naming the field when a value is not a number or out of range."""
+        for f in dataclasses.fields(self):
+            value = getattr(self, f.name)
+            if not isinstance(value, int | float) or isinstance(value, bool):
+                raise RrcError(f"{f.name} must be a number of seconds, got {value!r}")
+        self.machine(0.0)  # `Rrc` holds the ranges: one place for them
+
+    def machine(self, t0_s: float) -> Rrc:
+        """A state machine with these timers whose UE is connected at `t0_s`."""
+        return Rrc(self.inactivity_s, self.idle_after_s, self.resume_s, self.setup_s, t0_s=t0_s)
+
+    def to_dict(self) -> dict[str, Any]:
+        out = dataclasses.asdict(self)
+        if out["idle_after_s"] == math.inf:
+            out["idle_after_s"] = None
+        return out
+
+    @classmethod
+    def from_dict(cls, data: dict[str, Any]) -> RrcSettings:
+        data = dict(data)
+        known = [f.name for f in dataclasses.fields(cls)]
+        unknown = sorted(set(data) - set(known))
+        if unknown:
+            raise RrcError(f"unknown RRC setting(s) {unknown}; allowed: {', '.join(known)}")
+        if "idle_after_s" in data and data["idle_after_s"] is None:
+            data["idle_after_s"] = math.inf
+        return cls(**data)

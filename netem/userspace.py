@@ -40,7 +40,7 @@ from typing import Any, Literal
 
 import netem
 from netem.errors import NetemError
-from netem.profile import LinkProfile, check_profile
+from netem.profile import LinkProfile, check_link, check_profile
 
 Direction = Literal["uplink", "downlink", "both"]
 
@@ -107,6 +107,8 @@ class UserspaceLink:
         }
         for profile in self.profiles.values():
             check_profile(profile)
+        # One RRC state machine serves both directions: refused here rather than by the relay.
+        check_link(self.profiles["uplink"], self.profiles["downlink"])
         self.seed = seed
         self.die_with_parent = die_with_parent
         self.nice = nice
@@ -399,7 +401,8 @@ class UserspaceLink:
 
     def set(self, direction: Direction, profile: LinkProfile | dict[str, Any]) -> None:
         """Change one direction (or both) in place: a `LinkProfile` replaces it whole, a
-        dict changes only the fields it names."""
+        dict changes only the fields it names. `rrc` is the link's, not a direction's: the
+        relay changes it in both directions, and `profiles` shows both."""
         if isinstance(profile, LinkProfile):
             check_profile(profile)
             changes = profile.to_dict()
@@ -453,7 +456,8 @@ class UserspaceLink:
         return {k: v for k, v in reply.items() if k in ("path", "packets", "dropped")}
 
     def counters(self) -> dict[str, Any]:
-        """Per direction: totals and per-stage counters; plus the relay's own figures."""
+        """Per direction: totals and per-stage counters; the link's RRC state and promotions
+        (`rrc`, None without RRC states); plus the relay's own figures."""
         reply = self.request({"op": "counters"})
         reply.pop("ok", None)
         return reply
