@@ -168,6 +168,11 @@ def choose_backend(
         return BackendChoice(
             "userspace", f"auto: {', '.join(radios)} have an NR radio, which only the relay models"
         )
+    states = [s.name for s in scenario.links.links if s.uplink.rrc is not None]
+    if wanted == "auto" and states:
+        return BackendChoice(
+            "userspace", f"auto: {', '.join(states)} have RRC states, which only the relay models"
+        )
     ok, detail = probe()
     if wanted == "auto":
         if ok:
@@ -569,7 +574,8 @@ class UserspaceController(_Base):
         relay = self._relay(link)
         with self._lock:
             relay.set(direction, dict(changes))
-            for d in self._directions(direction):
+            # RRC states are the UE's: a change of `rrc` reaches both directions.
+            for d in DIRECTIONS if "rrc" in changes else self._directions(direction):
                 self.profiles[link, d] = relay.profiles[d]
 
     def outage(self, link: str, seconds: float) -> None:

@@ -268,3 +268,45 @@ def test_the_air_links_of_one_gnb_with_a_radio_share_one_relay_and_its_cell(
         assert control.profile("av1-gnb1", "uplink").radio.mcs == 20  # type: ignore[union-attr]
         pids = links.relay_pids(net.state.namespaces)
     assert pids and links.relay_pids(net.state.namespaces) == []
+
+
+def test_rrc_states_from_the_scenario_hold_the_first_packet_after_a_quiet_spell(
+    state_dir: Path, tmp_path: Path
+) -> None:
+    # links.air.rrc reaches the relay: after 1.2 s of quiet (inactivity 1 s) the first
+    # datagram waits the 30 ms resume, the next one does not; av2 (rrc: null) never waits.
+    path = tmp_path / "rrc.yaml"
+    path.write_text(
+        "name: t\nseed: 3\nduration: 10s\n"
+        "topology:\n  cells:\n    - {gnb: gnb1, core: core1}\n  vehicles:\n"
+        "    - {name: av1, gnb: gnb1}\n    - {name: av2, gnb: gnb1}\n"
+        "links:\n  backend: auto\n  air:\n    uplink: {delay: 2ms}\n    downlink: {delay: 2ms}\n"
+        "    rrc: {inactivity: 1s, resume: 30ms, idle_after: null}\n"
+        "  overrides:\n    - {link: av2-gnb1, rrc: null}\n"
+    )
+    scenario = load(path)
+    assert links.choose_backend(scenario).name == "userspace"
+
+    def one_way_ms(net: Net, vehicle: str, gaps_s: list[float]) -> list[float]:
+        addr = str(net["gnb1"].address_towards(vehicle))
+        server, client = net["gnb1"].socket(), net[vehicle].socket()
+        out = []
+        try:
+            server.bind((addr, 0))
+            server.settimeout(2)
+            for gap in gaps_s:
+                time.sleep(gap)
+                t0 = time.perf_counter()
+                client.sendto(b"x", (addr, server.getsockname()[1]))
+                server.recv(16)
+                out.append((time.perf_counter() - t0) * 1000)
+        finally:
+            server.close()
+            client.close()
+        return out
+
+    with build(scenario, mode="run") as net:
+        first, second = one_way_ms(net, "av1", [1.2, 0.05])
+        plain = one_way_ms(net, "av2", [1.2, 0.05])
+    assert 2.0 + 30.0 - 1.0 < first < 2.0 + 30.0 + 8.0, first
+    assert second < 8.0 and all(p < 8.0 for p in plain), (second, plain)

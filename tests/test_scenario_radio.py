@@ -121,3 +121,24 @@ def test_commercial_midband_has_the_round_trip_measured_on_commercial_cells() ->
     stage.configure(LinkProfile(radio=COMMERCIAL, delay_s=0.001))
     assert stage.delay_s == pytest.approx(0.004)
     assert down.minimum >= COMMERCIAL.core_delay_s
+
+
+def test_rrc_of_the_air_links_reaches_both_directions_and_an_override_drops_it() -> None:
+    import math
+
+    from netem.rrc import RrcSettings
+
+    scenario, specs = _load(
+        "  air:\n"
+        "    uplink: {delay: 2ms}\n"
+        "    rrc: {inactivity: 5s, resume: 20ms, idle_after: null}\n"
+        "  overrides:\n"
+        "    - {link: av2-gnb1, rrc: null}"
+    )
+    want = RrcSettings(inactivity_s=5.0, idle_after_s=math.inf, resume_s=0.02, setup_s=0.15)
+    assert specs["av1-gnb1"].uplink.rrc == specs["av1-gnb1"].downlink.rrc == want
+    assert specs["av2-gnb1"].uplink.rrc is None and specs["gnb1-core1"].uplink.rrc is None
+    backend = links.choose_backend(scenario, probe=lambda: (True, "netem here"))
+    assert backend.name == "userspace" and "RRC states" in backend.reason
+    _, defaults = _load("  air:\n    rrc: {}")
+    assert defaults["av1-gnb1"].uplink.rrc == RrcSettings()  # 10 s, 60 s, 30 ms, 150 ms

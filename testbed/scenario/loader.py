@@ -14,6 +14,7 @@ than piling up errors that only repeat the first one.
 from __future__ import annotations
 
 import dataclasses
+import math
 import re
 from pathlib import Path
 from typing import Any, Literal
@@ -23,6 +24,7 @@ from yaml.nodes import Node
 
 from netem.nr import RADIO_PROFILES, Radio
 from netem.profile import GilbertElliott, LinkProfile
+from netem.rrc import RrcSettings
 from netem.traces import TraceError, TraceProblem, default_format
 from testbed import units
 from testbed.scenario import channel, model, radios, schema_v1
@@ -265,6 +267,16 @@ def _listing(names: list[str], limit: int = 8) -> str:
 ROLE_TEXT = {"core": "a core", "upf": "a UPF", "edge": "an edge server", "vehicle": "a vehicle"}
 #: The link kinds with defaults in `links` (`model.LinkKind`).
 LINK_KINDS = ("air", "backhaul", "n3", "n6")
+
+
+def _rrc(value: Section | None) -> RrcSettings | None:
+    """A `rrc` mapping built (null: always connected); `idle_after: null` is never IDLE."""
+    if value is None:
+        return None
+    built: RrcSettings = schema_v1.RRC.build(value)
+    if built.idle_after_s is None:
+        built = dataclasses.replace(built, idle_after_s=math.inf)
+    return built
 
 
 def _edge_name(cell: Section) -> str | None:
@@ -619,7 +631,11 @@ class _Builder:
         # Where each radio was written last (the section holding its `radio` key): the air
         # defaults by direction, the overrides by link and direction.
         where: dict[tuple[str, str], Section] = {}
+        rrc: dict[str, RrcSettings | None] = {}  # "air" (the default) or a link -> settings
         if links is not None:
+            air: Section | None = links.get("air")
+            if air is not None and air.written("rrc"):
+                rrc["air"] = _rrc(air.get("rrc"))
             for kind in LINK_KINDS:
                 pair: Section | None = links.get(kind)
                 if kind == "n3" and pair is None:
@@ -655,6 +671,16 @@ class _Builder:
                     continue
                 seen[name] = override.path
                 kind = self.link_kinds[name]
+                if override.written("rrc"):
+                    if kind == "air":
+                        rrc[name] = _rrc(override.get("rrc"))
+                    else:
+                        self.ctx.add(
+                            override.at("rrc"),
+                            override.path_of("rrc"),
+                            "rrc on an air link only (RRC states are a UE's)",
+                            f"rrc on {name}, a {kind} link",
+                        )
                 merged[name] = {}
                 for d in ("uplink", "downlink"):
                     if d not in override:
@@ -674,8 +700,11 @@ class _Builder:
         specs = []
         for name, kind in self.link_kinds.items():
             lower, upper = name.split("-")
+            states = rrc.get(name, rrc.get("air")) if kind == "air" else None
             profiles = {
-                d: LinkProfile(**{**defaults[kind][d], **merged.get(name, {}).get(d, {})})
+                d: LinkProfile(
+                    **{**defaults[kind][d], **merged.get(name, {}).get(d, {}), "rrc": states}
+                )
                 for d in ("uplink", "downlink")
             }
             for d in ("uplink", "downlink"):
@@ -698,6 +727,15 @@ class _Builder:
                 "userspace or auto for links with a radio",
                 f"tc, with a radio on {', '.join(with_radio)}",
                 "the NR slot model runs in the userspace relay; tc's qdiscs have no slot clock",
+            )
+        with_rrc = [s.name for s in specs if s.uplink.rrc is not None]
+        if backend == "tc" and with_rrc and links is not None:
+            self.ctx.add(
+                links.at("backend"),
+                links.path_of("backend"),
+                "userspace or auto for air links with rrc",
+                f"tc, with RRC states on {', '.join(with_rrc)}",
+                "the relay holds a quiet UE's first packet back; a qdisc cannot",
             )
             return None
         self.link_specs = {s.name: s for s in specs}

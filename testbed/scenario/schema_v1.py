@@ -18,6 +18,7 @@ from netem.cell import SCHEDULERS
 from netem.channel import CARRIER_RANGE_GHZ, LOS_MODES, MODELS, UE_HEIGHT_RANGE_M
 from netem.nr import RADIO_PROFILES, UL_ACCESS
 from netem.profile import JITTER_DISTRIBUTIONS, GilbertElliott, LinkProfile
+from netem.rrc import RrcSettings
 from testbed.scenario import model
 from testbed.scenario.kinds import (
     Argv,
@@ -327,6 +328,43 @@ PROFILE = Obj(
 )
 
 
+RRC = Obj(
+    "RRC states of the UE on an air link (userspace backend): after `inactivity` without a"
+    " packet the network suspends it (RRC_INACTIVE, TS 38.331 §5.3.8), `idle_after` later"
+    " releases it (RRC_IDLE); the first packet after that pays `resume` (§5.3.13) or `setup`"
+    " (random access and RRC setup, §5.3.3). Both directions' packets count as activity.",
+    [
+        Field(
+            "inactivity",
+            Duration(3600.0, lo_open=True, noun="an inactivity timer"),
+            "Quiet time before CONNECTED -> INACTIVE (a common operator setting: 10 s).",
+            attr="inactivity_s",
+        ),
+        Field(
+            "idle_after",
+            Nullable(Duration(MAX_DURATION_S, noun="a time in INACTIVE")),
+            "Further quiet time before INACTIVE -> IDLE (0: no INACTIVE, straight to IDLE;"
+            " null: never IDLE). Default 60 s.",
+            attr="idle_after_s",
+        ),
+        Field(
+            "resume",
+            Duration(10.0, noun="a resume delay"),
+            "What the first packet in INACTIVE waits: RRC resume (default 30 ms).",
+            attr="resume_s",
+        ),
+        Field(
+            "setup",
+            Duration(10.0, noun="a setup delay"),
+            "What the first packet in IDLE waits: random access and RRC setup (default 150 ms).",
+            attr="setup_s",
+        ),
+    ],
+    model=RrcSettings,
+    ref="rrc",
+)
+
+
 def _direction_pair(doc: str, radio: bool = False) -> Obj:
     fields = [
         Field("uplink", PROFILE, "Towards the core (vehicle -> gNB -> core)."),
@@ -342,6 +380,14 @@ def _direction_pair(doc: str, radio: bool = False) -> Obj:
                 " A direction's own `radio` mapping changes this one.",
             )
         )
+        fields.append(
+            Field(
+                "rrc",
+                Nullable(RRC),
+                "RRC states of every air link's UE (inactivity timer, resume and setup"
+                " delays); null or left out: always connected.",
+            )
+        )
     return Obj(doc, fields, fill_defaults=False)
 
 
@@ -351,8 +397,13 @@ OVERRIDE = Obj(
         Field("link", LINK_NAME, "The link to change, e.g. av2-gnb1.", required=True),
         Field("uplink", PROFILE, "Fields of the uplink direction."),
         Field("downlink", PROFILE, "Fields of the downlink direction."),
+        Field(
+            "rrc",
+            Nullable(RRC),
+            "RRC states of this air link's UE (both directions); null: always connected.",
+        ),
     ],
-    require_any=("uplink", "downlink"),
+    require_any=("uplink", "downlink", "rrc"),
 )
 
 LINKS = Obj(
