@@ -761,6 +761,27 @@ def _radio(s: dict[str, Any], plots: dict[str, Plot | None]) -> Section | None:
             "downlink CQI 1 or better",
         )
     )
+    for v, r in vehicles.items():
+        rows = r.get("by_uplink_mcs")
+        if rows:
+            sec.add(
+                Table(
+                    ["uplink MCS", "share of the run", "plays", "splits chosen", "mean payload"],
+                    [
+                        [
+                            f"{row['mcs'][0]}-{row['mcs'][1]}",
+                            _pct(row.get("time_share")),
+                            str(row["plays"]),
+                            ", ".join(f"{s} {_pct(x)}" for s, x in list(row["share"].items())[:3]),
+                            "-"
+                            if row["mean_payload_bytes"] is None
+                            else f"{row['mean_payload_bytes'] / 1000:.1f} kB",
+                        ]
+                        for row in rows
+                    ],
+                    caption=f"{v}: the learner's decisions by the uplink MCS at their time",
+                )
+            )
     for key in sorted(k for k in plots if k.startswith("radio:")):
         plot = plots[key]
         if plot is not None:

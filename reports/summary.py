@@ -52,8 +52,10 @@ report can be compared with the run's own. Keys of summary.json (`version` 1):
   linktest_ran (the recorder's "true"/"false", null if not said)};
 - `radio` (runs with `channel:`): {vehicles: {vehicle: {steps, coverage, cells {cell:
   share}, handovers [{t_s, from, to}], sinr_db and ul_sinr_db {min, p5, median, p95, max},
-  mean_mcs, mean_ul_mcs, mean_bler, mean_ul_bler}}, channel (model, los, step_s, sites [{name,
-  x, y}])} from `/radio/<vehicle>`; {} without it;
+  mean_mcs, mean_ul_mcs, mean_bler, mean_ul_bler, by_uplink_mcs [{mcs [lo, hi], time_share,
+  plays, share {split: fraction}, mean_payload_bytes}] (the learner's decisions by the uplink
+  MCS at their time, `nodes.edgeloc.bands`; null without decisions)}}, channel (model, los,
+  step_s, sites [{name, x, y}])} from `/radio/<vehicle>`; {} without it;
 - `splits`: EdgeLoc with the learned split choice, every fixed split and the per-phase oracle,
   replayed on the run's drive under the run's own measured request latencies
   (`reports.splits`: the keys of `nodes.edgeloc.compare.SplitComparison.to_dict` plus
@@ -79,6 +81,7 @@ import numpy as np
 import yaml
 from numpy.typing import NDArray
 
+from nodes.edgeloc import bands
 from nodes.edgeloc.metrics import (
     METHODS,
     ErrorStats,
@@ -659,6 +662,24 @@ def _spread(x: NDArray[np.float64]) -> dict[str, float | None]:
     return {k: _r(float(v), 3) for k, v in zip(keys, values, strict=True)}
 
 
+def _plays_by_uplink_mcs(data: RunData, vehicle: str) -> list[dict[str, Any]] | None:
+    """The vehicle's split decisions by the uplink MCS at their time (`nodes.edgeloc.bands`);
+    None when it made none (no EdgeLoc on it)."""
+    vd, r = data.vehicles.get(vehicle), data.radio[vehicle]
+    if vd is None or not vd.decisions:
+        return None
+    at = np.searchsorted(r.t, [d.t for d in vd.decisions], side="right") - 1
+    mcs = [int(r.ul_mcs[max(0, i)]) for i in at]
+    sent: dict[str, list[int]] = {}
+    for i in vd.inference:
+        sent.setdefault(i.split, []).append(i.payload_bytes)
+    payload = {s: sum(b) / len(b) for s, b in sent.items() if b}
+    rows = bands.by_band(
+        mcs, [d.chosen for d in vd.decisions], payload, bands.time_shares(r.ul_mcs.astype(int))
+    )
+    return [{**row, "share": {k: _r(v) for k, v in row["share"].items()}} for row in rows]
+
+
 def radio_summary(data: RunData) -> dict[str, Any]:
     """Per vehicle of a `channel:` run, from `/radio/<vehicle>`: steps, coverage (share of
     steps at downlink CQI >= 1), the serving cells' shares, handovers (changes of serving
@@ -688,6 +709,7 @@ def radio_summary(data: RunData) -> dict[str, Any]:
             "mean_ul_mcs": _r(float(np.mean(r.ul_mcs))),
             "mean_bler": _r(float(np.mean(r.bler))),
             "mean_ul_bler": _r(float(np.mean(r.ul_bler))),
+            "by_uplink_mcs": _plays_by_uplink_mcs(data, v),
         }
     channel = data.run.get("channel")
     return {"vehicles": out, "channel": channel if isinstance(channel, dict) else None}

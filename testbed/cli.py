@@ -467,6 +467,13 @@ def replay(
     con.table(REPLAY_HEADERS, replay_rows(done.summary))
     for line in replay_phase_lines(done.summary):
         con.plain(line)
+    if "radio" in done.summary:
+        from nodes.edgeloc.bands import lines
+
+        radio = done.summary["radio"]
+        con.plain(f"{radio['vehicle']}'s plays by the uplink MCS the channel gave them:")
+        for line in lines(radio["by_uplink_mcs"]):
+            con.plain(f"  {line}")
     splits = done.summary.get("splits")
     if splits:
         con.table(split_headers(splits), split_rows(splits))

@@ -40,6 +40,7 @@ import numpy as np
 from netem.nr import Direction, Radio
 from netem.profile import LinkProfile
 from netem.traces import Trace, load_trace
+from nodes.edgeloc import bands
 from nodes.edgeloc.compare import compare_splits
 from nodes.edgeloc.gate import GateSettings
 from nodes.edgeloc.latency import (
@@ -519,10 +520,32 @@ def replay_scenario(
     summary["run_id"] = folder.name
     if splits is not None:
         summary["splits"] = splits
+    if scenario.channel is not None:
+        summary["radio"] = radio_bands(scenario, summary)
     write_json(folder / names.SUMMARY_FILE, summary)
     if scenario.source is not None and Path(scenario.source).is_file():
         shutil.copyfile(scenario.source, folder / names.SCENARIO_FILE)
     return ReplayRun(folder, result, summary)
+
+
+def radio_bands(scenario: Scenario, summary: dict[str, Any]) -> dict[str, Any]:
+    """The replayed vehicle's plays by the uplink MCS their request met (`nodes.edgeloc.bands`):
+    where the channel makes the network follow the place, what the learner did in each."""
+    from testbed import mobility
+
+    vehicle = scenario.edgeloc_vehicles()[0].name
+    plan = mobility.plans(scenario)[vehicle]
+    step = scenario.channel.step_s if scenario.channel is not None else 1.0
+    ul = [s.ul_mcs for s in plan.steps]
+    decisions = summary["learner"]["decisions"]
+    at_play = [ul[min(len(ul) - 1, max(0, int(t / step + 1e-9)))] for t in decisions["sent_s"]]
+    payload = {
+        split: figures["mean_bytes"]
+        for split, figures in summary["latency"]["per_split"].items()
+        if figures.get("mean_bytes") is not None
+    }
+    rows = bands.by_band(at_play, decisions["split"], payload, bands.time_shares(ul))
+    return {"vehicle": vehicle, "by_uplink_mcs": rows}
 
 
 __all__ = [

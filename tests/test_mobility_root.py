@@ -141,5 +141,8 @@ def test_a_run_with_a_channel_records_the_radio_and_reports_the_route(
     av1 = summary["radio"]["vehicles"]["av1"]
     assert av1["steps"] == len(radio) and av1["cells"] == {"gnb1": 1.0}
     assert [s["name"] for s in summary["radio"]["channel"]["sites"]] == ["gnb1"]
+    decisions = summary["learner"]["decisions"]
+    assert sum(r["plays"] for r in av1["by_uplink_mcs"]) == decisions > 50
     html = (folder / "report.html").read_text()
     assert "Radio along the route" in html and (folder / "plots" / "radio_av1.png").is_file()
+    assert "decisions by the uplink MCS at their time" in html

@@ -1,0 +1,65 @@
+"""The learner's plays grouped by the uplink MCS they met (`nodes.edgeloc.bands`), and the
+replay of a channel scenario carrying them."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+from nodes.edgeloc import bands
+
+
+def test_band_of_puts_each_mcs_in_its_band_and_refuses_others() -> None:
+    assert [bands.band_of(m) for m in (0, 9, 10, 19, 20, 28)] == [0, 0, 1, 1, 2, 2]
+    with pytest.raises(ValueError, match="MCS 29"):
+        bands.band_of(29)
+    with pytest.raises(ValueError, match="MCS -1"):
+        bands.band_of(-1)
+
+
+def test_by_band_counts_shares_and_the_mean_payload() -> None:
+    rows = bands.by_band(
+        [3, 3, 25, 25, 25, 12],
+        ["fc", "vehicle", "conv1", "conv1", "fc", "conv3"],
+        {"fc": 400.0, "vehicle": 0.0, "conv1": 12000.0, "conv3": 2500.0},
+        time_share=[0.5, 0.25, 0.25],
+    )
+    assert [r["plays"] for r in rows] == [2, 1, 3]
+    assert rows[0]["share"] == {"fc": 0.5, "vehicle": 0.5}
+    assert rows[0]["mean_payload_bytes"] == 200.0
+    assert rows[2]["share"] == {"conv1": pytest.approx(2 / 3), "fc": pytest.approx(1 / 3)}
+    assert rows[2]["mean_payload_bytes"] == pytest.approx((12000 * 2 + 400) / 3)
+    assert [r["time_share"] for r in rows] == [0.5, 0.25, 0.25]
+    text = bands.lines(rows)
+    assert (
+        text[2]
+        == "uplink MCS 20-28 (25% of the run): 3 plays, conv1 67%, fc 33%; mean payload 8.1 kB"
+    )
+    empty = bands.by_band([], [], {})
+    assert [r["plays"] for r in empty] == [0, 0, 0] and bands.lines(empty)[0].endswith("no plays")
+    with pytest.raises(ValueError, match="2 MCS values for 1 plays"):
+        bands.by_band([1, 2], ["fc"], {})
+    assert bands.time_shares([0, 0, 15, 28]) == [0.5, 0.25, 0.25]
+
+
+def test_a_channel_scenario_s_replay_sorts_its_plays_by_the_uplink_mcs(tmp_path: Path) -> None:
+    from testbed import mobility
+    from testbed.replay import replay_scenario
+    from testbed.scenario import loads
+
+    repo = Path(__file__).resolve().parents[1]
+    text = (repo / "scenarios" / "drive_one_cell.yaml").read_text()
+    scenario = loads(text.replace("duration: 90s", "duration: 20s"), base_dir=repo / "scenarios")
+    done = replay_scenario(scenario, tmp_path, compare=False)
+    radio = done.summary["radio"]
+    rows = radio["by_uplink_mcs"]
+    decisions = done.summary["learner"]["decisions"]
+    assert radio["vehicle"] == "av1"
+    assert sum(r["plays"] for r in rows) == len(decisions["split"]) > 100
+    ul = [s.ul_mcs for s in mobility.plans(scenario)["av1"].steps]
+    assert [r["time_share"] for r in rows] == bands.time_shares(ul)
+    # Each play in the band of the MCS at its sending time (10 ms steps).
+    first = decisions["sent_s"][0]
+    band = bands.band_of(ul[int(first / 0.01 + 1e-9)])
+    assert rows[band]["plays"] >= 1
