@@ -14,7 +14,6 @@ from __future__ import annotations
 import json
 import math
 import socket
-import threading
 import time
 from collections.abc import Iterator
 from pathlib import Path
@@ -27,6 +26,7 @@ from netem.relay import ControlError, Relay
 from netem.rrc import RrcError, RrcSettings, RrcState
 from netem.stages import Pipeline, RrcStage, share_rrc
 from netem.userspace import UserspaceLink
+from tests.test_stages import ask, socket_relay
 
 DELAY_S = 0.010
 RESUME_S, SETUP_S = 0.030, 0.150
@@ -285,42 +285,14 @@ def test_the_two_directions_must_agree_on_rrc() -> None:
 @pytest.fixture
 def rrc_relay(tmp_path: Path) -> Iterator[tuple[Relay, socket.socket, socket.socket, str]]:
     """A Relay with short RRC timers whose TUN ends are SEQPACKET socket pairs."""
-    a_app, a_relay = socket.socketpair(socket.AF_UNIX, socket.SOCK_SEQPACKET)
-    b_app, b_relay = socket.socketpair(socket.AF_UNIX, socket.SOCK_SEQPACKET)
-    for s in (a_relay, b_relay):
-        s.setblocking(False)
-    for s in (a_app, b_app):
-        s.settimeout(2)
-    control = str(tmp_path / "c.sock")
     rrc = RrcSettings(inactivity_s=0.3, idle_after_s=60.0, resume_s=0.050, setup_s=0.150)
-    relay = Relay(
-        a_relay.fileno(),
-        b_relay.fileno(),
+    with socket_relay(
+        tmp_path,
         Pipeline.from_profile(LinkProfile(rrc=rrc), direction="uplink"),
         Pipeline.from_profile(LinkProfile(rrc=rrc), direction="downlink"),
-        control_path=control,
-    )
-    thread = threading.Thread(target=relay.run, daemon=True)
-    thread.start()
-    try:
-        yield relay, a_app, b_app, control
-    finally:
-        relay.stop()
-        thread.join(5)
-        relay.close()
-        for s in (a_app, a_relay, b_app, b_relay):
-            s.close()
-
-
-def ask(path: str, message: dict) -> dict:
-    with socket.socket(socket.AF_UNIX, socket.SOCK_STREAM) as s:
-        s.settimeout(2)
-        s.connect(path)
-        s.sendall((json.dumps(message) + "\n").encode())
-        data = b""
-        while not data.endswith(b"\n"):
-            data += s.recv(65536)
-    return json.loads(data)
+        timeout_s=2,
+    ) as ends:
+        yield ends
 
 
 def trip(sender: socket.socket, receiver: socket.socket, data: bytes) -> float:

@@ -6,6 +6,7 @@ TUN ends, so the control protocol and the loop are checked without namespaces.
 
 from __future__ import annotations
 
+import contextlib
 import itertools
 import json
 import math
@@ -13,6 +14,7 @@ import socket
 import statistics
 import threading
 import time
+from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
@@ -337,21 +339,21 @@ def test_same_seed_same_draws() -> None:
 # -- the relay loop over socket pairs ---------------------------------------------------------
 
 
-@pytest.fixture
-def fake_relay(tmp_path: Path):
-    """A Relay whose TUN ends are SEQPACKET socket pairs (one datagram = one packet)."""
+@contextlib.contextmanager
+def socket_relay(
+    tmp_path: Path, uplink: Pipeline, downlink: Pipeline, timeout_s: float | None = None
+) -> Iterator[tuple[Relay, socket.socket, socket.socket, str]]:
+    """A running Relay whose TUN ends are SEQPACKET socket pairs (one datagram = one packet):
+    (relay, the a-side app end, the b-side app end, its control socket's path)."""
     a_app, a_relay = socket.socketpair(socket.AF_UNIX, socket.SOCK_SEQPACKET)
     b_app, b_relay = socket.socketpair(socket.AF_UNIX, socket.SOCK_SEQPACKET)
     for s in (a_relay, b_relay):
         s.setblocking(False)
+    if timeout_s is not None:
+        for s in (a_app, b_app):
+            s.settimeout(timeout_s)
     control = str(tmp_path / "c.sock")
-    relay = Relay(
-        a_relay.fileno(),
-        b_relay.fileno(),
-        Pipeline.from_profile(LinkProfile(delay_s=0.020)),
-        Pipeline.from_profile(LinkProfile()),
-        control_path=control,
-    )
+    relay = Relay(a_relay.fileno(), b_relay.fileno(), uplink, downlink, control_path=control)
     thread = threading.Thread(target=relay.run, daemon=True)
     thread.start()
     try:
@@ -362,6 +364,16 @@ def fake_relay(tmp_path: Path):
         relay.close()
         for s in (a_app, a_relay, b_app, b_relay):
             s.close()
+
+
+@pytest.fixture
+def fake_relay(tmp_path: Path) -> Iterator[tuple[Relay, socket.socket, socket.socket, str]]:
+    with socket_relay(
+        tmp_path,
+        Pipeline.from_profile(LinkProfile(delay_s=0.020)),
+        Pipeline.from_profile(LinkProfile()),
+    ) as ends:
+        yield ends
 
 
 def ask(path: str, message: dict) -> dict:
