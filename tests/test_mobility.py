@@ -266,3 +266,26 @@ def test_validate_counts_the_radio_changes_and_notes_a_route_out_of_coverage(
     assert f"below CQI 1's {CQI_SINR_DB[0]:g} dB" in out
     n = sum(e.origin == "channel" for e in load(near).timeline)
     assert f"0 timeline event(s), {n} radio change(s) from the channel" in out
+
+
+def test_two_vehicles_on_two_sited_cells_each_get_their_own_radio() -> None:
+    scenario = loads(
+        "name: two\nseed: 2\nduration: 20s\n"
+        "topology:\n  cells:\n"
+        "    - {gnb: gnb1, core: core1, site: {x: 0, y: 20}}\n"
+        "    - {gnb: gnb2, core: core2, site: {x: 400, y: 20}}\n"
+        "  vehicles:\n    - {name: av1, gnb: gnb1}\n    - {name: av2, gnb: gnb2}\n"
+        "links:\n  air: {radio: oai-tdd-30k}\n"
+        "channel: {model: uma, los: los, shadowing: false}\n"
+    )
+    route = _straight(seconds=25.0)  # 0 -> 250 m: away from gnb1, towards gnb2
+    found = mobility.plans(scenario, route)
+    one, two = found["av1"], found["av2"]
+    assert (one.link, two.link) == ("av1-gnb1", "av2-gnb2")
+    assert {s.serving for s in one.steps} == {"gnb1"} and {s.serving for s in two.steps} == {"gnb2"}
+    # The other site interferes: av1's SINR falls and av2's rises along the road.
+    assert one.steps[0].sinr_db > one.steps[-1].sinr_db
+    assert two.steps[0].sinr_db < two.steps[-1].sinr_db
+    timed = mobility.with_channel(scenario, route)
+    links = {e.link for e in timed.timeline}
+    assert links == {"av1-gnb1", "av2-gnb2"}
