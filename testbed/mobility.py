@@ -224,6 +224,13 @@ def bandwidth_mhz(radio: Radio) -> int:
 def sites(scenario: Scenario, route: Route) -> list[Site]:
     """Every cell's site: as written, or (auto) abeam the route at (k + 1/2) / N of the run,
     `AUTO_OFFSET_M` to the right. A cell's bandwidth is its first air link's radio's."""
+    try:
+        return _sites(scenario, route)
+    except ChannelError as err:  # a value the schema let through and the model refuses
+        raise MobilityError(f"channel: {err}") from None
+
+
+def _sites(scenario: Scenario, route: Route) -> list[Site]:
     cells = scenario.topology.cells
     out: list[Site] = []
     for k, cell in enumerate(cells):
