@@ -419,6 +419,15 @@ def replay(
             "nothing else.",
         ),
     ] = None,
+    vehicle: Annotated[
+        str | None,
+        typer.Option(
+            "--vehicle",
+            metavar="NAME",
+            help="Replay this EdgeLoc vehicle's path (default: the first); with --against, "
+            "compare its requests.",
+        ),
+    ] = None,
 ) -> None:
     """Replay the scenario's EdgeLoc workload in one process (no network, faster than real
     time): VO, DNN, Kalman and EdgeLoc errors beside the paper's, the learner per bandwidth
@@ -426,14 +435,15 @@ def replay(
     runs/<id>/summary.json and TUM trajectories.
 
     Examples: testbed replay scenarios/default.yaml;
-    testbed replay scenarios/nr_cell.yaml --against runs/e91fff
+    testbed replay scenarios/nr_cell.yaml --against runs/e91fff;
+    testbed replay scenarios/multi_vehicle_nr.yaml --vehicle av4
     """
     from testbed.replay import latency_against_run, replay_scenario
     from testbed.scenario import load
 
     if against is not None:
         try:
-            agreement = latency_against_run(load(file), against)
+            agreement = latency_against_run(load(file), against, vehicle=vehicle)
         except KNOWN_ERRORS as err:
             raise _fail(err) from None
         con.table(
@@ -458,7 +468,7 @@ def replay(
         return
 
     try:
-        done = replay_scenario(load(file), runs_dir, compare=compare)
+        done = replay_scenario(load(file), runs_dir, compare=compare, vehicle=vehicle)
     except KNOWN_ERRORS as err:
         raise _fail(err) from None
     if json_out:

@@ -496,14 +496,16 @@ def replay_scenario(
     compute: ComputeProfile | None = None,
     gate: GateSettings | None = DEFAULT_GATE,
     compare: bool = True,
+    vehicle: str | None = None,
 ) -> ReplayRun:
-    """Replay and write runs/<id>/ (summary.json, TUM trajectories, scenario.yaml).
+    """Replay and write runs/<id>/ (summary.json, TUM trajectories, scenario.yaml), over the
+    path of `vehicle` (default: the first EdgeLoc vehicle).
 
     With `compare`, summary.json's `splits` holds EdgeLoc with every fixed split and the
     oracle on the same drive (`nodes.edgeloc.compare`; K + 2 more replays).
     Raises BadInput for a dataset or weights the scenario names that cannot be used."""
     config = replay_config(scenario, gate=gate)
-    model = latency_model(scenario, compute)
+    model = latency_model(scenario, compute, vehicle=vehicle)
     try:
         dataset = config_dataset(config)
         net = load_model(config.weights)
@@ -520,20 +522,20 @@ def replay_scenario(
     summary["run_id"] = folder.name
     if splits is not None:
         summary["splits"] = splits
+    summary["vehicle"] = model_vehicle = _PathPlan(scenario, vehicle).vehicle.name
     if scenario.channel is not None:
-        summary["radio"] = radio_bands(scenario, summary)
+        summary["radio"] = radio_bands(scenario, summary, model_vehicle)
     write_json(folder / names.SUMMARY_FILE, summary)
     if scenario.source is not None and Path(scenario.source).is_file():
         shutil.copyfile(scenario.source, folder / names.SCENARIO_FILE)
     return ReplayRun(folder, result, summary)
 
 
-def radio_bands(scenario: Scenario, summary: dict[str, Any]) -> dict[str, Any]:
+def radio_bands(scenario: Scenario, summary: dict[str, Any], vehicle: str) -> dict[str, Any]:
     """The replayed vehicle's plays by the uplink MCS their request met (`nodes.edgeloc.bands`):
     where the channel makes the network follow the place, what the learner did in each."""
     from testbed import mobility
 
-    vehicle = scenario.edgeloc_vehicles()[0].name
     plan = mobility.plans(scenario)[vehicle]
     step = scenario.channel.step_s if scenario.channel is not None else 1.0
     ul = [s.ul_mcs for s in plan.steps]
@@ -628,10 +630,13 @@ class RunAgreement:
 OVERHEAD_SPLIT, OVERHEAD_MIN_REQUESTS = "vehicle", 5
 
 
-def latency_against_run(scenario: Scenario, run_folder: Path, seed: int = 0) -> RunAgreement:
+def latency_against_run(
+    scenario: Scenario, run_folder: Path, seed: int = 0, vehicle: str | None = None
+) -> RunAgreement:
     """How the replay's latency model agrees with a real run of `scenario`, split by split.
 
-    Each answered request of the run's first vehicle is played again through the model at
+    Each answered request of the run's `vehicle` (default: the first that made requests;
+    its path is the model's) is played again through the model at
     the same run time with its split's mean payload and compute (as the run measured them,
     `run_compute`); the means per split are compared. The model's fixed overhead per request
     (`ACTION_EXCHANGE`, 7 ms on the machine it was measured on) is the run's own where it
@@ -653,9 +658,14 @@ def latency_against_run(scenario: Scenario, run_folder: Path, seed: int = 0) -> 
         for split, v in summary.get("latency", {}).get("per_split", {}).items()
     }
     data = read_run(mcap)
-    vd = next((v for v in data.vehicles.values() if v.inference), None)
+    if vehicle is not None and vehicle not in data.vehicles:
+        known = ", ".join(data.vehicles) or "none"
+        raise BadInput(f"{folder}: no vehicle {vehicle!r} in the run (vehicles: {known})")
+    candidates = [data.vehicles[vehicle]] if vehicle is not None else data.vehicles.values()
+    vd = next((v for v in candidates if v.inference), None)
     if vd is None:
-        raise BadInput(f"{folder}: the run recorded no inference request")
+        who = f"{vehicle} made" if vehicle is not None else "the run recorded"
+        raise BadInput(f"{folder}: {who} no inference request")
     w = scenario.workload
     reference = compute_profile(w.codec, None if w.weights is None else str(w.weights))
     compute = run_compute(reference, vd.inference, _PathPlan(scenario, vd.name), folder)

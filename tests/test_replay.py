@@ -24,8 +24,9 @@ from nodes.edgeloc.metrics import read_tum
 from nodes.edgeloc.model import SPLITS
 from nodes.edgeloc.replay import ReplayConfig, convergence, run_replay
 from testbed.cli import app
+from testbed.errors import BadInput
 from testbed.replay import latency_model, replay_config, replay_scenario
-from testbed.scenario import load
+from testbed.scenario import load, loads
 
 ROOT = Path(__file__).resolve().parents[1]
 # A fixed compute profile (the reference, weights/compute.json, rounded) keeps the tests
@@ -373,3 +374,28 @@ def test_convergence_finds_the_first_window_the_best_arm_holds() -> None:
     assert plays[at : at + 20].count("b") >= 16
     assert all(plays[i : i + 20].count("b") < 16 for i in range(at))
     assert convergence(["a"] * 50, "b") is None and convergence(["b"] * 5, "b") is None
+
+
+def test_vehicle_picks_the_path_the_replay_models(tmp_path: Path, monkeypatch) -> None:
+    # multi_vehicle_nr: av4 drives to the cell edge (MCS 5) half-way, the others do not; the
+    # replay of av4 must take its path and its radio, av1's not.
+    import testbed.replay as rc
+
+    monkeypatch.setattr(rc, "compute_profile", lambda codec, weights: COMPUTE)
+    text = (ROOT / "scenarios" / "multi_vehicle_nr.yaml").read_text()
+    sc = loads(text.replace("duration: 40s", "duration: 8s").replace("at: 20s", "at: 4s"))
+    av4 = replay_scenario(sc, tmp_path, COMPUTE, compare=False, vehicle="av4").summary
+    av1 = replay_scenario(sc, tmp_path, COMPUTE, compare=False).summary
+    assert (av4["vehicle"], av1["vehicle"]) == ("av4", "av1")
+    notes = av4["settings"]["network"]["notes"]
+    assert notes[0] == "vehicle av4: path av4-gnb1 + gnb1-core1"
+    rates = [p["uplink_rate_bps"] for p in av4["learner"]["phases"]]
+    assert rates[1] < rates[0] and av1["learner"]["phases"][1]["uplink_rate_bps"] == rates[0]
+    with pytest.raises(BadInput, match="no EdgeLoc vehicle 'av9'"):
+        replay_scenario(sc, tmp_path, COMPUTE, compare=False, vehicle="av9")
+    out = CliRunner().invoke(
+        app,
+        ["replay", str(ROOT / "scenarios" / "smoke.yaml"), "--vehicle", "av9",
+         "--runs-dir", str(tmp_path)],
+    )  # fmt: skip
+    assert out.exit_code == 2 and "av9" in out.output, out.output
