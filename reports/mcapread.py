@@ -139,6 +139,12 @@ class LinkEventRec:
     changes: list[tuple[str, str]]
 
 
+#: The numeric fields of a RadioState that a `RadioSeries` keeps, each an array.
+RADIO_NUMBERS = (
+    "x", "y", "rsrp_dbm", "sinr_db", "cqi", "mcs", "bler", "ul_sinr_db", "ul_mcs", "ul_bler",
+)  # fmt: skip
+
+
 @dataclass
 class RadioSeries:
     """One vehicle's channel steps (`/radio/<vehicle>`, RadioState), in time order."""
@@ -159,10 +165,12 @@ class RadioSeries:
 
     @classmethod
     def from_rows(cls, vehicle: str, rows: list[tuple[Any, ...]]) -> RadioSeries:
+        """From `_radio_row`s: (stamp, cell, *the `RADIO_NUMBERS` in order)."""
         rows = sorted(rows, key=lambda r: r[0])
-        a = np.array([[r[0], *r[2:]] for r in rows], dtype=np.float64).reshape(-1, 11)
-        cols = [a[:, i] for i in range(11)]
-        return cls(vehicle, cols[0], [str(r[1]) for r in rows], *cols[1:])
+        a = np.array([[r[0], *r[2:]] for r in rows], dtype=np.float64)
+        a = a.reshape(-1, 1 + len(RADIO_NUMBERS))
+        numbers = {name: a[:, 1 + i] for i, name in enumerate(RADIO_NUMBERS)}
+        return cls(vehicle, a[:, 0], [str(r[1]) for r in rows], **numbers)
 
     def __len__(self) -> int:
         return len(self.t)
@@ -462,20 +470,7 @@ RADIO_PREFIX = radio_topic("")
 
 
 def _radio_row(msg: Any) -> tuple[Any, ...]:
-    return (
-        _stamp(msg),
-        str(msg.cell),
-        float(msg.x),
-        float(msg.y),
-        float(msg.rsrp_dbm),
-        float(msg.sinr_db),
-        float(msg.cqi),
-        float(msg.mcs),
-        float(msg.bler),
-        float(msg.ul_sinr_db),
-        float(msg.ul_mcs),
-        float(msg.ul_bler),
-    )
+    return (_stamp(msg), str(msg.cell), *(float(getattr(msg, f)) for f in RADIO_NUMBERS))
 
 
 def _unpack_named(metadata: dict[str, dict[str, str]], name: str) -> dict[str, Any]:

@@ -112,6 +112,7 @@ def validate(
     Example: testbed validate scenarios/*.yaml ; sudo testbed validate --host scenarios/default.yaml
     """
     from testbed.scenario import ScenarioError, load
+    from testbed.scenario.model import from_channel
 
     bad = 0
     scenarios = []
@@ -135,7 +136,7 @@ def validate(
         ]
         if scenario.workload.kind == "none":
             extra.append("no EdgeLoc workload")
-        by_channel = sum(getattr(e, "origin", "") == "channel" for e in scenario.timeline)
+        by_channel = sum(map(from_channel, scenario.timeline))
         if by_channel:
             extra.append(f"{by_channel} radio change(s) from the channel")
         con.ok(

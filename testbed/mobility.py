@@ -59,6 +59,7 @@ from testbed.scenario.model import (
     SetEvent,
     Vehicle,
     Workload,
+    from_channel,
 )
 
 #: An `auto` site stands this far to the right of the road, abeam the point of the route the
@@ -73,8 +74,6 @@ MAX_BLER = 0.99
 #: continuously, so a change of BLER is only sent when it crosses one of these levels (each
 #: about a factor 3 apart): a few hundred events a run instead of one per step.
 BLER_LEVELS = (0.001, 0.01, 0.03, 0.1, 0.3, 0.9)
-#: The dataset is opened for this much longer than the run, as the sensor node opens it.
-DATASET_MARGIN_S = 60.0
 #: Link adaptation follows the SINR through a first-order filter of this time constant, as a
 #: gNB filters CSI reports before it picks an MCS (an assumption: 3GPP leaves the filter to
 #: the vendor). It also smooths what the channel model has and a real UE's measurement does
@@ -124,6 +123,7 @@ class Route:
         """The drive of the scenario's dataset: the synthetic one of `seed`, or the recorded
         folder's ground truth (its first stamp taken as the run's start)."""
         from nodes.edgeloc.dataset import DatasetError, open_dataset
+        from nodes.ros.common import DATASET_MARGIN_S  # the drive the sensor node opens
 
         try:
             dataset = open_dataset(
@@ -394,9 +394,7 @@ def with_channel(scenario: Scenario, route: Route | None = None) -> Scenario:
         return scenario
     links = {link.name: link for link in scenario.links.links}
     # The changes of an earlier call go: a scenario given another seed gets its own radio.
-    timeline: list[Event] = [
-        e for e in scenario.timeline if not (isinstance(e, SetEvent) and e.origin == "channel")
-    ]
+    timeline: list[Event] = [e for e in scenario.timeline if not from_channel(e)]
     for plan in found.values():
         spec = links[plan.link]
         for direction in ("uplink", "downlink"):

@@ -74,6 +74,7 @@ from testbed.scenario.model import (
     ShapeEvent,
     TraceEvent,
     Traffic,
+    from_channel,
 )
 
 DEFAULT_GATE = GateSettings()  # beyond the paper; see nodes.edgeloc.gate
@@ -105,7 +106,7 @@ def replay_config(scenario: Scenario, gate: GateSettings | None = DEFAULT_GATE) 
     lr = w.learner
     # Phases: between timeline events, and where cross-traffic starts or stops.
     # The channel's radio changes (`testbed.mobility`, several a second) are not phases.
-    edges = [e.at_s for e in scenario.timeline if getattr(e, "origin", "") != "channel"]
+    edges = [e.at_s for e in scenario.timeline if not from_channel(e)]
     edges += [t for f in scenario.traffic for t in (f.start_s, f.stop_s) if t is not None]
     times = sorted({0.0, *(t for t in edges if t < scenario.duration_s)})
     return ReplayConfig(
@@ -536,8 +537,9 @@ def radio_bands(scenario: Scenario, summary: dict[str, Any], vehicle: str) -> di
     where the channel makes the network follow the place, what the learner did in each."""
     from testbed import mobility
 
+    assert scenario.channel is not None, "radio bands need a channel"
     plan = mobility.plans(scenario)[vehicle]
-    step = scenario.channel.step_s if scenario.channel is not None else 1.0
+    step = scenario.channel.step_s
     ul = [s.ul_mcs for s in plan.steps]
     decisions = summary["learner"]["decisions"]
     at_play = [ul[min(len(ul) - 1, max(0, int(t / step + 1e-9)))] for t in decisions["sent_s"]]

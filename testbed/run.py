@@ -43,7 +43,7 @@ from testbed.capacity import CapacityCheck, check_scenario
 from testbed.connectivity import EchoResult, vehicles_reach_cores
 from testbed.errors import TestbedError
 from testbed.linktest import LinkTest, LinkTestReport
-from testbed.scenario.model import Scenario, TraceEvent
+from testbed.scenario.model import Scenario, TraceEvent, from_channel
 from testbed.supervisor import Supervisor, ros_available
 from testbed.timeline import AppliedEvent, TimelinePlayer
 from testbed.topology import Net, build
@@ -137,7 +137,7 @@ def play_timeline(
     player = TimelinePlayer(
         scenario.timeline, net.control, on_event=shown, log_path=folder / names.EVENTS_FILE
     )
-    by_channel = sum(getattr(e, "origin", "") == "channel" for e in scenario.timeline)
+    by_channel = sum(map(from_channel, scenario.timeline))
     radio = f" and {by_channel} radio change(s) from the channel" if by_channel else ""
     progress(
         f"playing the timeline: {len(scenario.timeline) - by_channel} event(s){radio} over "

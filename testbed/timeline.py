@@ -28,6 +28,7 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any, Protocol
 
+from netem.nr import Radio
 from testbed.links import LinkController
 from testbed.scenario.model import (
     ClearEvent,
@@ -36,6 +37,7 @@ from testbed.scenario.model import (
     SetEvent,
     ShapeEvent,
     TraceEvent,
+    from_channel,
 )
 
 #: Wake this long before an event and poll the rest: the VM's timers oversleep ~0.1 ms
@@ -99,10 +101,11 @@ class AppliedEvent:
 
 def describe(event: Event) -> tuple[str, str, str]:
     """(kind, target, detail) of an event, as logs and progress lines show it."""
-    if isinstance(event, SetEvent) and event.origin == "channel":
+    if from_channel(event):
+        assert isinstance(event, SetEvent)
         radio = event.changes["radio"]
-        mcs, bler = getattr(radio, "mcs", "?"), getattr(radio, "bler", "?")
-        return "channel", event.link, f"{event.direction}: mcs={mcs}, bler={bler}"
+        assert isinstance(radio, Radio)
+        return "channel", event.link, f"{event.direction}: mcs={radio.mcs}, bler={radio.bler}"
     if isinstance(event, SetEvent):
         fields = ", ".join(f"{k}={v}" for k, v in event.changes.items())
         return "set", event.link, f"{event.direction}: {fields}"

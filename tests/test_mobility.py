@@ -202,7 +202,9 @@ def test_the_synthetic_drive_is_the_route(tmp_path: Path) -> None:
 
     scenario = _load(seed=5)
     route = mobility.Route.of_workload(scenario.workload, 5, scenario.duration_s)
-    ds = SyntheticDataset(5, 20.0, scenario.duration_s + mobility.DATASET_MARGIN_S)
+    from nodes.ros.common import DATASET_MARGIN_S
+
+    ds = SyntheticDataset(5, 20.0, scenario.duration_s + DATASET_MARGIN_S)
     x, y, _ = route.at(ds.timestamps[100])
     assert (x, y) == (pytest.approx(ds.gt_poses[100, 0]), pytest.approx(ds.gt_poses[100, 1]))
 

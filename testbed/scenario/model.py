@@ -310,6 +310,12 @@ class TraceEvent:
 Event = SetEvent | ShapeEvent | ClearEvent | OutageEvent | TraceEvent
 
 
+def from_channel(event: Event) -> bool:
+    """Whether `event` is one of the channel's radio changes (`testbed.mobility`), not the
+    scenario's own: several a second, counted rather than listed, and not a learner phase."""
+    return isinstance(event, SetEvent) and event.origin == "channel"
+
+
 # ---- workload, record, report ---------------------------------------------------------------
 
 
