@@ -27,6 +27,7 @@ Control: a unix stream socket; one JSON object per line in, one JSON reply per l
     {"op": "ping"}                                             -> {"ok": true, "pid": ...}
     {"op": "set", "direction": "uplink"|"downlink"|"both", "profile": {field: value, ...}}
     {"op": "outage", "seconds": 2.0, "direction": "both"}
+    {"op": "interrupt", "seconds": 0.04, "mode": "hold"|"drop", "direction": "both"}
     {"op": "trace", "direction": "uplink", "path": "x.csv"|null, "format": "csv", "loop": true}
     {"op": "counters"}                          -> {"ok": true, "uplink": {...}, "downlink": ...}
     {"op": "attach", "link": "av2-gnb1", "netns_a": ..., "dev_a": ..., "netns_b": ...,
@@ -35,6 +36,11 @@ Control: a unix stream socket; one JSON object per line in, one JSON reply per l
     {"op": "detach", "link": "av2-gnb1"}
 Errors come back as {"ok": false, "error": "..."}; the relay keeps running. `set` changes only
 the fields given (the others keep their value) and applies in place: queued packets stay.
+`outage` drops what enters the link; `interrupt` is a handover's gap (`netem.stages.HandoverGap`,
+seconds in 0..10, mode default hold): what would leave the link during it waits for its end
+("hold", a lossless handover) or is lost ("drop"); the loop wakes at the end to deliver it.
+`counters` reports a direction's gaps under its "handover" (absent until one was started;
+`since` and `until` of the last on the relay's clock, CLOCK_MONOTONIC).
 
 RRC states (a profile's `rrc`, `netem.rrc`) are the UE's, not a direction's: each link has one
 state machine that both its directions' packets drive (`netem.stages.share_rrc`), so its two
@@ -76,7 +82,7 @@ from netem.gso import VNET_LEN, Frame, ip_packets
 from netem.pcap import PcapngWriter
 from netem.proc import PR_SET_TIMERSLACK, die_with_parent, prctl, renice
 from netem.profile import PROFILE_FIELDS, LinkProfile, check_link, check_profile
-from netem.stages import Pipeline, RrcLink, RrcStage, Slots, share_rrc
+from netem.stages import Pipeline, RrcLink, RrcStage, Slots, check_gap, share_rrc
 from netem.traces import TRACE_FORMATS, load_trace
 from netem.tun import MAX_MTU, TunConfig, TunError, open_tun_in
 
@@ -533,6 +539,17 @@ class Relay:
             for d in self._directions(request, default="both"):
                 port.pipelines[d].outage(now, float(seconds))
             return {}
+        if op == "interrupt":
+            seconds, mode = request.get("seconds"), request.get("mode", "hold")
+            try:
+                check_gap(seconds, mode)
+            except ProfileError as exc:
+                raise ControlError(f"interrupt: {exc}") from None
+            directions = self._directions(request, default="both")
+            now = self.clock()  # one instant for both directions: one handover
+            for d in directions:
+                port.pipelines[d].interrupt(now, float(seconds), mode)
+            return {}
         if op == "capture":
             return self._capture(port, request)
         if op == "trace":
@@ -547,8 +564,8 @@ class Relay:
                 port.pipelines[d].play_trace(trace, now, loop=bool(request.get("loop", False)))
             return {"mean_rate_bps": None if trace is None else trace.mean_rate_bps()}
         raise ControlError(
-            f"unknown op {op!r}; allowed: ping, set, outage, trace, capture, counters, attach, "
-            "detach"
+            f"unknown op {op!r}; allowed: ping, set, outage, interrupt, trace, capture, counters, "
+            "attach, detach"
         )
 
     def _capture(self, port: Port, request: dict[str, Any]) -> dict[str, Any]:

@@ -424,6 +424,12 @@ class UserspaceLink:
         """Drop every packet on the link for `seconds` from now."""
         self.request({"op": "outage", "seconds": seconds, "direction": direction})
 
+    def interrupt(self, seconds: float, mode: str = "hold", direction: Direction = "both") -> None:
+        """A handover's interruption of `seconds` from now: packets that would leave the link
+        meanwhile wait for its end and then leave in order (`mode` "hold", a lossless
+        handover) or are lost ("drop"). Unlike `outage`, it cuts what is in flight too."""
+        self.request({"op": "interrupt", "seconds": seconds, "mode": mode, "direction": direction})
+
     def play_trace(
         self,
         direction: Direction,
