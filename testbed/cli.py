@@ -112,7 +112,7 @@ def validate(
     Example: testbed validate scenarios/*.yaml ; sudo testbed validate --host scenarios/default.yaml
     """
     from testbed.scenario import ScenarioError, load
-    from testbed.scenario.model import from_channel
+    from testbed.scenario.model import from_channel, from_route
 
     bad = 0
     scenarios = []
@@ -137,12 +137,15 @@ def validate(
         if scenario.workload.kind == "none":
             extra.append("no EdgeLoc workload")
         by_channel = sum(map(from_channel, scenario.timeline))
+        by_route = sum(map(from_route, scenario.timeline))
         if by_channel:
             extra.append(f"{by_channel} radio change(s) from the channel")
+        if by_route > by_channel:
+            extra.append(f"{by_route - by_channel} handover(s)")
         con.ok(
             f"{path}: valid ({len(scenario.topology.vehicles)} vehicle(s), "
             f"{len(scenario.topology.cells)} cell(s), "
-            f"{len(scenario.timeline) - by_channel} timeline event(s)"
+            f"{len(scenario.timeline) - by_route} timeline event(s)"
             + "".join(f", {e}" for e in extra)
             + ")"
         )

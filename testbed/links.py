@@ -35,6 +35,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Literal, Protocol
 
+from netem.nr import slot_s
 from netem.profile import HTB_MIN_RATE_BPS, LinkProfile
 from netem.shaping import NodeShaper, check_caps
 from netem.sniff import LinkSniffer, SniffConfig, SniffError
@@ -50,6 +51,7 @@ from testbed.namespaces import EndNames, VethEnds
 from testbed.scenario.model import (
     ClearEvent,
     Event,
+    HandoverEvent,
     LinkKind,
     Links,
     LinkSpec,
@@ -107,6 +109,8 @@ class Net(Protocol):
     def links(self) -> Mapping[str, Link]: ...
 
     def record_pid(self, pid: int, what: str) -> None: ...
+
+    def hand_over(self, vehicle: str, target: str) -> None: ...
 
 
 BackendName = Literal["tc", "userspace"]
@@ -402,6 +406,12 @@ class LinkController(Protocol):
         """Let a bandwidth trace set the direction's rate from now on."""
         ...
 
+    def handover(self, event: HandoverEvent) -> None:
+        """Hand a vehicle over: its two air links stop for the interruption (the source's
+        packets held, or dropped when lossy; the target's held), then its routes switch to
+        the target (`Net.hand_over`)."""
+        ...
+
     def failure(self) -> str | None:
         """Why the links stopped working (a relay died), or None."""
         ...
@@ -581,6 +591,19 @@ class UserspaceController(_Base):
     def outage(self, link: str, seconds: float) -> None:
         self._relay(link).outage(seconds, "both")
 
+    def handover(self, event: HandoverEvent) -> None:
+        source, target = self._relay(event.source_link), self._relay(event.target_link)
+        if event.interruption_s > 0:
+            # The gap starts on both links before the routes move, so no packet slips
+            # through either while the switch is made. Lossless, the target delivers what
+            # the source forwarded first and its own from the next slot on (PDCP's order):
+            # the two links' relays would otherwise race at the gap's end.
+            radio = self.profiles[event.target_link, "downlink"].radio
+            slot = slot_s(radio.numerology) if radio is not None and event.lossless else 0.0
+            source.interrupt(event.interruption_s, "hold" if event.lossless else "drop")
+            target.interrupt(event.interruption_s + slot, "hold")
+        self.net.hand_over(event.vehicle, event.target)
+
     def trace(self, link: str, direction: Direction, path: Path, fmt: str, loop: bool) -> None:
         self._relay(link).play_trace(direction, path, fmt, loop)
 
@@ -696,6 +719,14 @@ class TcController(_Base):
                 if self._outage_until.get(link, 0) <= time.monotonic():
                     self._change(link, d, profile)
                 self.profiles[link, d] = profile  # an outage's end restores this
+
+    def handover(self, event: HandoverEvent) -> None:
+        # Unreachable from a scenario: a handover needs the channel, the channel an NR
+        # radio, and the loader refuses `tc` with a radio.
+        raise BadInput(
+            f"handover of {event.vehicle} at {event.at_s:g} s: handovers need the userspace "
+            "relay (links.backend userspace or auto)"
+        )
 
     def outage(self, link: str, seconds: float) -> None:
         self._link(link)

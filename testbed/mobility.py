@@ -22,8 +22,11 @@ it, so a loaded scenario already carries them. Same seed, same sites and same ro
 same plans: every random stream of the channel is seeded from the scenario's seed and the
 vehicle's name.
 
-Until handover lands (issue #19 part 3) a vehicle is served by the cell it attaches to all
-run long; the other sites are interference.
+Without `channel.handover` a vehicle is served by the cell it attaches to all run long and
+the other sites only interfere. With it, `netem.handover.A3Handover` measures every site's
+RSRP at each step and decides when the vehicle changes cell; each decision becomes a
+`HandoverEvent` (the timeline's handover: interruption, routes, N3 path switch), and the
+radio changes go to the air link of the cell serving at that step (`<vehicle>-<gnb>`).
 """
 
 from __future__ import annotations
@@ -48,18 +51,21 @@ from netem.channel import (
     cqi_from_sinr,
     mcs_from_cqi,
 )
+from netem.handover import A3Handover, HandoverDecision, HandoverError
 from netem.nr import Radio
 from testbed.errors import BadInput
 from testbed.scenario.model import (
     Cell,
     ChannelSpec,
     Event,
+    HandoverEvent,
+    HandoverSpec,
     LinkSpec,
     Scenario,
     SetEvent,
     Vehicle,
     Workload,
-    from_channel,
+    from_route,
 )
 
 #: An `auto` site stands this far to the right of the road, abeam the point of the route the
@@ -174,23 +180,28 @@ class RadioStep:
 
 @dataclass(frozen=True)
 class RadioPlan:
-    """One vehicle's radio over the run, on its air link `link`."""
+    """One vehicle's radio over the run: its first air link `link`, and, with handovers,
+    when it changed cell (`handovers`; the steps' `serving` says which cell served)."""
 
     vehicle: str
     link: str
     steps: tuple[RadioStep, ...]
+    handovers: tuple[HandoverDecision, ...] = ()
 
     def coverage(self) -> float:
         """Share of the steps at which the serving cell's downlink reaches CQI 1 (SINR at or
         above CQI 1's threshold): in coverage."""
         return sum(s.cqi >= 1 for s in self.steps) / len(self.steps) if self.steps else 0.0
 
-    def changes(self, direction: str) -> list[tuple[float, int, float]]:
+    def changes(self, direction: str, cell: str | None = None) -> list[tuple[float, int, float]]:
         """(t, mcs, bler) wherever the MCS changes or the BLER crosses a `BLER_LEVELS` level
-        in `direction`, the first at the first step."""
+        in `direction`, the first at the first step; with `cell`, over the steps that cell
+        serves (what its air link runs at; none if it never serves)."""
         out: list[tuple[float, int, float]] = []
         last: tuple[int, int] | None = None
         for s in self.steps:
+            if cell is not None and s.serving != cell:
+                continue
             mcs, value = (s.mcs, s.bler) if direction == "downlink" else (s.ul_mcs, s.ul_bler)
             key = (mcs, bisect.bisect(BLER_LEVELS, value))
             if key != last:
@@ -295,12 +306,30 @@ def plans(scenario: Scenario, route: Route | None = None) -> dict[str, RadioPlan
     out: dict[str, RadioPlan] = {}
     for v in scenario.topology.vehicles:
         link = air_link(scenario, v).name
+        decisions: tuple[HandoverDecision, ...] = ()
         if spec.trace is not None:
             steps = _trace_steps(trace, v, times, xs, ys)
         else:
-            steps = _model_steps(spec, all_sites, scenario.seed, v, times, xs, ys)
-        out[v.name] = RadioPlan(v.name, link, steps)
+            a3 = None if spec.handover is None else a3_of(spec.handover, spec.step_s, v.gnb)
+            steps, decisions = _model_steps(spec, all_sites, scenario.seed, v, times, xs, ys, a3)
+        out[v.name] = RadioPlan(v.name, link, steps, decisions)
     return out
+
+
+def a3_of(spec: HandoverSpec, step_s: float, serving: str) -> A3Handover:
+    """The A3 logic a scenario's `channel.handover` asks for, measuring every channel step,
+    the vehicle served by the cell it attaches to at the start."""
+    try:
+        return A3Handover(
+            offset_db=spec.offset_db,
+            hysteresis_db=spec.hysteresis_db,
+            ttt_ms=round(spec.ttt_s * 1000),
+            filter_k=spec.filter_k or None,
+            step_s=step_s,
+            serving=serving,
+        )
+    except HandoverError as err:  # the loader checks the ranges; this is the last word
+        raise MobilityError(f"channel.handover: {err}") from None
 
 
 def _model_steps(
@@ -311,7 +340,11 @@ def _model_steps(
     times: np.ndarray,
     xs: np.ndarray,
     ys: np.ndarray,
-) -> tuple[RadioStep, ...]:
+    a3: A3Handover | None = None,
+) -> tuple[tuple[RadioStep, ...], tuple[HandoverDecision, ...]]:
+    """The vehicle's steps, and with `a3` its handovers: a decision at a step's measurement
+    makes the target serve from the next step, its link adaptation starting afresh (the
+    target learns the UE's channel from its first CSI reports)."""
     try:
         channel = Channel(
             all_sites,
@@ -328,9 +361,15 @@ def _model_steps(
     except ChannelError as err:
         raise MobilityError(f"channel: {err}") from None
     out = []
+    decisions: list[HandoverDecision] = []
+    serving = vehicle.gnb
     down, up = LinkAdaptation(), LinkAdaptation()
     for t, x, y in zip(times.tolist(), xs.tolist(), ys.tolist(), strict=True):
-        s = channel.step(t, x, y, vehicle.gnb)
+        s = channel.step(t, x, y, serving)
+        if a3 is not None:
+            decision = a3.observe(t, s.rsrp_dbm)
+            if decision is not None:
+                decisions.append(decision)
         cqi, mcs, b = down.step(t, s.sinr_db)
         _, ul_mcs, ul_b = up.step(t, s.ul_sinr_db)
         out.append(
@@ -349,7 +388,10 @@ def _model_steps(
                 ul_b,
             )
         )
-    return tuple(out)
+        if a3 is not None and a3.serving != serving:
+            serving = a3.serving or serving
+            down, up = LinkAdaptation(), LinkAdaptation()
+    return tuple(out), tuple(decisions)
 
 
 def _trace(path: Path) -> RadioTrace:
@@ -394,23 +436,40 @@ def with_channel(scenario: Scenario, route: Route | None = None) -> Scenario:
         return scenario
     links = {link.name: link for link in scenario.links.links}
     # The changes of an earlier call go: a scenario given another seed gets its own radio.
-    timeline: list[Event] = [e for e in scenario.timeline if not from_channel(e)]
+    timeline: list[Event] = [e for e in scenario.timeline if not from_route(e)]
+    handover = scenario.handover
+    by_name = {v.name: v for v in scenario.topology.vehicles}
     for plan in found.values():
-        spec = links[plan.link]
-        for direction in ("uplink", "downlink"):
-            radio = spec.profile(direction).radio  # type: ignore[arg-type]
-            if radio is None:
-                raise MobilityError(
-                    f"the channel sets the MCS of {plan.link}'s {direction} radio, and it "
-                    "has none: give the air links an NR radio (links.air.radio)"
+        gnbs = scenario.gnbs_of(by_name[plan.vehicle])
+        for gnb in gnbs:
+            name = f"{plan.vehicle}-{gnb}"
+            spec = links[name]
+            for direction in ("uplink", "downlink"):
+                radio = spec.profile(direction).radio  # type: ignore[arg-type]
+                if radio is None:
+                    raise MobilityError(
+                        f"the channel sets the MCS of {name}'s {direction} radio, and it "
+                        "has none: give the air links an NR radio (links.air.radio)"
+                    )
+                # One link: all its steps; with handovers, each link the steps its cell
+                # serves (a link that never serves keeps the radio as written).
+                changes = plan.changes(direction, gnb if len(gnbs) > 1 else None)
+                if not changes:
+                    continue
+                _, mcs, b = changes[0]
+                start = dataclasses.replace(radio, mcs=mcs, bler=b)
+                profile = spec.profile(direction).replace(radio=start)  # type: ignore[arg-type]
+                spec = dataclasses.replace(spec, **{direction: profile})
+                timeline = _merge(timeline, name, direction, radio, changes[1:], (mcs, b))
+            links[name] = spec
+        if handover is not None:
+            timeline += [
+                HandoverEvent(
+                    d.t, plan.vehicle, d.source, d.target, handover.interruption_s,
+                    handover.lossless,
                 )
-            changes = plan.changes(direction)
-            _, mcs, b = changes[0]
-            start = dataclasses.replace(radio, mcs=mcs, bler=b)
-            profile = spec.profile(direction).replace(radio=start)  # type: ignore[arg-type]
-            spec = dataclasses.replace(spec, **{direction: profile})
-            timeline = _merge(timeline, plan.link, direction, radio, changes[1:], (mcs, b))
-        links[plan.link] = spec
+                for d in plan.handovers
+            ]  # fmt: skip
     return dataclasses.replace(
         scenario,
         links=dataclasses.replace(
@@ -513,4 +572,5 @@ def describe(scenario: Scenario) -> dict[str, object] | None:
         "step_s": spec.step_s,
         "trace": None if spec.trace is None else spec.trace.name,
         "sites": placed,
+        "handover": None if spec.handover is None else dataclasses.asdict(spec.handover),
     }

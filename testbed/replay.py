@@ -67,6 +67,7 @@ from nodes.recording.jsonfile import write_json
 from testbed.errors import BadInput
 from testbed.scenario.model import (
     ClearEvent,
+    HandoverEvent,
     LinkSpec,
     OutageEvent,
     Scenario,
@@ -74,7 +75,7 @@ from testbed.scenario.model import (
     ShapeEvent,
     TraceEvent,
     Traffic,
-    from_channel,
+    from_route,
 )
 
 DEFAULT_GATE = GateSettings()  # beyond the paper; see nodes.edgeloc.gate
@@ -105,8 +106,9 @@ def replay_config(scenario: Scenario, gate: GateSettings | None = DEFAULT_GATE) 
     w = scenario.workload
     lr = w.learner
     # Phases: between timeline events, and where cross-traffic starts or stops.
-    # The channel's radio changes (`testbed.mobility`, several a second) are not phases.
-    edges = [e.at_s for e in scenario.timeline if not from_channel(e)]
+    # The channel's radio changes (`testbed.mobility`, several a second) and its handovers
+    # are not phases.
+    edges = [e.at_s for e in scenario.timeline if not from_route(e)]
     edges += [t for f in scenario.traffic for t in (f.start_s, f.stop_s) if t is not None]
     times = sorted({0.0, *(t for t in edges if t < scenario.duration_s)})
     return ReplayConfig(
@@ -159,12 +161,24 @@ class _PathPlan:
         self.cell = topo.cell_of_gnb(self.vehicle.gnb)
         self.air = self._link(scenario, "air", name)
         known = set(scenario.links.names())
-        missing = [n for n in self.cell.path() if n not in known]
-        if missing:
-            raise BadInput(f"{scenario.name}: no link {missing[0]}; cannot build {name}'s path")
-        # The wired hops to the edge server: the backhaul, or N3 and N6 (N6 alone to an edge
-        # at the cell). GTP-U's 44 bytes per packet on N3 are left out (1-3% of a packet).
-        self.wired = [scenario.links.get(n) for n in self.cell.path()]
+        # With handovers, the path of each cell the vehicle may be served by (`states_at`
+        # takes the one serving at its time).
+        self.airs: dict[str, LinkSpec] = {self.vehicle.gnb: self.air}
+        self.paths: dict[str, list[LinkSpec]] = {}
+        for gnb in scenario.gnbs_of(self.vehicle):
+            path = topo.cell_of_gnb(gnb).path()
+            missing = [n for n in (f"{name}-{gnb}", *path) if n not in known]
+            if missing:
+                raise BadInput(f"{scenario.name}: no link {missing[0]}; cannot build {name}'s path")
+            self.airs.setdefault(gnb, scenario.links.get(f"{name}-{gnb}"))
+            # The wired hops to the edge server: the backhaul, or N3 and N6 (N6 alone to an
+            # edge at the cell). GTP-U's 44 bytes per packet on N3 are left out (1-3%).
+            self.paths[gnb] = [scenario.links.get(n) for n in path]
+        self.wired = self.paths[self.vehicle.gnb]
+        self.handovers = sorted(
+            (e for e in scenario.timeline if isinstance(e, HandoverEvent) and e.vehicle == name),
+            key=lambda e: e.at_s,
+        )
         self.scenario = scenario
         # Cross-traffic to or from a UE of this cell loads its radio and its wired hops.
         self.cell_ues = {v.name for v in topo.vehicles if v.gnb == self.vehicle.gnb}
@@ -190,6 +204,8 @@ class _PathPlan:
             times.add(e.at_s)
             if isinstance(e, OutageEvent):
                 times.add(e.at_s + e.duration_s)
+        for h in self.handovers:
+            times.add(h.at_s + h.interruption_s)
         for ev, trace in self.traces.values():
             for t in _trace_steps(ev, trace, horizon):
                 times.add(t)
@@ -200,9 +216,18 @@ class _PathPlan:
     def states_at(self, t: float) -> tuple[PathState, PathState]:
         """(uplink, downlink) path states at time `t` (events at or before `t` applied)."""
         prof: dict[tuple[str, str], LinkProfile] = {}
-        for link in (self.air, *self.wired):
+        for link in (*self.airs.values(), *(w for p in self.paths.values() for w in p)):
             prof[(link.name, "uplink")] = link.uplink
             prof[(link.name, "downlink")] = link.downlink
+        # The serving cell: the last handover's target by `t`. Its interruption stalls the
+        # path as an outage does (requests wait: the lossless handover; a lossy one's lost
+        # packets are not modelled here).
+        gnb, gap = self.vehicle.gnb, False
+        for h in self.handovers:
+            if h.at_s > t:
+                break
+            gnb, gap = h.target, t < h.at_s + h.interruption_s
+        air, wired = self.airs[gnb], self.paths[gnb]
         caps: dict[str, list[float | None]] = {}
         trace_on: dict[tuple[str, str], TraceEvent] = {}
         down: set[str] = set()
@@ -257,28 +282,23 @@ class _PathPlan:
                 air=air,
             )
 
+        if gap:
+            down.add(air.name)
         v, c = self.vehicle.name, self.cell.server
         vcap, ccap = caps.get(v, [None, None]), caps.get(c, [None, None])
         # A cap on the edge server is on its end of the last wired hop (its ingress is that
         # hop's uplink, its egress the downlink), a vehicle's on its air link.
-        last = len(self.wired) - 1
-        ups = [
-            hop(w, "uplink", ccap[1] if i == last else None, self._wired_load(active, i, "uplink"))
-            for i, w in enumerate(self.wired)
-        ]
-        downs = [
-            hop(
-                w,
-                "downlink",
-                ccap[0] if i == last else None,
-                self._wired_load(active, i, "downlink"),
-            )
-            for i, w in enumerate(self.wired)
-        ]
+        last = len(wired) - 1
+        ups, downs = [], []
+        for i, w in enumerate(wired):
+            up_load = _wired_load(wired, self.cell_ues, active, i, "uplink")
+            down_load = _wired_load(wired, self.cell_ues, active, i, "downlink")
+            ups.append(hop(w, "uplink", ccap[1] if i == last else None, up_load))
+            downs.append(hop(w, "downlink", ccap[0] if i == last else None, down_load))
         own_up = sum(wire_bps(f) for f in active if f.src == v)
         own_down = sum(wire_bps(f) for f in active if f.dst == v)
-        air_up = hop(self.air, "uplink", vcap[0], own_up)
-        air_down = hop(self.air, "downlink", vcap[1], own_down)
+        air_up = hop(air, "uplink", vcap[0], own_up)
+        air_down = hop(air, "downlink", vcap[1], own_down)
         uplink = PathState.fold([air_up, *ups])
         downlink = PathState.fold([*reversed(downs), air_down])
         return uplink, downlink
@@ -292,17 +312,6 @@ class _PathPlan:
                 per_ue[ue] = per_ue.get(ue, 0.0) + wire_bps(f)
         return list(per_ue.values())
 
-    def _wired_load(self, active: list[Traffic], index: int, direction: str) -> float:
-        """Cross-traffic on wired hop `index` of the path in `direction`: flows between a UE
-        of the cell and a node at or beyond that hop's far end."""
-        beyond = {link.upper for link in self.wired[index:]}  # links run gNB side first
-        load = 0.0
-        for f in active:
-            ue, far = (f.src, f.dst) if direction == "uplink" else (f.dst, f.src)
-            if ue in self.cell_ues and far in beyond:
-                load += wire_bps(f)
-        return load
-
     def schedules(self, horizon: float) -> tuple[PathSchedule, PathSchedule]:
         times, ups, downs = [], [], []
         for t in self.breakpoints(horizon):
@@ -313,6 +322,20 @@ class _PathPlan:
             ups.append(up)
             downs.append(dn)
         return PathSchedule(tuple(times), tuple(ups)), PathSchedule(tuple(times), tuple(downs))
+
+
+def _wired_load(
+    wired: list[LinkSpec], ues: set[str], active: list[Traffic], index: int, direction: str
+) -> float:
+    """Cross-traffic on wired hop `index` of the path `wired` in `direction`: flows between
+    one of the cell's UEs `ues` and a node at or beyond that hop's far end."""
+    beyond = {link.upper for link in wired[index:]}  # links run gNB side first
+    load = 0.0
+    for f in active:
+        ue, far = (f.src, f.dst) if direction == "uplink" else (f.dst, f.src)
+        if ue in ues and far in beyond:
+            load += wire_bps(f)
+    return load
 
 
 @dataclass(frozen=True)

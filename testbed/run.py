@@ -43,7 +43,7 @@ from testbed.capacity import CapacityCheck, check_scenario
 from testbed.connectivity import EchoResult, vehicles_reach_cores
 from testbed.errors import TestbedError
 from testbed.linktest import LinkTest, LinkTestReport
-from testbed.scenario.model import Scenario, TraceEvent, from_channel
+from testbed.scenario.model import Scenario, TraceEvent, from_channel, from_route
 from testbed.supervisor import Supervisor, ros_available
 from testbed.timeline import AppliedEvent, TimelinePlayer
 from testbed.topology import Net, build
@@ -138,9 +138,12 @@ def play_timeline(
         scenario.timeline, net.control, on_event=shown, log_path=folder / names.EVENTS_FILE
     )
     by_channel = sum(map(from_channel, scenario.timeline))
-    radio = f" and {by_channel} radio change(s) from the channel" if by_channel else ""
+    handovers = sum(map(from_route, scenario.timeline)) - by_channel
+    radio = f", {by_channel} radio change(s) from the channel" if by_channel else ""
+    radio += f", {handovers} handover(s)" if handovers else ""
     progress(
-        f"playing the timeline: {len(scenario.timeline) - by_channel} event(s){radio} over "
+        f"playing the timeline: {len(scenario.timeline) - by_channel - handovers} event(s)"
+        f"{radio} over "
         f"{scenario.duration_s:g} s (Ctrl-C stops the run and tears it down)"
     )
     if scenario.channel is not None:

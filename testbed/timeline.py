@@ -8,10 +8,11 @@
 
 Each event goes to one `LinkController` call (`testbed.links`): `set` -> `controller.set`,
 `shape`/`clear` -> Wondershaper caps, `outage` -> `controller.outage`, `trace` ->
-`controller.trace`. Every applied event is reported as an `AppliedEvent` (scheduled time,
-applied time and lateness, all relative to the start) to the `on_event` callback and appended
-as one JSON line to `log_path`. Lateness is measured when the controller call has returned,
-so it includes the time the change itself takes (target < 5 ms). A controller error stops the
+`controller.trace`, `handover` -> `controller.handover` (its links, then its routes). Every
+applied event is reported as an `AppliedEvent` (scheduled time, applied time and lateness, all
+relative to the start) to the `on_event` callback and appended as one JSON line to
+`log_path`. Lateness is measured when the controller call has returned, so it includes the
+time the change itself takes (target < 5 ms). A controller error stops the
 player and is kept in `failure`: a run must not go on with links that are not what the
 scenario says.
 """
@@ -33,6 +34,7 @@ from testbed.links import LinkController
 from testbed.scenario.model import (
     ClearEvent,
     Event,
+    HandoverEvent,
     OutageEvent,
     SetEvent,
     ShapeEvent,
@@ -120,6 +122,13 @@ def describe(event: Event) -> tuple[str, str, str]:
         return "clear", event.node, ""
     if isinstance(event, OutageEvent):
         return "outage", event.link, f"for {event.duration_s:g} s"
+    if isinstance(event, HandoverEvent):
+        kind = "lossless" if event.lossless else "lossy"
+        return (
+            "handover",
+            event.vehicle,
+            f"{event.source} -> {event.target} ({event.interruption_s * 1000:g} ms {kind})",
+        )
     return (
         "trace",
         event.link,
@@ -139,6 +148,8 @@ def apply_event(controller: LinkController, event: Event) -> None:
         controller.outage(event.link, event.duration_s)
     elif isinstance(event, TraceEvent):
         controller.trace(event.link, event.direction, event.path, event.format, event.loop)
+    elif isinstance(event, HandoverEvent):
+        controller.handover(event)
     else:  # the model's Event union is closed; a new kind must be taught here
         raise TypeError(f"unknown timeline event {event!r}")
 

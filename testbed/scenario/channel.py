@@ -8,7 +8,10 @@ in the file:
   one cell to the channel, and auto placement never does it);
 - the timeline does not write an air link's `mcs` or `bler` (the channel does);
 - a `trace` file exists and parses (`netem.channel.RadioTrace`, errors at its own lines);
-- the radios the channel drives are ones it can model (30 kHz, a standard bandwidth).
+- the radios the channel drives are ones it can model (30 kHz, a standard bandwidth);
+- `handover` comes with the model (not a trace), two or more cells, all behind one UPF and
+  one edge server at the core (`edge: stay` keeps the session there), and A3 settings within
+  TS 38.331's ranges and steps.
 """
 
 from __future__ import annotations
@@ -18,6 +21,7 @@ import math
 from pathlib import Path
 
 from netem.channel import RadioTrace, RadioTraceError
+from netem.handover import FILTER_COEFFICIENTS, TTT_MS
 from testbed.scenario import model, schema_v1
 from testbed.scenario.kinds import Context, Items, Section
 
@@ -148,3 +152,80 @@ def apply(ctx: Context, root: Section, scenario: model.Scenario) -> model.Scenar
             str(err),
         )
         return None
+
+
+def wants_handover(root: Section) -> bool:
+    """Whether the file asks for handovers (then every vehicle gets an air link to every
+    gNB: `model.Scenario.gnbs_of`)."""
+    channel: Section | None = root.get("channel")
+    return channel is not None and channel.get("handover") is not None
+
+
+def check_handover(ctx: Context, root: Section) -> None:
+    """`channel.handover`'s rules (see the module doc), each at its key."""
+    channel: Section | None = root.get("channel")
+    handover: Section | None = channel.get("handover") if channel is not None else None
+    if channel is None or not isinstance(handover, Section):
+        return
+    where = channel.path_of("handover")
+    if channel.written("trace"):
+        ctx.add(
+            channel.at("handover"),
+            where,
+            "handover with the channel model (sites and a route)",
+            "handover beside a recorded `trace`",
+            "a trace's rows carry their own serving cell; drop one of the two",
+        )
+    topo: Section | None = root.get("topology")
+    cells: Items | None = topo.get("cells") if topo is not None else None
+    good = [cell for _, cell, _ in cells.good()] if cells else []
+    if cells is not None and len(good) < 2:
+        ctx.add(
+            channel.at("handover"),
+            where,
+            "two or more cells to hand over between",
+            f"{len(good)} cell",
+        )
+    cores = sorted({f"{c.get('upf')}/{c.get('edge')}" for c in good if c.get("upf")})
+    plain = [c.get("gnb") for c in good if not c.get("upf")]
+    at_cell = [c.get("gnb") for c in good if c.get("upf") and c.get("placement") == "cell"]
+    if plain or at_cell or len(cores) > 1:
+        found = (
+            f"cells without a UPF ({', '.join(map(str, plain))})"
+            if plain
+            else f"edge servers at the cell ({', '.join(map(str, at_cell))})"
+            if at_cell
+            else f"several UPF/edge pairs ({', '.join(cores)})"
+        )
+        ctx.add(
+            channel.at("handover"),
+            where,
+            "cells behind one UPF and one edge server at the core (upf, edge, placement core)",
+            found,
+            "a handover switches the UE's N3 tunnel at its UPF (an Xn handover's path switch);"
+            " another UPF would need N9, which is not modelled",
+        )
+    for key, value, ok, expected in (
+        ("offset", handover.get("offset"), _half_db, "a multiple of 0.5 dB (TS 38.331)"),
+        ("hysteresis", handover.get("hysteresis"), _half_db, "a multiple of 0.5 dB (TS 38.331)"),
+        (
+            "ttt",
+            handover.get("ttt"),
+            lambda v: round(v * 1000) in TTT_MS and abs(v * 1000 - round(v * 1000)) < 1e-6,
+            f"one of TS 38.331's TimeToTrigger values ({', '.join(map(str, TTT_MS))} ms)",
+        ),
+        (
+            "filter",
+            handover.get("filter"),
+            lambda v: v in FILTER_COEFFICIENTS,
+            "one of TS 38.331's FilterCoefficient values "
+            f"({', '.join(map(str, FILTER_COEFFICIENTS))})",
+        ),
+    ):
+        if handover.written(key) and value is not None and not ok(value):
+            shown = f"{value * 1000:g} ms" if key == "ttt" else f"{value!r}"
+            ctx.add(handover.at(key), handover.path_of(key), expected, shown)
+
+
+def _half_db(value: float) -> bool:
+    return bool((value * 2).is_integer())

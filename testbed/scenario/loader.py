@@ -314,6 +314,7 @@ class _Builder:
         workload = self._workload()
         channel.check_sites(self.ctx, self.root)
         channel.check_timeline(self.ctx, self.root, self.link_kinds)
+        channel.check_handover(self.ctx, self.root)
         channel_spec = channel.spec(self.ctx, self.root, self.base_dir, self.display_dir)
         record = self.root.get("record")
         if record is not None:
@@ -404,9 +405,15 @@ class _Builder:
                 )
         self.topology_ok = topo.clean and not self.ctx.issues
         # Link names come from the parts that checked out, so later references can be checked.
+        handover = channel.wants_handover(self.root)
         for _, vehicle, _ in vehicles.good() if vehicles else ():
             if vehicle.get("name") and vehicle.get("gnb") in gnbs:
                 self.link_kinds[f"{vehicle['name']}-{vehicle['gnb']}"] = "air"
+        # With handovers a vehicle has a link to every gNB (`model.Scenario.gnbs_of`).
+        for _, vehicle, _ in vehicles.good() if vehicles and handover else ():
+            if vehicle.get("name") and vehicle.get("gnb") in gnbs:
+                for gnb in gnbs:
+                    self.link_kinds.setdefault(f"{vehicle['name']}-{gnb}", "air")
         for _, cell, _ in cells.good() if cells else ():
             gnb, core, upf, edge = (
                 cell.get("gnb"),

@@ -19,7 +19,9 @@ the topology's UE pool.
 
 A cell may stand somewhere (`CellSite`, or "auto": along the route); with a `channel`, each
 vehicle's route through those sites sets its air link's MCS and BLER over the run
-(`testbed.mobility` makes those changes, `SetEvent`s with origin "channel").
+(`testbed.mobility` makes those changes, `SetEvent`s with origin "channel"), and, with
+`channel.handover`, which cell serves it: each vehicle then has an air link to every gNB, and
+a `HandoverEvent` moves its traffic from one to the other.
 """
 
 from __future__ import annotations
@@ -307,13 +309,43 @@ class TraceEvent:
     line: int = 0
 
 
-Event = SetEvent | ShapeEvent | ClearEvent | OutageEvent | TraceEvent
+@dataclass(frozen=True)
+class HandoverEvent:
+    """The channel hands `vehicle` over from gNB `source` to gNB `target` (`testbed.mobility`,
+    `channel.handover`): both air links stop for `interruption_s` (what was in flight on the
+    source is delivered late when `lossless`, else lost), and the vehicle's routes and its
+    UPF's path switch to the target."""
+
+    at_s: float
+    vehicle: str
+    source: str
+    target: str
+    interruption_s: float
+    lossless: bool = True
+    line: int = 0
+
+    @property
+    def source_link(self) -> str:
+        return f"{self.vehicle}-{self.source}"
+
+    @property
+    def target_link(self) -> str:
+        return f"{self.vehicle}-{self.target}"
+
+
+Event = SetEvent | ShapeEvent | ClearEvent | OutageEvent | TraceEvent | HandoverEvent
 
 
 def from_channel(event: Event) -> bool:
     """Whether `event` is one of the channel's radio changes (`testbed.mobility`), not the
     scenario's own: several a second, counted rather than listed, and not a learner phase."""
     return isinstance(event, SetEvent) and event.origin == "channel"
+
+
+def from_route(event: Event) -> bool:
+    """Whether the vehicles' routes made `event` (a radio change or a handover), not the
+    scenario's timeline: the learner's phases are the timeline's alone."""
+    return from_channel(event) or isinstance(event, HandoverEvent)
 
 
 # ---- workload, record, report ---------------------------------------------------------------
@@ -501,6 +533,24 @@ class ChannelSpec:
     noise_figure_db: float = 9.0
     gnb_noise_figure_db: float = 5.0
     trace: Path | None = None
+    handover: HandoverSpec | None = None  # None: each vehicle stays on the cell it attaches to
+
+
+@dataclass(frozen=True)
+class HandoverSpec:
+    """`channel.handover`: event A3 (`netem.handover.A3Handover`: a3-Offset, hysteresis,
+    time-to-trigger, L3 filter coefficient) on the route's per-cell RSRP decides when a
+    vehicle changes cell; the user plane then stops for `interruption_s`, its packets
+    delivered late (`lossless`, PDCP forwarding) or lost; `edge: stay` keeps the session on
+    the edge server it has (the cells share one UPF and edge)."""
+
+    offset_db: float = 3.0
+    hysteresis_db: float = 1.0
+    ttt_s: float = 0.32
+    filter_k: int = 4
+    interruption_s: float = 0.040
+    lossless: bool = True
+    edge: Literal["stay"] = "stay"
 
 
 @dataclass(frozen=True)
@@ -519,6 +569,18 @@ class Scenario:
     channel: ChannelSpec | None = None  # None: the radios are what the file writes
     source: Path | None = None  # the file it was loaded from
     version: int = SCHEMA_VERSION
+
+    @property
+    def handover(self) -> HandoverSpec | None:
+        """The channel's handover settings; None when vehicles stay on their cell."""
+        return None if self.channel is None else self.channel.handover
+
+    def gnbs_of(self, vehicle: Vehicle) -> list[str]:
+        """The gNBs `vehicle` has an air link to: the one it attaches to first, and, with
+        handovers, every other cell's (its link to each is `<vehicle>-<gnb>`)."""
+        if self.handover is None:
+            return [vehicle.gnb]
+        return [vehicle.gnb, *(c.gnb for c in self.topology.cells if c.gnb != vehicle.gnb)]
 
     def edgeloc_vehicles(self) -> list[Vehicle]:
         """The vehicles that run EdgeLoc's nodes (none when the workload is `none`)."""

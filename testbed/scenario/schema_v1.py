@@ -1021,6 +1021,60 @@ TRAFFIC = Obj(
     model=model.Traffic,
 )
 
+HANDOVER = Obj(
+    "Handover between cells (TS 38.331 event A3 on L3-filtered RSRP): a vehicle leaves its"
+    " serving cell for a neighbour that stays `offset` + `hysteresis` stronger for `ttt`; its"
+    " user plane then stops for `interruption`, and its routes, its gNB and its N3 tunnel"
+    " switch to the target. Needs two or more cells with sites, behind one UPF and edge.",
+    [
+        Field(
+            "offset",
+            Float(-15.0, 15.0, noun="an offset in dB (0.5 dB steps)"),
+            "a3-Offset, dB (TS 38.331: -15..15 in 0.5 dB steps).",
+            attr="offset_db",
+        ),
+        Field(
+            "hysteresis",
+            Float(0.0, 15.0, noun="a hysteresis in dB (0.5 dB steps)"),
+            "Hysteresis, dB (0..15 in 0.5 dB steps).",
+            attr="hysteresis_db",
+        ),
+        Field(
+            "ttt",
+            Duration(5.12, noun="a time-to-trigger"),
+            "Time-to-trigger: one of TS 38.331's 0, 40, 64, 80, 100, 128, 160, 256, 320, 480,"
+            " 512, 640, 1024, 1280, 2560, 5120 ms.",
+            attr="ttt_s",
+        ),
+        Field(
+            "filter",
+            Int(0, 19, "a filter coefficient"),
+            "L3 filter coefficient k (TS 38.331 FilterCoefficient; 4 is the spec's default,"
+            " 0 no filter).",
+            attr="filter_k",
+        ),
+        Field(
+            "interruption",
+            Duration(10.0, noun="an interruption time"),
+            "How long the user plane stops at a handover (default 40 ms).",
+            attr="interruption_s",
+        ),
+        Field(
+            "lossless",
+            Bool(),
+            "true: what is in flight is forwarded to the target and delivered in order after"
+            " the interruption (PDCP); false: it is lost.",
+        ),
+        Field(
+            "edge",
+            Enum(("stay",)),
+            "stay: the session keeps the edge server it has, through the target's N3 (the"
+            " cells share one UPF and edge).",
+        ),
+    ],
+    model=model.HandoverSpec,
+)
+
 CHANNEL = Obj(
     "The radio channel from each vehicle's route: TR 38.901 path loss, LOS and shadowing from"
     " its distance to the cell sites, then SINR -> CQI -> MCS and BLER (TS 38.214) on its air"
@@ -1076,6 +1130,7 @@ CHANNEL = Obj(
             " (a drive test's export); each vehicle plays its own rows.",
             attr=None,
         ),
+        Field("handover", HANDOVER, "Handovers between the cells along the route (event A3)."),
     ],
     model=model.ChannelSpec,
 )

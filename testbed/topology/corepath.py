@@ -11,6 +11,11 @@ each UE's packets through them (cells with `upf:`; see `testbed.scenario.model`)
   directly, before the tunnel); at the UPF, each UE's address goes into its gNB's tunnel. Its
   processes are the run's (recorded, so `testbed clean` stops them); its TUN devices go with
   them. `close()` stops them and returns their counters.
+
+Handovers (`channel.handover`): a vehicle's session is prepared at every gNB from the start
+(each gNB's end knows it and routes the UE over its own air link), so that a handover only
+moves routes: the UE's default route (`Net.hand_over`) and the UPF's route into the target's
+tunnel (`CorePath.switch`, the path switch).
 """
 
 from __future__ import annotations
@@ -73,26 +78,33 @@ class PduSession:
 
 
 def sessions(net: Net) -> list[PduSession]:
-    """One session per vehicle behind a UPF, in the order the vehicles are written."""
+    """One session per vehicle behind a UPF, in the order the vehicles are written; with
+    handovers, then the same session prepared at each other gNB (as Xn handover preparation
+    sets it up at a target), so that routing alone decides which tunnel carries it."""
     topo = net.scenario.topology
     out = []
-    for i, v in enumerate(v for v in topo.vehicles if net[v.name].ue_address is not None):
-        cell = topo.cell_of_gnb(v.gnb)
-        n3 = net.links[f"{cell.gnb}-{cell.uplink_peer}"].addresses
-        ue = net[v.name].ue_address
-        assert ue is not None
-        out.append(
-            PduSession(
-                v.name,
-                cell.gnb,
-                cell.uplink_peer,
-                ue,
-                UL_TEID_BASE + i,
-                DL_TEID_BASE + i,
-                n3.lower.ip,
-                n3.upper.ip,
+    vehicles = [v for v in topo.vehicles if net[v.name].ue_address is not None]
+    for rank in range(max((len(net.scenario.gnbs_of(v)) for v in vehicles), default=0)):
+        for i, v in enumerate(vehicles):
+            gnbs = net.scenario.gnbs_of(v)
+            if rank >= len(gnbs):
+                continue
+            cell = topo.cell_of_gnb(gnbs[rank])
+            n3 = net.links[f"{cell.gnb}-{cell.uplink_peer}"].addresses
+            ue = net[v.name].ue_address
+            assert ue is not None
+            out.append(
+                PduSession(
+                    v.name,
+                    cell.gnb,
+                    cell.uplink_peer,
+                    ue,
+                    UL_TEID_BASE + i,
+                    DL_TEID_BASE + i,
+                    n3.lower.ip,
+                    n3.upper.ip,
+                )
             )
-        )
     return out
 
 
@@ -123,6 +135,8 @@ class CorePath:
         self.net = net
         self.die_with_parent = die_with_parent
         self.sessions = sessions(net)
+        #: The gNB whose tunnel carries each vehicle's downlink now (`switch` changes it).
+        self.serving = {v.name: v.gnb for v in net.scenario.topology.vehicles}
         self.rules = self.qos_rules()  # the same for every end: made once
         self.endpoints: dict[str, GtpEndpoint] = {}  # "gnb1", "upf1/gnb1"
         self.final: dict[str, dict[str, Any]] = {}
@@ -163,8 +177,26 @@ class CorePath:
         for s in (s for s in self.sessions if s.gnb == gnb):
             via = self.net.links[f"{s.vehicle}-{gnb}"].addresses.lower.ip
             out.append(TunnelRoute(gnb, f"{s.ue_address}/32", s.vehicle, via=via))
-            out.append(TunnelRoute(upf, f"{s.ue_address}/32", upf_tun(gnb)))
+            if self.serving[s.vehicle] == gnb:  # a prepared session waits for its path switch
+                out.append(TunnelRoute(upf, f"{s.ue_address}/32", upf_tun(gnb)))
         return out
+
+    def switch(self, vehicle: str, gnb: str) -> None:
+        """The path switch of a handover: the UPF sends `vehicle`'s downlink into the N3
+        tunnel of `gnb` (where its session was prepared) from now on."""
+        session = next((s for s in self.sessions if s.vehicle == vehicle and s.gnb == gnb), None)
+        if session is None:
+            raise TestbedError(f"no PDU session of {vehicle} prepared at {gnb}")
+        upf = self.net[session.upf]
+        ns = upf._ns()
+        try:
+            ns.ipr.route("replace", dst=f"{session.ue_address}/32", oif=ns.ifindex(upf_tun(gnb)))
+        except PyNetlinkError as err:
+            raise NetlinkError(
+                f"switching {vehicle}'s path to {upf_tun(gnb)} in {upf.netns}: the kernel said: "
+                f"{err.args[-1]}"
+            ) from None
+        self.serving[vehicle] = gnb
 
     def _endpoint(
         self, key: str, role: str, netns: str, tun: str, address: IPv4Address,
@@ -299,7 +331,9 @@ def vehicle_paths(net: Net) -> list[dict[str, Any]]:
     """Each vehicle's path to its edge server as run.json and the report show it: addresses,
     nodes, the N3 tunnel's TEIDs, the edge's placement, and each hop's configured delay."""
     topo = net.scenario.topology
-    by_vehicle = {s.vehicle: s for s in (net.core.sessions if net.core is not None else [])}
+    by_vehicle: dict[str, PduSession] = {}
+    for s in net.core.sessions if net.core is not None else []:
+        by_vehicle.setdefault(s.vehicle, s)  # its first cell's; the others are prepared
     out = []
     for v in topo.vehicles:
         cell = topo.cell_of_gnb(v.gnb)

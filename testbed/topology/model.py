@@ -294,6 +294,27 @@ class Net:
         gnb = next(v.gnb for v in self.scenario.topology.vehicles if v.name == vehicle)
         return node.address_towards(gnb)
 
+    def hand_over(self, vehicle: str, target: str) -> None:
+        """Move `vehicle`'s traffic to gNB `target` (a handover; the vehicle has an air link
+        to it): its default route goes through the target's link, and, on the core path,
+        its UPF's route into the target's N3 tunnel (the path switch). The gNBs' routes to
+        the UE are there from the start (`corepath`: sessions prepared at every gNB)."""
+        node = self.nodes[vehicle]
+        ns = node._ns()
+        via = self.links[f"{vehicle}-{target}"].addresses.upper.ip
+        extra = {"prefsrc": str(node.ue_address)} if node.ue_address is not None else {}
+        try:
+            ns.ipr.route(
+                "replace", dst="0.0.0.0/0", gateway=str(via), oif=ns.ifindex(target), **extra
+            )
+        except PyNetlinkError as err:
+            raise NetlinkError(
+                f"moving {vehicle}'s default route to {target} in {node.netns}: the kernel "
+                f"said: {err.args[-1]}"
+            ) from None
+        if self.core is not None:
+            self.core.switch(vehicle, target)
+
     def server_address(self, cell: Cell) -> IPv4Address:
         """The edge server's address that the cell's vehicles reach it at."""
         server = self.nodes[cell.server]

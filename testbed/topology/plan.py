@@ -52,6 +52,11 @@ def link_pairs(scenario: Scenario) -> list[tuple[str, LinkKind, str, str]]:
                 seen.add(pair[0])
                 pairs.append(pair)
     pairs += [(f"{v.name}-{v.gnb}", "air", v.name, v.gnb) for v in topo.vehicles]
+    # With handovers, each vehicle's links to the other gNBs (after every first link, so a
+    # scenario's addresses stay as they were without them).
+    pairs += [
+        (f"{v.name}-{g}", "air", v.name, g) for v in topo.vehicles for g in scenario.gnbs_of(v)[1:]
+    ]
     return pairs
 
 
