@@ -110,6 +110,8 @@ class Net(Protocol):
 
     def record_pid(self, pid: int, what: str) -> None: ...
 
+    def prepare_handover(self, vehicle: str) -> None: ...
+
     def hand_over(self, vehicle: str, target: str) -> None: ...
 
 
@@ -509,6 +511,8 @@ class _Base:
                 shaper = self._shaper(event.node)
             if isinstance(event, ShapeEvent):
                 shaper.prepare(event.uplink_bps is not None, event.downlink_bps is not None)
+            if isinstance(event, HandoverEvent):
+                self.net.prepare_handover(event.vehicle)
 
     def _shaper(self, node: str) -> NodeShaper:
         """What `shape` changes on a node, opened once per run."""

@@ -275,9 +275,9 @@ def _sites(scenario: Scenario, route: Route) -> list[Site]:
 
 
 def _cell_radio(scenario: Scenario, cell: Cell) -> Radio:
-    for v in scenario.topology.vehicles:
-        if v.gnb == cell.gnb:
-            radio = air_link(scenario, v).downlink.radio
+    for link in scenario.links.links:  # with handovers, vehicles of other cells' links too
+        if link.kind == "air" and link.upper == cell.gnb:
+            radio = link.downlink.radio
             if radio is not None:
                 return radio
     from netem.nr import RADIO_PROFILES

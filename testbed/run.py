@@ -43,7 +43,13 @@ from testbed.capacity import CapacityCheck, check_scenario
 from testbed.connectivity import EchoResult, vehicles_reach_cores
 from testbed.errors import TestbedError
 from testbed.linktest import LinkTest, LinkTestReport
-from testbed.scenario.model import Scenario, TraceEvent, from_channel, from_route
+from testbed.scenario.model import (
+    HandoverEvent,
+    Scenario,
+    TraceEvent,
+    from_channel,
+    from_route,
+)
 from testbed.supervisor import Supervisor, ros_available
 from testbed.timeline import AppliedEvent, TimelinePlayer
 from testbed.topology import Net, build
@@ -104,6 +110,7 @@ class RunResult:
 #: What `/traffic/<flow>` carries.
 TRAFFIC_TYPE = "edgeloc_interfaces/msg/TrafficSample"
 RADIO_TYPE = "edgeloc_interfaces/msg/RadioState"
+HANDOVER_TYPE = "edgeloc_interfaces/msg/Handover"
 #: Seconds between progress lines while the timeline plays.
 PROGRESS_EVERY_S = 5.0
 #: How often the run looks at its links and timeline for a failure.
@@ -117,6 +124,22 @@ def _check(net: Net, player: TimelinePlayer | None = None) -> None:
         raise TestbedError(f"run {net.run_id} failed: {failure}")
     if player is not None and player.failure:
         raise TestbedError(f"run {net.run_id} failed: {player.failure}")
+
+
+def handovers_applied(player: TimelinePlayer) -> list[dict[str, Any]]:
+    """The handovers the player applied: who, from and to which gNB, when (scheduled and
+    applied, seconds since the start), the interruption and whether it failed."""
+    out = []
+    for a in player.applied:
+        event = player.events[a.index]
+        if isinstance(event, HandoverEvent):
+            out.append({
+                "vehicle": event.vehicle, "source": event.source, "target": event.target,
+                "scheduled_s": a.scheduled_s, "applied_s": a.applied_s,
+                "lateness_s": a.lateness_s, "interruption_s": event.interruption_s,
+                "lossless": event.lossless, "error": a.error,
+            })  # fmt: skip
+    return out
 
 
 def play_timeline(
@@ -444,6 +467,41 @@ class Recording:
         finally:
             part.close()
 
+    def record_handovers(
+        self, started_epoch_s: float | None, handovers: list[dict[str, Any]], ros_ok: bool
+    ) -> None:
+        """Write the applied handovers (`handovers_applied`) as `/handover` (Handover),
+        stamped when each took effect, into their own part."""
+        if not handovers or started_epoch_s is None:
+            return
+        if not ros_ok:
+            self.progress("  warning: /handover not recorded: rclpy/edgeloc_interfaces missing")
+            return
+        from edgeloc_interfaces.msg import Handover
+        from rclpy.serialization import serialize_message
+
+        from nodes.recording.layout import HANDOVER_TOPIC
+        from nodes.ros.common import to_stamp
+
+        part = PartWriter(names.part_path(self.folder, "handover"))
+        try:
+            for h in handovers:
+                t = started_epoch_s + h["applied_s"]
+                msg = Handover(
+                    stamp=to_stamp(t),
+                    vehicle=h["vehicle"],
+                    source=h["source"],
+                    target=h["target"],
+                    scheduled_s=h["scheduled_s"],
+                    lateness_s=h["lateness_s"],
+                    interruption_s=h["interruption_s"],
+                    lossless=h["lossless"],
+                    error=h["error"] or "",
+                )
+                part.write(HANDOVER_TOPIC, HANDOVER_TYPE, serialize_message(msg), int(t * 1e9))
+        finally:
+            part.close()
+
     def finish(self, status: str, nodes: dict[str, Any] | None) -> None:
         """Merge the parts into run.mcap (raises RecordingError if that fails)."""
         try:
@@ -620,6 +678,7 @@ class _Run:
                 "file": names.EVENTS_FILE,
                 # what `traffic:` and `apps:` times count from, for the report
                 "started_epoch_s": player.started_epoch_s,
+                "handovers": handovers_applied(player),
             }
         finally:
             # Apps, then nodes stop before teardown (the nodes write their stats and close
@@ -631,6 +690,9 @@ class _Run:
                     self.recording.record_traffic(traffic, ros_ok)
             if self.recording is not None and result.timeline:
                 self.recording.record_radio(result.timeline.get("started_epoch_s"), ros_ok)
+                self.recording.record_handovers(
+                    result.timeline.get("started_epoch_s"), result.timeline["handovers"], ros_ok
+                )
             if apps:
                 result.apps = apps.stop()
             if ros_ok:

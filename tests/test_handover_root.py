@@ -22,6 +22,7 @@ from netem.netns import list_netns
 from testbed.connectivity import echo_rtts
 from testbed.scenario import load
 from testbed.scenario.model import HandoverEvent, Scenario
+from testbed.timeline import TimelinePlayer
 from testbed.topology import Net, build
 from tests.tshark import TSHARK, Capture
 
@@ -143,7 +144,12 @@ def test_after_a_handover_the_routes_and_the_n3_tunnel_are_the_target_s(
         prepared = _ip_json(net["gnb2"].netns, "route", "show", f"{UE}/32")
         assert prepared and prepared[0]["dev"] == "av1"
         assert len(echo_rtts(net["av1"], net["edge1"], edge, count=5)) == 5
-        net.control.handover(HandoverEvent(0.0, "av1", "gnb1", "gnb2", 0.04, True))
+        # Through the timeline player, as a run plays it: in a thread of its own.
+        player = TimelinePlayer(
+            [HandoverEvent(0.0, "av1", "gnb1", "gnb2", 0.04, True)], net.control
+        ).start()
+        assert player.wait(5) and player.failure is None, player.failure
+        assert [a.kind for a in player.applied] == ["handover"]
         time.sleep(0.1)
         route = _ip_json(net["av1"].netns, "route", "get", edge)[0]
         assert (route["dev"], route["prefsrc"]) == ("gnb2", UE)

@@ -189,3 +189,15 @@ def test_validate_counts_the_handovers(tmp_path: Path) -> None:
     n = sum(isinstance(e, HandoverEvent) for e in load(path).timeline)
     assert n >= 1
     assert f"{n} handover(s)" in result.output and "0 timeline event(s)" in result.output
+
+
+def test_a_cell_no_vehicle_starts_on_has_its_air_links_bandwidth() -> None:
+    """RSRP is per resource element: a target cell measured at another bandwidth than its
+    links' would be 6 dB off and hand over elsewhere."""
+    scenario = loads(
+        SCENARIO.format(
+            seed=7, x1=100, y1=30, x2=500, y2=30, los="los", shadowing="false", handover="{}"
+        ).replace("radio: oai-tdd-30k", "radio: {profile: oai-tdd-30k, prbs: 24}")
+    )
+    sites = mobility.sites(scenario, _straight(SPEED, 60.0))
+    assert [s.bandwidth_mhz for s in sites] == [10, 10]

@@ -13,6 +13,7 @@ import pytest
 
 from netem.nr import RADIO_PROFILES
 from testbed.scenario import load
+from testbed.scenario.model import HandoverEvent, SetEvent
 from testbed.timeline import TimelinePlayer
 from testbed.topology import Net, build
 
@@ -100,30 +101,37 @@ def test_the_relay_runs_at_the_mcs_the_trace_gives_at_each_time(
 @pytest.mark.ros
 @pytest.mark.slow
 @pytest.mark.e2e
-def test_a_run_with_a_channel_records_the_radio_and_reports_the_route(
+def test_a_run_with_a_channel_records_the_radio_and_the_handover_and_reports_them(
     state_dir: Path, tmp_path: Path
 ) -> None:
-    """`testbed run` of a short drive past an auto-placed cell: every radio change of the
-    channel is applied and recorded (/links/events action "channel"), /radio/av1 holds one
-    RadioState per step that rosbags and mcap_ros2 both decode, and the report draws it."""
+    """`testbed run` of a short drive past two auto-placed cells (scenarios/drive_two_cells
+    cut to 12 s: one handover, at ~10 s): every radio change and the handover are applied
+    (/links/events, events.jsonl), /radio/av1 holds one RadioState per step and /handover
+    the handover, both decoded by rosbags and mcap_ros2; EdgeLoc's requests are answered
+    through the target cell after it; the report draws it."""
     import json
 
     from tests.realrun import REPO, testbed_cli
     from tests.test_recording_root import read_both
 
-    text = (REPO / "scenarios" / "drive_one_cell.yaml").read_text()
+    text = (REPO / "scenarios" / "drive_two_cells.yaml").read_text()
     short = tmp_path / "drive.yaml"
     short.write_text(text.replace("duration: 90s", "duration: 12s"))
     scenario = load(short)
-    by_channel = [e for e in scenario.timeline if e.origin == "channel"]
-    assert by_channel  # the drive changes the radio
+    by_channel = [e for e in scenario.timeline if isinstance(e, SetEvent)]
+    [handover] = [e for e in scenario.timeline if isinstance(e, HandoverEvent)]
+    assert by_channel and (handover.source, handover.target) == ("gnb1", "gnb2")
     runs = tmp_path / "runs"
     result = testbed_cli("run", str(short), "--runs-dir", str(runs), timeout=400)
     assert result.returncode == 0, result.stdout[-3000:] + result.stderr[-3000:]
-    assert f"0 event(s), {len(by_channel)} radio change(s) from the channel" in result.stdout
+    assert (
+        f"0 event(s), {len(by_channel)} radio change(s) from the channel, 1 handover(s)"
+        in result.stdout
+    )
+    assert "handover av1 gnb1 -> gnb2 (40 ms lossless)" in result.stdout
     folder = next(runs.iterdir())
     applied = [json.loads(line) for line in (folder / "events.jsonl").read_text().splitlines()]
-    assert [a["kind"] for a in applied] == ["channel"] * len(by_channel)
+    assert sorted(a["kind"] for a in applied) == ["channel"] * len(by_channel) + ["handover"]
     assert not any(a["error"] for a in applied)
     decoded, _, _ = read_both(folder / "run.mcap")
     radio = decoded["/radio/av1"]
@@ -133,16 +141,28 @@ def test_a_run_with_a_channel_records_the_radio_and_reports_the_route(
 
     plan = plans(scenario)["av1"]
     for msg, step in zip(radio[::250], plan.steps[::250], strict=False):
-        assert (msg.cell, msg.mcs, msg.ul_mcs) == ("gnb1", step.mcs, step.ul_mcs)
+        assert (msg.cell, msg.mcs, msg.ul_mcs) == (step.serving, step.mcs, step.ul_mcs)
         assert msg.sinr_db == pytest.approx(step.sinr_db)
+    [recorded] = decoded["/handover"]
+    assert (recorded.vehicle, recorded.source, recorded.target) == ("av1", "gnb1", "gnb2")
+    assert recorded.scheduled_s == pytest.approx(handover.at_s)
+    assert recorded.interruption_s == pytest.approx(0.04) and recorded.lossless
+    assert 0 <= recorded.lateness_s < 0.05 and recorded.error == ""
     actions = [m.action for m in decoded["/links/events"]]
-    assert actions.count("channel") == len(by_channel)
+    assert actions.count("channel") == len(by_channel) and actions.count("handover") == 1
+
+    # Answers kept coming through the target cell after the handover.
+    def seconds(stamp: object) -> float:
+        return stamp.sec + stamp.nanosec * 1e-9  # type: ignore[attr-defined]
+
+    after = [m for m in decoded["/av1/dnn_answer"] if seconds(m.stamp) > seconds(recorded.stamp)]
+    assert len(after) >= 5, len(after)  # frames captured after it, answered
     summary = json.loads((folder / "summary.json").read_text())
     av1 = summary["radio"]["vehicles"]["av1"]
-    assert av1["steps"] == len(radio) and av1["cells"] == {"gnb1": 1.0}
-    assert [s["name"] for s in summary["radio"]["channel"]["sites"]] == ["gnb1"]
+    assert av1["steps"] == len(radio) and set(av1["cells"]) == {"gnb1", "gnb2"}
+    assert len(av1["handovers"]) == 1
+    assert [s["name"] for s in summary["radio"]["channel"]["sites"]] == ["gnb1", "gnb2"]
     decisions = summary["learner"]["decisions"]
     assert sum(r["plays"] for r in av1["by_uplink_mcs"]) == decisions > 50
     html = (folder / "report.html").read_text()
     assert "Radio along the route" in html and (folder / "plots" / "radio_av1.png").is_file()
-    assert "decisions by the uplink MCS at their time" in html

@@ -34,6 +34,8 @@ ATTACHED_FILES = (SCENARIO_FILE, LINKTEST_FILE, LINKS_CONFIG_FILE, EVENTS_FILE, 
 
 LINK_EVENTS_TOPIC = "/links/events"
 LINK_COUNTERS_TOPIC = "/links/counters"
+#: The vehicles' handovers between cells, as applied (`channel.handover` scenarios).
+HANDOVER_TOPIC = "/handover"
 #: The per-vehicle topics the report reads, by their last path element.
 VEHICLE_TOPICS = ("gt", "vo", "dnn_answer", "pose", "split_decision", "detector", "inference")
 

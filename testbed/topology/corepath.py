@@ -188,7 +188,7 @@ class CorePath:
         if session is None:
             raise TestbedError(f"no PDU session of {vehicle} prepared at {gnb}")
         upf = self.net[session.upf]
-        ns = upf._ns()
+        ns = upf.ns_here()
         try:
             ns.ipr.route("replace", dst=f"{session.ue_address}/32", oif=ns.ifindex(upf_tun(gnb)))
         except PyNetlinkError as err:

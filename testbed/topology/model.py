@@ -7,6 +7,7 @@ import contextlib
 import os
 import socket
 import subprocess
+import threading
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, field
 from ipaddress import IPv4Address, IPv4Interface, IPv4Network
@@ -97,6 +98,20 @@ class Node:
     def read_sysctl(self, key: str) -> str:
         return self._ns().read_sysctl(key)
 
+    def ns_here(self) -> Netns:
+        """This namespace through an rtnetlink socket of the calling thread's: a pyroute2
+        socket must not be shared between threads, and the timeline plays handovers in its
+        own (`ipr` is the building thread's). Opened once per thread, closed at teardown."""
+        if threading.current_thread() is threading.main_thread():
+            return self._ns()
+        self._ns()
+        key = (threading.get_ident(), self.name)
+        with self.net._thread_lock:
+            ns = self.net._thread_ns.get(key)
+            if ns is None:
+                ns = self.net._thread_ns[key] = Netns.open(self.netns)
+        return ns
+
     def _ns(self) -> Netns:
         if self.ns is None:
             raise TestbedError(f"node {self.name} has no namespace (dry run or torn down)")
@@ -159,6 +174,9 @@ class Net:
         #: The GTP-U endpoints and tunnel routes (`testbed.topology.corepath.CorePath`, which
         #: builds on this module, so not imported here) of a scenario whose cells have a UPF.
         self.core: Any = None
+        # Other threads' sockets into the nodes' namespaces (`Node.ns_here`).
+        self._thread_ns: dict[tuple[int, str], Netns] = {}
+        self._thread_lock = threading.Lock()
 
     def __getitem__(self, name: str) -> Node:
         return self.nodes[name]
@@ -276,6 +294,10 @@ class Net:
             self.control.close()  # helper threads first; a run's own relays stop with it
         if self.core is not None:
             self.core.close()  # its final counters; the processes are the run's anyway
+        with self._thread_lock:
+            for ns in self._thread_ns.values():
+                ns.close()
+            self._thread_ns.clear()
         if self.dry_run or self.state is None:
             self._removed = Removed(self.run_id)
             return self._removed
@@ -294,13 +316,21 @@ class Net:
         gnb = next(v.gnb for v in self.scenario.topology.vehicles if v.name == vehicle)
         return node.address_towards(gnb)
 
+    def prepare_handover(self, vehicle: str) -> None:
+        """Open, in the calling thread, the sockets `hand_over` will use for `vehicle`, so
+        that a handover on time costs no socket set-up."""
+        self.nodes[vehicle].ns_here()
+        if self.core is not None:
+            upf = next(s.upf for s in self.core.sessions if s.vehicle == vehicle)
+            self.nodes[upf].ns_here()
+
     def hand_over(self, vehicle: str, target: str) -> None:
         """Move `vehicle`'s traffic to gNB `target` (a handover; the vehicle has an air link
         to it): its default route goes through the target's link, and, on the core path,
         its UPF's route into the target's N3 tunnel (the path switch). The gNBs' routes to
         the UE are there from the start (`corepath`: sessions prepared at every gNB)."""
         node = self.nodes[vehicle]
-        ns = node._ns()
+        ns = node.ns_here()
         via = self.links[f"{vehicle}-{target}"].addresses.upper.ip
         extra = {"prefsrc": str(node.ue_address)} if node.ue_address is not None else {}
         try:
