@@ -482,12 +482,16 @@ def replay(
     for line in replay_phase_lines(done.summary):
         con.plain(line)
     if "radio" in done.summary:
-        from nodes.edgeloc.bands import lines
+        from nodes.edgeloc.bands import AROUND_S, around_lines, lines
 
         radio = done.summary["radio"]
         con.plain(f"{radio['vehicle']}'s plays by the uplink MCS the channel gave them:")
         for line in lines(radio["by_uplink_mcs"]):
             con.plain(f"  {line}")
+        if radio.get("handovers"):
+            con.plain(f"{radio['vehicle']}'s handovers, {AROUND_S:g} s before and after each:")
+            for line in around_lines(radio["handovers"]):
+                con.plain(f"  {line}")
     splits = done.summary.get("splits")
     if splits:
         con.table(split_headers(splits), split_rows(splits))

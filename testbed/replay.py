@@ -548,16 +548,19 @@ def replay_scenario(
         summary["splits"] = splits
     summary["vehicle"] = model_vehicle = _PathPlan(scenario, vehicle).vehicle.name
     if scenario.channel is not None:
-        summary["radio"] = radio_bands(scenario, summary, model_vehicle)
+        summary["radio"] = radio_bands(scenario, summary, model_vehicle, result)
     write_json(folder / names.SUMMARY_FILE, summary)
     if scenario.source is not None and Path(scenario.source).is_file():
         shutil.copyfile(scenario.source, folder / names.SCENARIO_FILE)
     return ReplayRun(folder, result, summary)
 
 
-def radio_bands(scenario: Scenario, summary: dict[str, Any], vehicle: str) -> dict[str, Any]:
-    """The replayed vehicle's plays by the uplink MCS their request met (`nodes.edgeloc.bands`):
-    where the channel makes the network follow the place, what the learner did in each."""
+def radio_bands(
+    scenario: Scenario, summary: dict[str, Any], vehicle: str, result: ReplayResult
+) -> dict[str, Any]:
+    """The replayed vehicle's plays by the uplink MCS their request met, and around each of
+    its handovers (`nodes.edgeloc.bands`): where the channel makes the network follow the
+    place, what the learner and EdgeLoc's error did."""
     from testbed import mobility
 
     assert scenario.channel is not None, "radio bands need a channel"
@@ -572,7 +575,31 @@ def radio_bands(scenario: Scenario, summary: dict[str, Any], vehicle: str) -> di
         if figures.get("mean_bytes") is not None
     }
     rows = bands.by_band(at_play, decisions["split"], payload, bands.time_shares(ul))
-    return {"vehicle": vehicle, "by_uplink_mcs": rows}
+    frame_t = (result.timestamps - result.timestamps[0]).tolist()
+    error = np.hypot(*(result.poses["edgeloc"][:, :2] - result.gt[:, :2]).T).tolist()
+    handovers = [
+        {
+            "t_s": e.at_s,
+            "source": e.source,
+            "target": e.target,
+            "interruption_s": e.interruption_s,
+            "lossless": e.lossless,
+            "around": bands.around(
+                e.at_s,
+                sent_s=decisions["sent_s"],
+                splits=decisions["split"],
+                latency_s=[math.inf if x is None else x for x in decisions["latency_s"]],
+                payload_bytes=payload,
+                frame_t=frame_t,
+                frame_error_m=error,
+                mcs_t=[s.t for s in plan.steps],
+                ul_mcs=ul,
+            ),
+        }
+        for e in scenario.timeline
+        if isinstance(e, HandoverEvent) and e.vehicle == vehicle
+    ]
+    return {"vehicle": vehicle, "by_uplink_mcs": rows, "handovers": handovers}
 
 
 __all__ = [

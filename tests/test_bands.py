@@ -63,3 +63,32 @@ def test_a_channel_scenario_s_replay_sorts_its_plays_by_the_uplink_mcs(tmp_path:
     first = decisions["sent_s"][0]
     band = bands.band_of(ul[int(first / 0.01 + 1e-9)])
     assert rows[band]["plays"] >= 1
+
+
+def test_around_a_handover_splits_the_window_at_it() -> None:
+    got = bands.around(
+        10.0,
+        sent_s=[6.9, 7.5, 8.0, 9.9, 10.0, 12.9, 13.0],
+        splits=["image", "fc", "fc", "conv1", "vehicle", "vehicle", "image"],
+        latency_s=[0.1, 0.05, 0.07, float("inf"), 0.2, 0.04, 0.1],
+        payload_bytes={"image": 37000.0, "fc": 400.0, "conv1": 12000.0, "vehicle": 0.0},
+        frame_t=[7.0, 9.0, 10.0, 12.0, 13.5],
+        frame_error_m=[1.0, 2.0, 4.0, 6.0, 100.0],
+        mcs_t=[6.0, 8.0, 11.0, 12.0],
+        ul_mcs=[28, 10, 4, 20],
+    )
+    before, after = got["before"], got["after"]
+    # [7, 10): 7.5, 8.0, 9.9 (6.9 is outside); the lost one's latency is left out.
+    assert (before["plays"], before["top_split"]) == (3, "fc")
+    assert before["top_share"] == pytest.approx(2 / 3)
+    assert before["mean_payload_bytes"] == pytest.approx((400 + 400 + 12000) / 3)
+    assert before["mean_latency_s"] == pytest.approx(0.06)
+    assert before["mean_error_m"] == pytest.approx(1.5)
+    assert before["mean_ul_mcs"] == 10
+    # [10, 13): 10.0, 12.9 (13.0 is outside).
+    assert (after["plays"], after["top_split"], after["top_share"]) == (2, "vehicle", 1.0)
+    assert after["mean_payload_bytes"] == 0.0 and after["mean_error_m"] == pytest.approx(5.0)
+    assert after["mean_ul_mcs"] == 12
+    line = bands.around_lines([{"t_s": 10.0, "source": "gnb1", "target": "gnb2", "around": got}])[0]
+    assert line.startswith("10.00 s gnb1 -> gnb2: before UL MCS 10, fc 67%, 4.3 kB")
+    assert line.endswith("after UL MCS 12, vehicle 100%, 0.0 kB, EdgeLoc 5.00 m")

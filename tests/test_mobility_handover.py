@@ -201,3 +201,25 @@ def test_a_cell_no_vehicle_starts_on_has_its_air_links_bandwidth() -> None:
     )
     sites = mobility.sites(scenario, _straight(SPEED, 60.0))
     assert [s.bandwidth_mhz for s in sites] == [10, 10]
+
+
+def test_the_replay_reports_the_learner_and_edgeloc_around_each_handover(
+    tmp_path: Path,
+) -> None:
+    from testbed.replay import replay_scenario
+    from testbed.scenario import load
+
+    repo = Path(__file__).resolve().parents[1]
+    text = (repo / "scenarios" / "drive_two_cells.yaml").read_text()
+    short = tmp_path / "drive.yaml"
+    short.write_text(text.replace("duration: 90s", "duration: 12s"))
+    scenario = load(short)
+    [event] = [e for e in scenario.timeline if isinstance(e, HandoverEvent)]
+    done = replay_scenario(scenario, tmp_path / "runs", compare=False)
+    [h] = done.summary["radio"]["handovers"]
+    assert (h["t_s"], h["source"], h["target"]) == (event.at_s, "gnb1", "gnb2")
+    before, after = h["around"]["before"], h["around"]["after"]
+    plays = done.summary["learner"]["decisions"]["sent_s"]
+    assert before["plays"] == sum(event.at_s - 3 <= t < event.at_s for t in plays) > 0
+    assert after["plays"] == sum(event.at_s <= t < event.at_s + 3 for t in plays) > 0
+    assert before["mean_error_m"] > 0 and after["mean_ul_mcs"] is not None

@@ -4,13 +4,16 @@ With a scenario `channel:` the uplink's MCS follows the vehicle's place, not the
 "phases between timeline events" no longer say what the network was. Instead each play is put
 in the band of the uplink MCS at the instant its request was sent, and per band the report
 says how the learner chose: plays, the share of each split, and the mean payload it sent (a
-learner that follows the radio sends less where the MCS is low). Pure: numbers in, a table out;
-`testbed.replay` and `reports.summary` both use it.
+learner that follows the radio sends less where the MCS is low). Around each handover
+(`around`), the same figures in the `AROUND_S` before and after it, with EdgeLoc's error and
+the uplink MCS there: what the cell edge and the interruption did to the learner and to the
+fused pose. Pure: numbers in, a table out; `testbed.replay` and `reports.summary` both use it.
 """
 
 from __future__ import annotations
 
 import bisect
+import math
 from collections import Counter
 from collections.abc import Mapping, Sequence
 from typing import Any
@@ -85,3 +88,83 @@ def lines(rows: Sequence[Mapping[str, Any]]) -> list[str]:
         sent = f"; mean payload {payload / 1000:.1f} kB" if payload is not None else ""
         out.append(f"uplink MCS {lo}-{hi}{when}: {row['plays']} plays, {top}{sent}")
     return out
+
+
+#: How far before and after a handover `around` looks, seconds: a few learner windows at
+#: 20 Hz, and about the distance over which the cell edge's SINR falls at urban speeds.
+AROUND_S = 3.0
+
+
+def _window(
+    lo: float,
+    hi: float,
+    sent_s: Sequence[float],
+    splits: Sequence[str],
+    latency_s: Sequence[float],
+    payload_bytes: Mapping[str, float],
+    frame_t: Sequence[float],
+    frame_error_m: Sequence[float],
+    mcs_t: Sequence[float],
+    ul_mcs: Sequence[int],
+) -> dict[str, Any]:
+    chosen = [i for i, t in enumerate(sent_s) if lo <= t < hi]
+    count = Counter(splits[i] for i in chosen)
+    top, n = count.most_common(1)[0] if count else (None, 0)
+    sent = [payload_bytes[splits[i]] for i in chosen if splits[i] in payload_bytes]
+    lat = [latency_s[i] for i in chosen if math.isfinite(latency_s[i])]
+    err = [e for t, e in zip(frame_t, frame_error_m, strict=True) if lo <= t < hi]
+    mcs = [m for t, m in zip(mcs_t, ul_mcs, strict=True) if lo <= t < hi]
+    return {
+        "plays": len(chosen),
+        "top_split": top,
+        "top_share": n / len(chosen) if chosen else None,
+        "mean_payload_bytes": sum(sent) / len(sent) if sent else None,
+        "mean_latency_s": sum(lat) / len(lat) if lat else None,
+        "mean_error_m": sum(err) / len(err) if err else None,
+        "mean_ul_mcs": sum(mcs) / len(mcs) if mcs else None,
+    }
+
+
+def around(
+    at_s: float,
+    *,
+    sent_s: Sequence[float],
+    splits: Sequence[str],
+    latency_s: Sequence[float],
+    payload_bytes: Mapping[str, float],
+    frame_t: Sequence[float],
+    frame_error_m: Sequence[float],
+    mcs_t: Sequence[float],
+    ul_mcs: Sequence[int],
+    window_s: float = AROUND_S,
+) -> dict[str, Any]:
+    """The learner, EdgeLoc and the uplink in [at - window, at) ("before") and [at, at +
+    window) ("after"): plays, the most played split and its share, mean payload and request
+    latency, EdgeLoc's mean error over the frames, the mean uplink MCS over the channel's
+    steps. Times on one clock (seconds since the run's start)."""
+    args = (sent_s, splits, latency_s, payload_bytes, frame_t, frame_error_m, mcs_t, ul_mcs)
+    return {
+        "before": _window(at_s - window_s, at_s, *args),
+        "after": _window(at_s, at_s + window_s, *args),
+    }
+
+
+def around_lines(handovers: Sequence[Mapping[str, Any]]) -> list[str]:
+    """What `testbed replay` prints per handover (`around` under "around")."""
+
+    def side(w: Mapping[str, Any]) -> str:
+        if not w["plays"]:
+            return "no plays"
+        payload = w["mean_payload_bytes"]
+        sent = f", {payload / 1000:.1f} kB" if payload is not None else ""
+        err = w["mean_error_m"]
+        error = f", EdgeLoc {err:.2f} m" if err is not None else ""
+        mcs = w["mean_ul_mcs"]
+        ul = f"UL MCS {mcs:.0f}, " if mcs is not None else ""
+        return f"{ul}{w['top_split']} {w['top_share']:.0%}{sent}{error}"
+
+    return [
+        f"{h['t_s']:.2f} s {h['source']} -> {h['target']}: before {side(h['around']['before'])};"
+        f" after {side(h['around']['after'])}"
+        for h in handovers
+    ]

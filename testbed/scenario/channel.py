@@ -205,6 +205,18 @@ def check_handover(ctx: Context, root: Section) -> None:
             "a handover switches the UE's N3 tunnel at its UPF (an Xn handover's path switch);"
             " another UPF would need N9, which is not modelled",
         )
+    vehicles: Items | None = topo.get("vehicles") if topo is not None else None
+    names = {v.get("name") for _, v, _ in vehicles.good()} if vehicles else set()
+    events: Items | None = root.get("timeline")
+    for _, event, _ in events.good() if events else ():
+        if event.tag == "shape" and event.get("shape") in names:
+            ctx.add(
+                event.at("shape"),
+                event.path_of("shape"),
+                "a shaped gNB, UPF or edge (with handovers a vehicle has one air link per gNB)",
+                f"shape of vehicle {event['shape']!r}",
+                "`shape` caps one interface; cap the air links with `set` (rate) instead",
+            )
     for key, value, ok, expected in (
         ("offset", handover.get("offset"), _half_db, "a multiple of 0.5 dB (TS 38.331)"),
         ("hysteresis", handover.get("hysteresis"), _half_db, "a multiple of 0.5 dB (TS 38.331)"),
