@@ -166,7 +166,11 @@ class _PathPlan:
         self.airs: dict[str, LinkSpec] = {self.vehicle.gnb: self.air}
         self.paths: dict[str, list[LinkSpec]] = {}
         for gnb in scenario.gnbs_of(self.vehicle):
-            path = topo.cell_of_gnb(gnb).path()
+            cell = topo.cell_of_gnb(gnb)
+            path = cell.path()
+            edge = scenario.edge_via(self.vehicle, gnb)
+            if edge != cell.server:  # `edge: stay`: the target's N3, then the first edge's N6
+                path = [path[0], f"{cell.uplink_peer}-{edge}"]
             missing = [n for n in (f"{name}-{gnb}", *path) if n not in known]
             if missing:
                 raise BadInput(f"{scenario.name}: no link {missing[0]}; cannot build {name}'s path")

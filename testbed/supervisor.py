@@ -4,7 +4,9 @@ What runs where (one process per node, `python -m nodes.ros.<module>`):
 
 - every vehicle namespace: `sensor` (vehicle_sensor), `inference` (inference_request),
   `fusion` (fusion_node);
-- every core namespace: `edge` (edge_inference), serving the vehicles of its cell;
+- every core namespace: `edge` (edge_inference), serving the vehicles of its cell (with
+  `edge: follow` handovers, also those that may be handed over to it; their `inference`
+  asks the serving cell's edge server, `nodes.ros.serving`);
 - the first gNB namespace: `link_events`, which publishes the timeline's `events.jsonl`;
 - each namespace that `record.topics` names: `topics` (`nodes.ros.topic_recorder`), recording
   the apps' topics there into its MCAP part, its only peer 127.0.0.1 so no recording traffic
@@ -64,7 +66,7 @@ from testbed import cgroups
 from testbed.cgroups import CpuBudget
 from testbed.errors import BadInput, TestbedError
 from testbed.replay import replay_config
-from testbed.scenario.model import TopicRecord
+from testbed.scenario.model import Scenario, TopicRecord, Vehicle
 from testbed.topology import Net
 
 Progress = Callable[[str], None]
@@ -190,20 +192,29 @@ def ros_peers(net: Net, node: str | None) -> list[str]:
     for the other participants of its own namespace."""
     topo = net.scenario.topology
     role = topo.role_of(node) if node is not None else None
+    scenario = net.scenario
     if role == "vehicle":
         vehicle = next(v for v in topo.vehicles if v.name == node)
-        peers = [str(net.server_address(topo.cell_of_gnb(vehicle.gnb)))]
-    elif node is not None and node in topo.servers():
-        cells = [c for c in topo.cells if c.server == node]
+        edges = dict.fromkeys(scenario.edge_via(vehicle, g) for g in scenario.gnbs_of(vehicle))
         peers = [
-            str(net.vehicle_address(v.name))
-            for v in topo.vehicles
-            if any(v.gnb == c.gnb for c in cells)
+            str(net.server_address(next(c for c in topo.cells if c.server == e))) for e in edges
         ]
+    elif node is not None and node in topo.servers():
+        peers = [str(net.vehicle_address(v.name)) for v in asking(scenario, node)]
     else:
         peers = [str(net.vehicle_address(v.name)) for v in topo.vehicles]
         peers += [str(net.server_address(c)) for c in topo.cells]
     return [*dict.fromkeys(peers), LOOPBACK]
+
+
+def asking(scenario: Scenario, server: str) -> list[Vehicle]:
+    """The vehicles that may ask edge server `server`: those of its cells, and with
+    `edge: follow` handovers those that can be handed over to one of them."""
+    return [
+        v
+        for v in scenario.topology.vehicles
+        if any(scenario.edge_via(v, g) == server for g in scenario.gnbs_of(v))
+    ]
 
 
 class Supervisor:
@@ -257,17 +268,22 @@ class Supervisor:
 
         # One edge server per node that hosts one (cells may share an edge behind a UPF).
         vehicles = self.net.scenario.edgeloc_vehicles()
+        scenario = self.net.scenario
         for server in topo.servers():
-            cells = [c for c in topo.cells if c.server == server]
-            mine = [v.name for v in vehicles if any(v.gnb == c.gnb for c in cells)]
+            mine = [v for v in asking(scenario, server) if v in vehicles]
             if self.edge and mine:
                 add(server, "edge", "edge_inference", ["--edge", server], self.peers_of(server))
         for v in vehicles:
             cell = topo.cell_of_gnb(v.gnb)
             who = ["--vehicle", v.name, "--edge", cell.server]
             peers = self.peers_of(v.name)
+            # With `edge: follow`, the inference node asks the serving cell's edge server.
+            edges = {g: scenario.edge_via(v, g) for g in scenario.gnbs_of(v)}
+            follow = []
+            if len(set(edges.values())) > 1:
+                follow = ["--edges", ",".join(f"{g}={e}" for g, e in edges.items())]
             add(v.name, "fusion", "fusion_node", who, peers)
-            add(v.name, "inference", "inference_request", who, peers)
+            add(v.name, "inference", "inference_request", who + follow, peers)
             add(v.name, "sensor", "vehicle_sensor", who, peers)
         if topo.cells:
             events = ["--events", str(self.folder / names.EVENTS_FILE)]

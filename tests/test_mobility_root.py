@@ -108,7 +108,8 @@ def test_a_run_with_a_channel_records_the_radio_and_the_handover_and_reports_the
     cut to 12 s: one handover, at ~10 s): every radio change and the handover are applied
     (/links/events, events.jsonl), /radio/av1 holds one RadioState per step and /handover
     the handover, both decoded by rosbags and mcap_ros2; EdgeLoc's requests are answered
-    through the target cell after it; the report draws it."""
+    through the target cell after it, by the target's edge server (`edge: follow`); the
+    report draws it."""
     import json
 
     from tests.realrun import REPO, testbed_cli
@@ -157,6 +158,11 @@ def test_a_run_with_a_channel_records_the_radio_and_the_handover_and_reports_the
 
     after = [m for m in decoded["/av1/dnn_answer"] if seconds(m.stamp) > seconds(recorded.stamp)]
     assert len(after) >= 5, len(after)  # frames captured after it, answered
+    # `edge: follow`: edge1 answered before the handover, edge2 (the target cell's) after.
+    asked = [(seconds(m.stamp) > seconds(recorded.stamp) + 1.0, m.edge)
+             for m in decoded["/av1/inference"] if m.ok]  # fmt: skip
+    assert {e for late, e in asked if not late} >= {"edge1"}
+    assert {e for late, e in asked if late} == {"edge2"}, asked
     summary = json.loads((folder / "summary.json").read_text())
     av1 = summary["radio"]["vehicles"]["av1"]
     assert av1["steps"] == len(radio) and set(av1["cells"]) == {"gnb1", "gnb2"}

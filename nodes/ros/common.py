@@ -25,12 +25,13 @@ import threading
 import time
 from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, TypeVar
 
 from nodes.edgeloc.settings import REQUEST_TIMEOUT_S, ReplayConfig, config_from_dict
 from nodes.recording.jsonfile import write_json
+from nodes.ros.serving import parse_edges
 
 #: Extra seconds of dataset beyond the scenario's duration: nodes start before the timeline.
 DATASET_MARGIN_S = 60.0
@@ -60,6 +61,8 @@ class NodeArgs:
     record: Path | None = None
     #: Also record camera frames (large; the scenario's `record.images`).
     record_images: bool = False
+    #: With `edge: follow`: each gNB's edge server ({} asks `edge` always; `nodes.ros.serving`).
+    edges: dict[str, str] = field(default_factory=dict)
 
     @classmethod
     def parse(cls, argv: Sequence[str] | None = None, prog: str = "") -> NodeArgs:
@@ -83,6 +86,11 @@ class NodeArgs:
             help="record every message this node publishes into this MCAP part file",
         )
         p.add_argument("--record-images", action="store_true", help="also record camera frames")
+        p.add_argument(
+            "--edges",
+            default="",
+            help="gnb=edge,...: ask the serving cell's edge server (edge: follow handovers)",
+        )
         a = p.parse_args(argv)
         try:
             config = config_from_dict(json.loads(Path(a.config).read_text()))
@@ -90,6 +98,10 @@ class NodeArgs:
             p.error(f"cannot read node settings {a.config}: {err}")
         if not (math.isfinite(a.timeout) and a.timeout > 0):
             p.error(f"--timeout must be > 0 s, got {a.timeout}")
+        try:
+            edges = parse_edges(a.edges)
+        except ValueError as err:
+            p.error(str(err))
         return cls(
             config=config,
             vehicle=a.vehicle,
@@ -100,6 +112,7 @@ class NodeArgs:
             compute_cgroup=Path(a.compute_cgroup) if a.compute_cgroup else None,
             record=Path(a.record) if a.record else None,
             record_images=a.record_images,
+            edges=edges,
         )
 
 

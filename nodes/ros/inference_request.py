@@ -52,6 +52,7 @@ from nodes.ros.common import (
     to_stamp,
     write_stats,
 )
+from nodes.ros.serving import ServingEdge
 
 POLL_S = 0.005  # how often the loop looks at a pending future
 
@@ -358,11 +359,19 @@ def main() -> int:
         decisions = ros.publisher(SplitDecision, vehicle_topic(args.vehicle, "split_decision"), 50)
         detector = ros.publisher(DetectorEvent, vehicle_topic(args.vehicle, "detector"), 50)
         outcomes = ros.publisher(InferenceResult, vehicle_topic(args.vehicle, "inference"), 50)
-        client = ros.owns(ActionClient(node, SplitInference, action_name(args.edge)))
+        # One client per edge server the vehicle may ask: with `edge: follow`, the serving
+        # cell's (read from its own default route, `nodes.ros.serving`), else `--edge`'s.
+        serving = ServingEdge(args.edge, args.edges)
+        clients = {
+            edge: ros.owns(ActionClient(node, SplitInference, action_name(edge)))
+            for edge in dict.fromkeys([args.edge, *args.edges.values()])
+        }
         emit(READY, node="inference_request", action=action_name(args.edge))
         last_frame = -1
         start_s = time.time()
         while not stop:
+            edge = serving.now()
+            client = clients[edge]
             if not client.server_is_ready():
                 stop.wait(0.1)
                 loop.no_server(0.1)
@@ -407,6 +416,7 @@ def main() -> int:
                     ok=ok,
                     timed_out=timed_out and not ok,
                     error=error,
+                    edge=edge,
                 )
             )
             if stop:

@@ -9,9 +9,9 @@ in the file:
 - the timeline does not write an air link's `mcs` or `bler` (the channel does);
 - a `trace` file exists and parses (`netem.channel.RadioTrace`, errors at its own lines);
 - the radios the channel drives are ones it can model (30 kHz, a standard bandwidth);
-- `handover` comes with the model (not a trace), two or more cells, all behind one UPF and
-  one edge server at the core (`edge: stay` keeps the session there), and A3 settings within
-  TS 38.331's ranges and steps.
+- `handover` comes with the model (not a trace), two or more cells, all behind one UPF with
+  their edge servers behind it (one or one per cell: `edge: stay | follow`), A3 settings
+  within TS 38.331's ranges and steps, and no `shape` of a vehicle.
 """
 
 from __future__ import annotations
@@ -186,24 +186,25 @@ def check_handover(ctx: Context, root: Section) -> None:
             "two or more cells to hand over between",
             f"{len(good)} cell",
         )
-    cores = sorted({f"{c.get('upf')}/{c.get('edge')}" for c in good if c.get("upf")})
+    upfs = sorted({str(c.get("upf")) for c in good if c.get("upf")})
     plain = [c.get("gnb") for c in good if not c.get("upf")]
-    at_cell = [c.get("gnb") for c in good if c.get("upf") and c.get("placement") == "cell"]
-    if plain or at_cell or len(cores) > 1:
+    at_cell = [c.get("gnb") for c in good if c.get("upf") and _placement(c) == "cell"]
+    if plain or at_cell or len(upfs) > 1:
         found = (
             f"cells without a UPF ({', '.join(map(str, plain))})"
             if plain
             else f"edge servers at the cell ({', '.join(map(str, at_cell))})"
             if at_cell
-            else f"several UPF/edge pairs ({', '.join(cores)})"
+            else f"several UPFs ({', '.join(upfs)})"
         )
         ctx.add(
             channel.at("handover"),
             where,
-            "cells behind one UPF and one edge server at the core (upf, edge, placement core)",
+            "cells behind one UPF, their edge servers behind it (upf, edge, placement core)",
             found,
             "a handover switches the UE's N3 tunnel at its UPF (an Xn handover's path switch);"
-            " another UPF would need N9, which is not modelled",
+            " another UPF would need N9, and an edge at a cell an inter-cell path, neither of"
+            " which is modelled",
         )
     vehicles: Items | None = topo.get("vehicles") if topo is not None else None
     names = {v.get("name") for _, v, _ in vehicles.good()} if vehicles else set()
@@ -241,3 +242,8 @@ def check_handover(ctx: Context, root: Section) -> None:
 
 def _half_db(value: float) -> bool:
     return bool((value * 2).is_integer())
+
+
+def _placement(cell: Section) -> str:
+    edge = cell.get("edge")
+    return str(edge.get("placement", "core")) if isinstance(edge, Section) else "core"

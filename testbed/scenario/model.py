@@ -541,8 +541,8 @@ class HandoverSpec:
     """`channel.handover`: event A3 (`netem.handover.A3Handover`: a3-Offset, hysteresis,
     time-to-trigger, L3 filter coefficient) on the route's per-cell RSRP decides when a
     vehicle changes cell; the user plane then stops for `interruption_s`, its packets
-    delivered late (`lossless`, PDCP forwarding) or lost; `edge: stay` keeps the session on
-    the edge server it has (the cells share one UPF and edge)."""
+    delivered late (`lossless`, PDCP forwarding) or lost. The cells share one UPF; `edge`:
+    "stay" keeps asking the first cell's edge server, "follow" asks the serving cell's."""
 
     offset_db: float = 3.0
     hysteresis_db: float = 1.0
@@ -550,7 +550,7 @@ class HandoverSpec:
     filter_k: int = 4
     interruption_s: float = 0.040
     lossless: bool = True
-    edge: Literal["stay"] = "stay"
+    edge: Literal["stay", "follow"] = "stay"
 
 
 @dataclass(frozen=True)
@@ -581,6 +581,12 @@ class Scenario:
         if self.handover is None:
             return [vehicle.gnb]
         return [vehicle.gnb, *(c.gnb for c in self.topology.cells if c.gnb != vehicle.gnb)]
+
+    def edge_via(self, vehicle: Vehicle, gnb: str) -> str:
+        """The edge server `vehicle` asks while `gnb` serves it: its first cell's, or with
+        `edge: follow` handovers that gNB's cell's."""
+        follow = self.handover is not None and self.handover.edge == "follow"
+        return self.topology.cell_of_gnb(gnb if follow else vehicle.gnb).server
 
     def edgeloc_vehicles(self) -> list[Vehicle]:
         """The vehicles that run EdgeLoc's nodes (none when the workload is `none`)."""

@@ -1025,7 +1025,7 @@ HANDOVER = Obj(
     "Handover between cells (TS 38.331 event A3 on L3-filtered RSRP): a vehicle leaves its"
     " serving cell for a neighbour that stays `offset` + `hysteresis` stronger for `ttt`; its"
     " user plane then stops for `interruption`, and its routes, its gNB and its N3 tunnel"
-    " switch to the target. Needs two or more cells with sites, behind one UPF and edge.",
+    " switch to the target. Needs two or more cells with sites, behind one UPF.",
     [
         Field(
             "offset",
@@ -1067,9 +1067,9 @@ HANDOVER = Obj(
         ),
         Field(
             "edge",
-            Enum(("stay",)),
-            "stay: the session keeps the edge server it has, through the target's N3 (the"
-            " cells share one UPF and edge).",
+            Enum(("stay", "follow")),
+            "stay: the vehicle keeps asking the edge server it started with (through the"
+            " target's N3 and the UPF); follow: it asks the serving cell's edge server.",
         ),
     ],
     model=model.HandoverSpec,
