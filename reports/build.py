@@ -13,7 +13,7 @@ from __future__ import annotations
 import json
 import shutil
 from collections import Counter
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -22,7 +22,7 @@ import numpy as np
 
 from nodes.edgeloc.metrics import write_tum
 from nodes.recording import linktable
-from nodes.recording.layout import PARTS_DIR, PCAP_DIR, RUN_MCAP, SUMMARY_FILE
+from nodes.recording.layout import HANDOVER_TOPIC, PARTS_DIR, PCAP_DIR, RUN_MCAP, SUMMARY_FILE
 from reports.document import Code, Document, Image, Para, Section, Table, to_markdown
 from reports.html import to_html
 from reports.mcapread import ReportInputError, RunData, read_run
@@ -782,11 +782,115 @@ def _radio(s: dict[str, Any], plots: dict[str, Plot | None]) -> Section | None:
                     caption=f"{v}: the learner's decisions by the uplink MCS at their time",
                 )
             )
+    if HANDOVER_TOPIC in (s.get("not_recorded") or []):
+        sec.add(
+            _not_recorded(
+                "the handovers as applied",
+                f"{HANDOVER_TOPIC}, though the scenario sets channel.handover: the handovers "
+                "below are the serving cell's changes on /radio/<vehicle>, without their "
+                "interruption or lateness",
+            )
+        )
+    for v, r in vehicles.items():
+        if r.get("around_handovers"):
+            sec.add(_around_table(v, r))
+            sentence = _smaller_split_sentence(r)
+            if sentence:
+                sec.add(Para(sentence))
     for key in sorted(k for k in plots if k.startswith("radio:")):
         plot = plots[key]
         if plot is not None:
             sec.add(Image(plot))
     return sec
+
+
+def _around_table(vehicle: str, r: dict[str, Any]) -> Table:
+    """One row per handover of `vehicle`: what it was, and the radio, EdgeLoc's error and the
+    learner's plays in the window before it beside the window after it."""
+
+    def both(row: dict[str, Any], show: Callable[[dict[str, Any]], str]) -> str:
+        return f"{show(row.get('before') or {})} / {show(row.get('after') or {})}"
+
+    def top(w: dict[str, Any]) -> str:
+        return "-" if w.get("top_split") is None else f"{w['top_split']} {_pct(w['top_share'])}"
+
+    rows = []
+    for h in r["around_handovers"]:
+        cut = "-"
+        if h.get("interruption_ms") is not None:
+            cut = f"{h['interruption_ms']:.1f} " + ("lossless" if h.get("lossless") else "lossy")
+        rows.append(
+            [
+                _f(h.get("t_s"), "{:.2f}"),
+                f"{h['from']} → {h['to']}" + (f" (failed: {h['error']})" if h.get("error") else ""),
+                cut,
+                _f(h.get("lateness_ms"), "{:.1f}"),
+                both(h, lambda w: _f(w.get("mean_ul_mcs"), "{:.1f}")),
+                both(h, lambda w: _f(w.get("mean_error_m"), "{:.2f}")),
+                both(h, top),
+                both(h, lambda w: _ms(w.get("mean_latency_s"))),
+            ]
+        )
+    w = _f(r.get("handover_window_s"), "{:g}")
+    source = r.get("handovers_source") or "/radio/<vehicle>"
+    return Table(
+        [
+            "time s",
+            "from → to",
+            "interruption ms",
+            "lateness ms",
+            "UL MCS before / after",
+            "EdgeLoc error m before / after",
+            "top split before / after",
+            "mean latency ms before / after",
+        ],
+        rows,
+        caption=f"Around each handover of {vehicle} (from {source}), the {w} s before it and "
+        f"the {w} s after: mean uplink MCS of the channel steps, EdgeLoc's mean position error "
+        "of the frames captured, the learner's most-played split and its share of the plays, "
+        "the mean latency of the plays' answered requests",
+    )
+
+
+def _smaller_split_sentence(r: dict[str, Any]) -> str | None:
+    """Whether the learner moved to a smaller split near the handovers, said plainly from the
+    numbers. Rule: near a handover the learner moved to a smaller split when its most-played
+    split in the window before or the window after it sends less uplink payload per request
+    (that split's mean over the vehicle's requests) than its most-played split away from every
+    handover; "near most" when that holds for more than half of the handovers where at least
+    one window could be compared. None for a vehicle without plays (no EdgeLoc on it)."""
+    around = r["around_handovers"]
+    away = r.get("away_from_handovers") or {}
+    near = sum(h["before"]["plays"] + h["after"]["plays"] for h in around)
+    if not near and not away.get("plays"):
+        return None
+    judged = [h for h in around if h.get("smaller_split_near") is not None]
+    w = _f(r.get("handover_window_s"), "{:g}")
+    if not judged:
+        why = (
+            "it made no plays away from them to compare with"
+            if not away.get("plays")
+            else "no window near them has plays of a split whose payload was recorded "
+            "(/<vehicle>/inference)"
+        )
+        return f"Whether the learner moved to a smaller split near the handovers is unknown: {why}."
+    n = sum(bool(h["smaller_split_near"]) for h in judged)
+    before = sum(h["before"]["top_split_vs_away"] == "smaller" for h in judged)
+    after = sum(h["after"]["top_split_vs_away"] == "smaller" for h in judged)
+    verdict = "moved" if 2 * n > len(judged) else "did not move"
+    text = (
+        f"The learner {verdict} to a smaller split near most handovers: near {n} of "
+        f"{len(judged)} handovers its most-played split in the {w} s before or after sent less "
+        f"uplink payload per request than {away['top_split']}, its most-played split away "
+        f"from handovers ({before} in the window before, {after} in the window after)."
+    )
+    left = len(around) - len(judged)
+    if left:
+        text += (
+            f" {left} handover(s) could not be compared (no plays near them, or a split "
+            "without recorded payload)."
+        )
+    return text
 
 
 def _nodes(s: dict[str, Any]) -> Section:

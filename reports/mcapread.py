@@ -9,10 +9,10 @@ needed. A message that does not decode is counted, not fatal.
 Topics read (named in `nodes.recording.layout`): `/<vehicle>/gt`, `/<vehicle>/vo`,
 `/<vehicle>/dnn_answer` and `/<vehicle>/pose` (PoseEstimate; `pose` carries one message per
 method per frame), `/<vehicle>/split_decision`, `/<vehicle>/detector`, `/<vehicle>/inference`,
-`/links/events`, `/links/counters`; metadata `edgeloc.run`, `edgeloc.nodes`,
-`edgeloc.timeline`, `edgeloc.linktest` (values JSON-encoded where structured); attachments by
-name. Times are kept as float seconds since the epoch; `RunData.t0` is the origin the report
-measures run time from.
+`/links/events`, `/links/counters`, `/radio/<vehicle>` (RadioState), `/handover` (Handover);
+metadata `edgeloc.run`, `edgeloc.nodes`, `edgeloc.timeline`, `edgeloc.linktest` (values
+JSON-encoded where structured); attachments by name. Times are kept as float seconds since the
+epoch; `RunData.t0` is the origin the report measures run time from.
 """
 
 from __future__ import annotations
@@ -21,9 +21,9 @@ import json
 import math
 from collections import Counter, defaultdict
 from collections.abc import Callable, Iterator
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields
 from pathlib import Path
-from typing import Any
+from typing import Any, get_type_hints
 
 import numpy as np
 from mcap.records import Attachment, Channel, DataEnd, Footer, Message, Metadata, Schema
@@ -32,6 +32,7 @@ from mcap_ros2.decoder import DecoderFactory
 from numpy.typing import NDArray
 
 from nodes.recording.layout import (
+    HANDOVER_TOPIC,
     LINK_COUNTERS_TOPIC,
     LINK_EVENTS_TOPIC,
     RUN_MCAP,
@@ -176,6 +177,23 @@ class RadioSeries:
         return len(self.t)
 
 
+@dataclass(frozen=True)
+class HandoverRec:
+    """One applied handover (`/handover`, Handover). Its fields after `t` are the message's
+    fields of the same names, read by `_handover` from this class alone: a field added here
+    is read from the message without another list to keep in step."""
+
+    t: float  # stamp: when it took effect (both links stopped, routes moved), wall clock
+    vehicle: str
+    source: str  # the gNB it left
+    target: str  # the gNB it went to
+    scheduled_s: float  # when A3 triggered, seconds since the timeline's start
+    lateness_s: float  # applied - scheduled
+    interruption_s: float  # how long the user plane stopped
+    lossless: bool  # in-flight data delivered late (True) or lost (False)
+    error: str  # empty when it was applied
+
+
 @dataclass
 class CounterSeries:
     """Cumulative counters of one direction of one link, sampled over time."""
@@ -245,6 +263,7 @@ class RunData:
     first_log_time: float | None
     last_log_time: float | None
     radio: dict[str, RadioSeries] = field(default_factory=dict)  # vehicle -> /radio/<vehicle>
+    handovers: list[HandoverRec] = field(default_factory=list)  # /handover, in time order
 
     @property
     def t0(self) -> float:
@@ -321,6 +340,7 @@ def read_run(path: Path | str) -> RunData:
     counter_rows: dict[tuple[str, str], list[tuple[float, ...]]] = defaultdict(list)
     counter_backend: dict[tuple[str, str], str] = {}
     radio_rows: dict[str, list[tuple[Any, ...]]] = defaultdict(list)
+    handovers: list[HandoverRec] = []
     seen_footer = seen_data_end = False
     first_log: float | None = None
     last_log: float | None = None
@@ -370,6 +390,8 @@ def read_run(path: Path | str) -> RunData:
             try:
                 if ch.topic.startswith(RADIO_PREFIX):
                     radio_rows[ch.topic[len(RADIO_PREFIX) :]].append(_radio_row(msg))
+                elif ch.topic == HANDOVER_TOPIC:
+                    handovers.append(_handover(msg))
                 else:
                     _take(
                         ch.topic,
@@ -462,6 +484,7 @@ def read_run(path: Path | str) -> RunData:
         first_log_time=first_log,
         last_log_time=last_log,
         radio={v: RadioSeries.from_rows(v, r) for v, r in sorted(radio_rows.items())},
+        handovers=sorted(handovers, key=lambda h: (h.t, h.vehicle)),
     )
 
 
@@ -471,6 +494,20 @@ RADIO_PREFIX = radio_topic("")
 
 def _radio_row(msg: Any) -> tuple[Any, ...]:
     return (_stamp(msg), str(msg.cell), *(float(getattr(msg, f)) for f in RADIO_NUMBERS))
+
+
+#: The type of each `HandoverRec` field, which `_handover` converts the message's value to.
+_HANDOVER_TYPES = get_type_hints(HandoverRec)
+
+
+def _handover(msg: Any) -> HandoverRec:
+    """A Handover message as a `HandoverRec` (each field converted to the record's type)."""
+    values = {
+        f.name: _HANDOVER_TYPES[f.name](getattr(msg, f.name))
+        for f in fields(HandoverRec)
+        if f.name != "t"
+    }
+    return HandoverRec(t=_stamp(msg), **values)
 
 
 def _unpack_named(metadata: dict[str, dict[str, str]], name: str) -> dict[str, Any]:
@@ -590,6 +627,7 @@ __all__ = [
     "CounterSeries",
     "Decision",
     "DetectorUpdate",
+    "HandoverRec",
     "Inference",
     "LinkEventRec",
     "PoseTrack",

@@ -559,57 +559,94 @@ def radio_cdfs(summary: dict[str, Any], out: Path) -> Plot | None:
     )
 
 
-def radio_map(data: RunData, summary: dict[str, Any], vehicle: str, out: Path) -> Plot | None:
-    """The route coloured by downlink SINR, the cells' sites, the handover points; beside
-    it SINR and MCS of both directions over run time (`/radio/<vehicle>`)."""
+#: Serving-cell colours of the radio map's route: none in the SINR colormap (viridis) nor the
+#: handover crosses' red, so the cell shows as a halo the SINR dots do not hide.
+CELL_COLORS = ("#ff7f0e", "#9467bd", "#8c564b", "#e377c2", "#7f7f7f", "#17becf")
+
+
+def radio_map(
+    data: RunData,
+    summary: dict[str, Any],
+    vehicle: str,
+    out: Path,
+    edgeloc: FrameErrors | None = None,
+) -> Plot | None:
+    """The route coloured by downlink SINR over a halo of the serving cell's colour, the
+    cells' sites, the handover points; beside it SINR and MCS of both directions and, when
+    the vehicle ran EdgeLoc (`edgeloc`: its fused errors), EdgeLoc's position error over run
+    time, each with the handovers marked (`/radio/<vehicle>`, the summary's handovers)."""
     r = data.radio.get(vehicle)
     if r is None or not len(r):
         return None
     radio = summary.get("radio") or {}
     sites = ((radio.get("channel") or {}).get("sites")) or []
     info = (radio.get("vehicles") or {}).get(vehicle) or {}
-    fig = Figure(figsize=(12, 5))
-    ax = fig.add_subplot(1, 2, 1)
+    handovers = [h["t_s"] for h in info.get("handovers") or [] if h.get("t_s") is not None]
+    errors = edgeloc if edgeloc is not None and len(edgeloc.t) else None
+    rows = 3 if errors is not None else 2
+    fig = Figure(figsize=(12, 5 if rows == 2 else 6.5))
+    grid = fig.add_gridspec(rows, 2)
+    ax = fig.add_subplot(grid[:, 0])
+    cells = sorted(set(r.cell) | {str(s["name"]) for s in sites})
+    cell_color = {c: CELL_COLORS[k % len(CELL_COLORS)] for k, c in enumerate(cells)}
+    served = np.array(r.cell)
+    for c in sorted(set(r.cell)):
+        on = served == c
+        ax.scatter(r.x[on], r.y[on], s=90, color=cell_color[c], alpha=0.5, lw=0, label=c)
     dots = ax.scatter(r.x, r.y, c=r.sinr_db, s=3, cmap="viridis", vmin=-10, vmax=30)
     fig.colorbar(dots, ax=ax, label="downlink SINR (dB)")
     for s in sites:
-        ax.plot(s["x"], s["y"], marker="^", ms=11, color="black", ls="none")
+        ax.plot(
+            s["x"], s["y"], marker="^", ms=11, color=cell_color[str(s["name"])], mec="black", ls=""
+        )
         ax.annotate(s["name"], (s["x"], s["y"]), textcoords="offset points", xytext=(6, 6))
-    changed = [i for i in range(1, len(r)) if r.cell[i] != r.cell[i - 1]]
-    if changed:
-        ax.plot(r.x[changed], r.y[changed], "rx", ms=10, mew=2, ls="none", label="handover")
-        ax.legend(fontsize=8)
+    at = [int(np.abs(r.t - data.t0 - t).argmin()) for t in handovers]
+    if at:
+        ax.plot(r.x[at], r.y[at], "rx", ms=10, mew=2, ls="none", label="handover")
+    ax.legend(fontsize=8, title="serving cell", title_fontsize=8)
     ax.set_aspect("equal", adjustable="datalim")
     ax.set_xlabel("x (m)")
     ax.set_ylabel("y (m)")
     ax.grid(alpha=0.3)
-    ax.set_title(f"{vehicle}: route by SINR, cell sites")
+    ax.set_title(f"{vehicle}: route by SINR and serving cell")
     t = r.t - data.t0
-    top = fig.add_subplot(2, 2, 2)
+    top = fig.add_subplot(grid[0, 1])
     top.plot(t, r.sinr_db, lw=0.8, label="downlink")
     top.plot(t, r.ul_sinr_db, lw=0.8, label="uplink")
     top.set_ylabel("SINR (dB)")
-    top.grid(alpha=0.3)
     top.legend(fontsize=8)
-    low = fig.add_subplot(2, 2, 4, sharex=top)
-    low.step(t, r.mcs, where="post", lw=0.9, label="downlink")
-    low.step(t, r.ul_mcs, where="post", lw=0.9, label="uplink")
-    low.set_ylabel("MCS")
-    low.set_xlabel("run time (s)")
-    low.set_ylim(-1, 29)
-    low.grid(alpha=0.3)
-    for ho in info.get("handovers") or []:
-        for a in (top, low):
-            a.axvline(ho["t_s"], color="red", lw=0.8, ls="--")
-    fig.tight_layout()
+    mid = fig.add_subplot(grid[1, 1], sharex=top)
+    mid.step(t, r.mcs, where="post", lw=0.9, label="downlink")
+    mid.step(t, r.ul_mcs, where="post", lw=0.9, label="uplink")
+    mid.set_ylabel("MCS")
+    mid.set_ylim(-1, 29)
+    panels = [top, mid]
+    if errors is not None:
+        low = fig.add_subplot(grid[2, 1], sharex=top)
+        low.plot(
+            errors.t - data.t0,
+            _floored(errors.position_m, ERROR_FLOOR_M),
+            lw=0.8,
+            color=METHOD_COLORS["edgeloc"],
+        )
+        _log_axis(low, ERROR_FLOOR_M)
+        low.set_ylabel("EdgeLoc error (m)")
+        panels.append(low)
+    panels[-1].set_xlabel("run time (s)")
+    for a in panels:
+        a.grid(alpha=0.3)
+        for ho in handovers:
+            a.axvline(ho, color="red", lw=0.8, ls="--")
     cover = info.get("coverage")
     covered = f" In coverage {cover:.0%} of the run." if isinstance(cover, float) else ""
+    error_note = ", and EdgeLoc's position error per frame (log axis)" if errors is not None else ""
     return Plot(
         _save(fig, out, f"radio_{safe(vehicle)}.png"),
         f"Radio of {vehicle} along its route",
-        "Left: the route, each channel step coloured by its downlink SINR, and the cell sites "
-        "(triangles; crosses where the serving cell changed). Right: SINR and the MCS link "
-        "adaptation ran, downlink and uplink, over the run (dashed: handovers)." + covered,
+        "Left: the route, each channel step coloured by its downlink SINR over a halo of its "
+        "serving cell's colour, and the cell sites (triangles in their cell's colour; crosses "
+        "at the handovers). Right: SINR and the MCS link adaptation ran, downlink and uplink"
+        f"{error_note}, over the run (dashed: handovers)." + covered,
     )
 
 
@@ -633,7 +670,7 @@ def draw_all(
         plots[f"split:{v}"] = split_over_time(data, vd, summary, out)
         plots[f"trajectory:{v}"] = trajectory(data, vd, out)
     for v in list(data.radio)[:MAX_VEHICLE_FIGURES]:
-        plots[f"radio:{v}"] = radio_map(data, summary, v, out)
+        plots[f"radio:{v}"] = radio_map(data, summary, v, out, errs.get("edgeloc", {}).get(v))
     return plots
 
 

@@ -50,12 +50,26 @@ report can be compared with the run's own. Keys of summary.json (`version` 1):
   timeline (the recorder's `edgeloc.timeline`: events, applied, failed, lateness),
   linktest (the link self-test table, attachment linktest.json, or null),
   linktest_ran (the recorder's "true"/"false", null if not said)};
-- `radio` (runs with `channel:`): {vehicles: {vehicle: {steps, coverage, cells {cell:
-  share}, handovers [{t_s, from, to}], sinr_db and ul_sinr_db {min, p5, median, p95, max},
-  mean_mcs, mean_ul_mcs, mean_bler, mean_ul_bler, by_uplink_mcs [{mcs [lo, hi], time_share,
-  plays, share {split: fraction}, mean_payload_bytes}] (the learner's decisions by the uplink
-  MCS at their time, `nodes.edgeloc.bands`; null without decisions)}}, channel (model, los,
-  step_s, sites [{name, x, y}])} from `/radio/<vehicle>`; {} without it;
+- `radio` (runs with `channel:`): {vehicles: {vehicle: {steps, coverage, cells {cell: share},
+  handovers [{t_s, from, to, interruption_ms, lossless, lateness_ms, error (null: applied)}],
+  handovers_source ("/handover": as applied; "/radio/<vehicle>": changes of the serving cell,
+  whose interruption, lossless, lateness and error are null), sinr_db and ul_sinr_db {min, p5,
+  median, p95, max}, mean_mcs, mean_ul_mcs, mean_bler, mean_ul_bler, by_uplink_mcs [{mcs [lo,
+  hi], time_share, plays, share {split: fraction}, mean_payload_bytes}] (the learner's
+  decisions by the uplink MCS at their time, `nodes.edgeloc.bands`; null without decisions),
+  handover_window_s (W, `HANDOVER_WINDOW_S`), away_from_handovers {plays, top_split, top_share,
+  mean_payload_bytes} (the plays outside every [t - W, t + W)), around_handovers [one per
+  handover: its keys above, and before and after ([t - W, t) and [t, t + W)), as
+  `nodes.edgeloc.bands.around` gives them for the replay: {plays (decided then), top_split
+  (most played), top_share, mean_payload_bytes (each play at its split's mean payload per
+  request on /<vehicle>/inference), mean_latency_s (the plays' answered requests), mean_error_m
+  (EdgeLoc's fused position error of the frames captured then), mean_ul_mcs (over the /radio
+  steps)}, plus timed_out (plays whose request timed out) and top_split_vs_away ("smaller",
+  "larger" or "same" uplink payload per request than away_from_handovers' top split; null:
+  not comparable); smaller_split_near (either window's top split smaller; null: neither
+  comparable)]}}, channel (model, los, step_s, sites [{name, x, y}], handover (the
+  `channel.handover` settings or null))} from `/radio/<vehicle>` and `/handover`; {} without
+  /radio;
 - `splits`: EdgeLoc with the learned split choice, every fixed split and the per-phase oracle,
   replayed on the run's drive under the run's own measured request latencies
   (`reports.splits`: the keys of `nodes.edgeloc.compare.SplitComparison.to_dict` plus
@@ -64,7 +78,8 @@ report can be compared with the run's own. Keys of summary.json (`version` 1):
 - `nodes`: the recorder's `edgeloc.nodes` metadata as recorded; `failures`: [{process,
   exit_code, namespace, last_log_lines}] for processes that exited non-zero or carry log
   lines of a failure;
-- `not_recorded`: topics/records the report looked for and did not find.
+- `not_recorded`: topics/records the report looked for and did not find (`/handover` only
+  where `channel.handover` was set and a serving cell changed on /radio).
 """
 
 from __future__ import annotations
@@ -74,6 +89,7 @@ import json
 import math
 import re
 from collections import Counter
+from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any
 
@@ -89,7 +105,8 @@ from nodes.edgeloc.metrics import (
     paper_comparison,
     position_errors,
 )
-from reports.mcapread import PoseTrack, RunData, VehicleData
+from nodes.recording.layout import HANDOVER_TOPIC, radio_topic
+from reports.mcapread import PoseTrack, RadioSeries, RunData, VehicleData
 from reports.splits import split_comparison
 
 SUMMARY_VERSION = 1
@@ -662,6 +679,16 @@ def _spread(x: NDArray[np.float64]) -> dict[str, float | None]:
     return {k: _r(float(v), 3) for k, v in zip(keys, values, strict=True)}
 
 
+def _payload_by_split(vd: VehicleData) -> dict[str, float]:
+    """Mean uplink bytes per request of each split the vehicle sent (/<vehicle>/inference).
+    This, not the split order, says which split is smaller: the raw image weighs less than
+    the first layers' activations (`nodes.edgeloc.model`)."""
+    sent: dict[str, list[int]] = {}
+    for i in vd.inference:
+        sent.setdefault(i.split, []).append(i.payload_bytes)
+    return {s: sum(b) / len(b) for s, b in sent.items() if b}
+
+
 def _plays_by_uplink_mcs(data: RunData, vehicle: str) -> list[dict[str, Any]] | None:
     """The vehicle's split decisions by the uplink MCS at their time (`nodes.edgeloc.bands`);
     None when it made none (no EdgeLoc on it)."""
@@ -670,39 +697,150 @@ def _plays_by_uplink_mcs(data: RunData, vehicle: str) -> list[dict[str, Any]] | 
         return None
     at = np.searchsorted(r.t, [d.t for d in vd.decisions], side="right") - 1
     mcs = [int(r.ul_mcs[max(0, i)]) for i in at]
-    sent: dict[str, list[int]] = {}
-    for i in vd.inference:
-        sent.setdefault(i.split, []).append(i.payload_bytes)
-    payload = {s: sum(b) / len(b) for s, b in sent.items() if b}
     rows = bands.by_band(
-        mcs, [d.chosen for d in vd.decisions], payload, bands.time_shares(r.ul_mcs.astype(int))
+        mcs,
+        [d.chosen for d in vd.decisions],
+        _payload_by_split(vd),
+        bands.time_shares(r.ul_mcs.astype(int)),
     )
     return [{**row, "share": {k: _r(v) for k, v in row["share"].items()}} for row in rows]
 
 
-def radio_summary(data: RunData) -> dict[str, Any]:
-    """Per vehicle of a `channel:` run, from `/radio/<vehicle>`: steps, coverage (share of
-    steps at downlink CQI >= 1), the serving cells' shares, handovers (changes of serving
-    cell, with their times), and SINR and MCS figures of both directions; `sites` as the
-    recorder's `edgeloc.run` metadata gives them. {} without the topic."""
+#: The span each side of a handover over which the report says what EdgeLoc did: [t - W, t)
+#: before it and [t, t + W) after. The replay's (`nodes.edgeloc.bands.AROUND_S`, 3 s: a few
+#: learner windows, and the distance over which the cell edge's SINR falls at urban speeds),
+#: so a run's report and its scenario's replay describe the same windows.
+HANDOVER_WINDOW_S = bands.AROUND_S
+
+
+def _handovers(data: RunData, r: RadioSeries) -> tuple[str, list[tuple[float, dict[str, Any]]]]:
+    """The vehicle's handovers as (wall-clock time, summary row), and where they come from:
+    `/handover` when the recording holds it (what the timeline applied, with its
+    interruption), else the changes of the serving cell on `/radio/<vehicle>`."""
+    t0 = data.t0
+    if data.handovers:
+        return HANDOVER_TOPIC, [
+            (
+                h.t,
+                {
+                    "t_s": _r(h.t - t0),
+                    "from": h.source,
+                    "to": h.target,
+                    "interruption_ms": _r(h.interruption_s * 1e3, 3),
+                    "lossless": h.lossless,
+                    "lateness_ms": _r(h.lateness_s * 1e3, 3),
+                    "error": h.error or None,
+                },
+            )
+            for h in data.handovers
+            if h.vehicle == r.vehicle
+        ]
+    unknown = dict.fromkeys(("interruption_ms", "lossless", "lateness_ms", "error"))
+    return radio_topic(r.vehicle), [
+        (
+            float(r.t[i]),
+            {"t_s": _r(float(r.t[i]) - t0), "from": r.cell[i - 1], "to": r.cell[i], **unknown},
+        )
+        for i in range(1, len(r))
+        if r.cell[i] != r.cell[i - 1]
+    ]
+
+
+def _away(chosen: list[str], payload: Mapping[str, float]) -> dict[str, Any]:
+    """The plays away from every handover: how many, the most played split (ties: the first
+    played, as `nodes.edgeloc.bands.around`) and its share, and their mean payload."""
+    top = Counter(chosen).most_common(1)
+    sent = [payload[c] for c in chosen if c in payload]
+    return {
+        "plays": len(chosen),
+        "top_split": top[0][0] if top else None,
+        "top_share": top[0][1] / len(chosen) if top else None,
+        "mean_payload_bytes": float(np.mean(sent)) if sent else None,
+    }
+
+
+def _size_vs(split: str | None, ref: str | None, payload: Mapping[str, float]) -> str | None:
+    """Whether `split` sends less uplink payload per request than `ref` ("smaller"), more
+    ("larger") or as much ("same"); None when either is missing or has no recorded payload."""
+    if split is None or ref is None:
+        return None
+    if split == ref:
+        return "same"
+    if split not in payload or ref not in payload:
+        return None
+    a, b = payload[split], payload[ref]
+    return "smaller" if a < b else "larger" if a > b else "same"
+
+
+def _around_handovers(
+    data: RunData,
+    r: RadioSeries,
+    handovers: list[tuple[float, dict[str, Any]]],
+    fe: FrameErrors | None,
+) -> tuple[dict[str, Any], list[dict[str, Any]]]:
+    """The plays away from every handover, and per handover what the learner, EdgeLoc and
+    the uplink did in the `HANDOVER_WINDOW_S` before and after it (`bands.around`, as the
+    replay: plays at their decision, each with its request's latency; frames at their
+    capture), plus the plays whose request timed out and how each window's top split compares
+    with the top split away from handovers, which the learner plays where no cell edge is
+    near. A vehicle without EdgeLoc gets the radio's figures and no plays."""
+    w = HANDOVER_WINDOW_S
+    vd = data.vehicles.get(r.vehicle) or VehicleData(r.vehicle)
+    payload = _payload_by_split(vd)
+    result = {i.frame_id: i for i in vd.inference}  # a play's request, by its frame
+    sent = [d.t for d in vd.decisions]
+    outcome = [result.get(d.frame_id) for d in vd.decisions]
+    series: dict[str, Any] = {  # `bands.around`'s arguments besides the handover's time
+        "sent_s": sent,
+        "splits": [d.chosen for d in vd.decisions],
+        "latency_s": [i.latency_s if i is not None and i.ok else math.nan for i in outcome],
+        "payload_bytes": payload,
+        "frame_t": fe.t.tolist() if fe is not None else [],
+        "frame_error_m": fe.position_m.tolist() if fe is not None else [],
+        "mcs_t": r.t.tolist(),
+        "ul_mcs": r.ul_mcs.tolist(),
+    }
+    times = [t for t, _ in handovers]
+    far = [d.chosen for d in vd.decisions if all(not t - w <= d.t < t + w for t in times)]
+    away = _away(far, payload)
+    rows = []
+    for t, row in handovers:
+        windows = bands.around(t, window_s=w, **series)
+        for side, (a, b) in (("before", (t - w, t)), ("after", (t, t + w))):
+            x = windows[side]
+            x["timed_out"] = sum(
+                a <= s < b and i is not None and i.timed_out
+                for s, i in zip(sent, outcome, strict=True)
+            )
+            x["top_split_vs_away"] = _size_vs(x["top_split"], away["top_split"], payload)
+        compared = [x["top_split_vs_away"] for x in windows.values() if x["top_split_vs_away"]]
+        rows.append(
+            {**row, **windows, "smaller_split_near": "smaller" in compared if compared else None}
+        )
+    return away, rows
+
+
+def radio_summary(data: RunData, edgeloc: Mapping[str, FrameErrors]) -> dict[str, Any]:
+    """Per vehicle of a `channel:` run, from `/radio/<vehicle>` and `/handover`: steps,
+    coverage (share of steps at downlink CQI >= 1), the serving cells' shares, handovers,
+    SINR and MCS figures of both directions, and what EdgeLoc (its fused errors `edgeloc`,
+    by vehicle) and its learner did around each handover; `sites` as the recorder's
+    `edgeloc.run` metadata gives them. {} without /radio."""
     if not data.radio:
         return {}
-    t0 = data.t0
     out: dict[str, Any] = {}
     for v, r in data.radio.items():
         if not len(r):
             continue
         cells = Counter(r.cell)
-        handovers = [
-            {"t_s": _r(float(r.t[i]) - t0), "from": r.cell[i - 1], "to": r.cell[i]}
-            for i in range(1, len(r))
-            if r.cell[i] != r.cell[i - 1]
-        ]
+        source, handovers = _handovers(data, r)
+        away, around = _around_handovers(data, r, handovers, edgeloc.get(v))
         out[v] = {
             "steps": len(r),
             "coverage": _r(float(np.mean(r.cqi >= 1))),
             "cells": {c: _r(n / len(r)) for c, n in sorted(cells.items())},
-            "handovers": handovers,
+            "handovers": [row for _, row in handovers],
+            "handovers_source": source,
             "sinr_db": _spread(r.sinr_db),
             "ul_sinr_db": _spread(r.ul_sinr_db),
             "mean_mcs": _r(float(np.mean(r.mcs))),
@@ -710,9 +848,21 @@ def radio_summary(data: RunData) -> dict[str, Any]:
             "mean_bler": _r(float(np.mean(r.bler))),
             "mean_ul_bler": _r(float(np.mean(r.ul_bler))),
             "by_uplink_mcs": _plays_by_uplink_mcs(data, v),
+            "handover_window_s": HANDOVER_WINDOW_S,
+            "away_from_handovers": away,
+            "around_handovers": around,
         }
     channel = data.run.get("channel")
     return {"vehicles": out, "channel": channel if isinstance(channel, dict) else None}
+
+
+def handovers_unrecorded(data: RunData) -> bool:
+    """The scenario set `channel.handover` and a vehicle's serving cell changed, yet the
+    recording holds no `/handover`: its handovers are known only from /radio's cells."""
+    channel = data.run.get("channel")
+    if not isinstance(channel, dict) or not channel.get("handover") or data.handovers:
+        return False
+    return any(r.cell[i] != r.cell[i - 1] for r in data.radio.values() for i in range(1, len(r)))
 
 
 #: Keys under which the recorder may put a process's last log lines.
@@ -774,6 +924,8 @@ def not_recorded(data: RunData) -> list[str]:
         missing.append("/links/events")
     if not data.counters:
         missing.append("/links/counters")
+    if handovers_unrecorded(data):
+        missing.append(HANDOVER_TOPIC)
     return missing
 
 
@@ -842,7 +994,7 @@ def summarize(data: RunData, splits: bool | str = True) -> dict[str, Any]:
             "realtime": realtime_summary(data),
             "dnn_gaps": dnn_gaps(data),
             "links": links_summary(data),
-            "radio": radio_summary(data),
+            "radio": radio_summary(data, errs.get("edgeloc", {})),
             "splits": split_block,
             "nodes": data.nodes,
             "failures": failures(data),
@@ -852,6 +1004,7 @@ def summarize(data: RunData, splits: bool | str = True) -> dict[str, Any]:
 
 
 __all__ = [
+    "HANDOVER_WINDOW_S",
     "SUMMARY_VERSION",
     "FrameErrors",
     "clean_json",

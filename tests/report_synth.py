@@ -153,6 +153,68 @@ class SynthRun:
             },
         )
 
+    def radio(
+        self,
+        t: float,
+        cell: str,
+        ul_mcs: int,
+        x: float = 0.0,
+        y: float = 0.0,
+        sinr_db: float = 10.0,
+        vehicle: str = "av1",
+    ) -> None:
+        """The vehicle's RadioState of the channel step at `t` (downlink MCS 15, CQI 9)."""
+        self.add(
+            t,
+            f"/radio/{vehicle}",
+            "RadioState",
+            {
+                "stamp": stamp(t),
+                "vehicle": vehicle,
+                "cell": cell,
+                "x": x,
+                "y": y,
+                "rsrp_dbm": -90.0,
+                "sinr_db": sinr_db,
+                "cqi": 9,
+                "mcs": 15,
+                "bler": 0.1,
+                "ul_sinr_db": sinr_db - 5.0,
+                "ul_mcs": ul_mcs,
+                "ul_bler": 0.1,
+            },
+        )
+
+    def handover(
+        self,
+        t: float,
+        source: str,
+        target: str,
+        scheduled_s: float,
+        interruption_s: float,
+        lossless: bool,
+        lateness_s: float = 0.02,
+        error: str = "",
+        vehicle: str = "av1",
+    ) -> None:
+        """A Handover on /handover as the recorder writes it: stamped when it took effect."""
+        self.add(
+            t,
+            "/handover",
+            "Handover",
+            {
+                "stamp": stamp(t),
+                "vehicle": vehicle,
+                "source": source,
+                "target": target,
+                "scheduled_s": scheduled_s,
+                "lateness_s": lateness_s,
+                "interruption_s": interruption_s,
+                "lossless": lossless,
+                "error": error,
+            },
+        )
+
     def write(self, path: Path, chunk_size: int = 1024 * 1024, finish: bool = True) -> Path:
         """Write the file; `finish=False` leaves it as a killed recorder would (no footer)."""
         f = open(path, "wb")  # noqa: SIM115 - left unfinished on purpose when finish=False
