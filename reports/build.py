@@ -732,6 +732,14 @@ def _radio(s: dict[str, Any], plots: dict[str, Plot | None]) -> Section | None:
     def db(block: Any, key: str) -> str:
         return _f((block or {}).get(key), "{:.1f}")
 
+    def capacity(block: Any) -> str:
+        """The uplink's p5 / median: the uplink is what EdgeLoc's requests wait on, and its
+        p5 is the cell edge. "-" for a run without links.json's radios."""
+        ul = (block or {}).get("ul") or {}
+        if ul.get("median") is None:
+            return "-"
+        return f"{_f(ul.get('p5'), '{:.1f}')} / {_f(ul.get('median'), '{:.1f}')}"
+
     sec.add(
         Table(
             [
@@ -743,6 +751,7 @@ def _radio(s: dict[str, Any], plots: dict[str, Plot | None]) -> Section | None:
                 "UL SINR p5/median dB",
                 "mean MCS DL/UL",
                 "mean BLER DL/UL",
+                "capacity p5/median UL Mbit/s",
             ],
             [
                 [
@@ -754,11 +763,13 @@ def _radio(s: dict[str, Any], plots: dict[str, Plot | None]) -> Section | None:
                     f"{db(r.get('ul_sinr_db'), 'p5')} / {db(r.get('ul_sinr_db'), 'median')}",
                     f"{_f(r.get('mean_mcs'), '{:.1f}')} / {_f(r.get('mean_ul_mcs'), '{:.1f}')}",
                     f"{_pct(r.get('mean_bler'))} / {_pct(r.get('mean_ul_bler'))}",
+                    capacity(r.get("capacity_mbps")),
                 ]
                 for v, r in vehicles.items()
             ],
             caption="per vehicle, from /radio/<vehicle>: coverage is the share of steps at "
-            "downlink CQI 1 or better",
+            "downlink CQI 1 or better; capacity is what the serving cell's uplink carried at "
+            "each step's MCS and BLER, its radio from links.json (- without it)",
         )
     )
     for v, r in vehicles.items():

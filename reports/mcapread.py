@@ -11,8 +11,9 @@ Topics read (named in `nodes.recording.layout`): `/<vehicle>/gt`, `/<vehicle>/vo
 method per frame), `/<vehicle>/split_decision`, `/<vehicle>/detector`, `/<vehicle>/inference`,
 `/links/events`, `/links/counters`, `/radio/<vehicle>` (RadioState), `/handover` (Handover);
 metadata `edgeloc.run`, `edgeloc.nodes`, `edgeloc.timeline`, `edgeloc.linktest` (values
-JSON-encoded where structured); attachments by name. Times are kept as float seconds since the
-epoch; `RunData.t0` is the origin the report measures run time from.
+JSON-encoded where structured); attachments by name, `linktest.json` and `links.json` (the
+links' profiles, whose NR radios `RunData.link_radios` rebuilds) decoded. Times are kept as
+float seconds since the epoch; `RunData.t0` is the origin the report measures run time from.
 """
 
 from __future__ import annotations
@@ -31,10 +32,12 @@ from mcap.stream_reader import StreamReader
 from mcap_ros2.decoder import DecoderFactory
 from numpy.typing import NDArray
 
+from netem.nr import Radio
 from nodes.recording.layout import (
     HANDOVER_TOPIC,
     LINK_COUNTERS_TOPIC,
     LINK_EVENTS_TOPIC,
+    LINKS_CONFIG_FILE,
     RUN_MCAP,
     VEHICLE_TOPICS,
     radio_topic,
@@ -264,6 +267,13 @@ class RunData:
     last_log_time: float | None
     radio: dict[str, RadioSeries] = field(default_factory=dict)  # vehicle -> /radio/<vehicle>
     handovers: list[HandoverRec] = field(default_factory=list)  # /handover, in time order
+    #: The attachment links.json (`testbed.run.links_config`: per link its profiles per
+    #: direction as applied at the start, `final_profiles` as the timeline left them); None
+    #: when the run did not attach it (runs older than the attachment).
+    links_config: dict[str, Any] | None = None
+    #: (link, direction) -> the NR radio that direction started the run with, rebuilt from
+    #: links.json: what the report needs to say what an air link carried at a step's MCS.
+    link_radios: dict[tuple[str, str], Radio] = field(default_factory=dict)
 
     @property
     def t0(self) -> float:
@@ -459,6 +469,13 @@ def read_run(path: Path | str) -> RunData:
             problems.append("attachment linktest.json is not valid JSON")
     elif isinstance(linktest_meta.get("links"), list):
         linktest = linktest_meta
+    links_config: Any = None
+    if LINKS_CONFIG_FILE in attachments:
+        try:
+            links_config = json.loads(attachments[LINKS_CONFIG_FILE].decode("utf-8", "replace"))
+        except ValueError:
+            problems.append(f"attachment {LINKS_CONFIG_FILE} is not valid JSON")
+    links_config = links_config if isinstance(links_config, dict) else None
 
     return RunData(
         path=p,
@@ -485,7 +502,36 @@ def read_run(path: Path | str) -> RunData:
         last_log_time=last_log,
         radio={v: RadioSeries.from_rows(v, r) for v, r in sorted(radio_rows.items())},
         handovers=sorted(handovers, key=lambda h: (h.t, h.vehicle)),
+        links_config=links_config,
+        link_radios=_link_radios(links_config, problems),
     )
+
+
+def _link_radios(
+    config: dict[str, Any] | None, problems: list[str]
+) -> dict[tuple[str, str], Radio]:
+    """The radio of each link direction in links.json's starting `profiles`, rebuilt with
+    `Radio.from_dict` (how `LinkProfile.from_dict` rebuilds it), not the whole profile: a
+    profile field another version spells differently must not cost the report the radio. A
+    radio that does not rebuild (a field of another version) is left out, with a problem."""
+    out: dict[tuple[str, str], Radio] = {}
+    links = (config or {}).get("links")
+    if not isinstance(links, dict):
+        return out
+    for link, entry in sorted(links.items()):
+        profiles = entry.get("profiles") if isinstance(entry, dict) else None
+        for direction in ("uplink", "downlink"):
+            profile = profiles.get(direction) if isinstance(profiles, dict) else None
+            radio = profile.get("radio") if isinstance(profile, dict) else None
+            if not isinstance(radio, dict):
+                continue  # a wired link, or a direction without an air interface
+            try:
+                out[(str(link), direction)] = Radio.from_dict(radio)
+            except (TypeError, ValueError) as err:  # NrError is a ValueError
+                problems.append(
+                    f"{LINKS_CONFIG_FILE}: the {direction} radio of {link} does not rebuild ({err})"
+                )
+    return out
 
 
 #: Where the channel's steps are recorded: `/radio/<vehicle>` (`layout.radio_topic`).

@@ -20,7 +20,7 @@ from matplotlib.ticker import FuncFormatter, LogLocator, NullFormatter
 
 from nodes.recording import linktable
 from reports.mcapread import RunData, VehicleData
-from reports.summary import FrameErrors, fused_method, split_order
+from reports.summary import FrameErrors, fused_method, radio_capacity, split_order
 
 #: Per-vehicle figures are drawn for at most this many vehicles (the tables cover all).
 MAX_VEHICLE_FIGURES = 6
@@ -38,6 +38,10 @@ EXTRA_COLORS = ("#9467bd", "#8c564b", "#e377c2", "#17becf", "#bcbd22", "#d62728"
 #: any error a method makes here, 1 kbit/s below any traffic the nodes send.
 ERROR_FLOOR_M = 0.01
 RATE_FLOOR_MBIT = 0.001
+#: Lowest bottom of the radio figure's capacity axis: a 106-PRB carrier carries ~1.5 Mbit/s
+#: at MCS 0 in its uplink slots, so only a narrow carrier's cell edge comes near it, and a
+#: step whose blocks all fail (BLER 1) sits on the bottom line.
+CAPACITY_FLOOR_MBIT = 0.1
 
 
 @dataclass(frozen=True)
@@ -86,6 +90,16 @@ def _log_axis(ax: Any, floor: float) -> None:
         return f"≤{v:g}" if np.isclose(v, floor) else f"{v:g}"
 
     ax.yaxis.set_major_formatter(FuncFormatter(label))
+
+
+def _decade_below(values: Any, floor: float) -> float:
+    """The power of ten at or below the smallest positive finite value, not under `floor`:
+    the bottom of a log axis that shows the data's low end without empty decades."""
+    a = np.asarray(values, dtype=float)
+    a = a[np.isfinite(a) & (a > 0)]
+    if not len(a):
+        return floor
+    return max(floor, float(10 ** np.floor(np.log10(a.min()))))
 
 
 def _shade(ax: Any, summary: dict[str, Any], vehicle: str, t_label: bool = True) -> None:
@@ -572,9 +586,11 @@ def radio_map(
     edgeloc: FrameErrors | None = None,
 ) -> Plot | None:
     """The route coloured by downlink SINR over a halo of the serving cell's colour, the
-    cells' sites, the handover points; beside it SINR and MCS of both directions and, when
-    the vehicle ran EdgeLoc (`edgeloc`: its fused errors), EdgeLoc's position error over run
-    time, each with the handovers marked (`/radio/<vehicle>`, the summary's handovers)."""
+    cells' sites, the handover points; beside it SINR and MCS of both directions, when
+    links.json gives the air links' radios what the serving link carried at that MCS
+    (`summary.radio_capacity`: the MCS alone does not say how many Mbit/s it is worth), and,
+    when the vehicle ran EdgeLoc (`edgeloc`: its fused errors), EdgeLoc's position error over
+    run time, each with the handovers marked (`/radio/<vehicle>`, the summary's handovers)."""
     r = data.radio.get(vehicle)
     if r is None or not len(r):
         return None
@@ -583,8 +599,10 @@ def radio_map(
     info = (radio.get("vehicles") or {}).get(vehicle) or {}
     handovers = [h["t_s"] for h in info.get("handovers") or [] if h.get("t_s") is not None]
     errors = edgeloc if edgeloc is not None and len(edgeloc.t) else None
-    rows = 3 if errors is not None else 2
-    fig = Figure(figsize=(12, 5 if rows == 2 else 6.5))
+    capacity = radio_capacity(data, r)
+    rows = 2 + (capacity is not None) + (errors is not None)
+    # 5 in for the two panels every run has, 1.5 in more per panel it adds (each stays legible)
+    fig = Figure(figsize=(12, 5 + 1.5 * (rows - 2)))
     grid = fig.add_gridspec(rows, 2)
     ax = fig.add_subplot(grid[:, 0])
     cells = sorted(set(r.cell) | {str(s["name"]) for s in sites})
@@ -621,8 +639,19 @@ def radio_map(
     mid.set_ylabel("MCS")
     mid.set_ylim(-1, 29)
     panels = [top, mid]
+    if capacity is not None:
+        # Its own panel, not a twin of the MCS one: four step lines on two scales would hide
+        # each other. Log: the downlink carries several times the uplink, and a cell edge's
+        # MCS 0 must not flatten to the floor beside MCS 28.
+        cap = fig.add_subplot(grid[len(panels), 1], sharex=top)
+        floor = _decade_below(np.concatenate(list(capacity.values())), CAPACITY_FLOOR_MBIT)
+        cap.step(t, _floored(capacity["dl"], floor), where="post", lw=0.9)
+        cap.step(t, _floored(capacity["ul"], floor), where="post", lw=0.9)
+        _log_axis(cap, floor)
+        cap.set_ylabel("capacity (Mbit/s)")
+        panels.append(cap)
     if errors is not None:
-        low = fig.add_subplot(grid[2, 1], sharex=top)
+        low = fig.add_subplot(grid[len(panels), 1], sharex=top)
         low.plot(
             errors.t - data.t0,
             _floored(errors.position_m, ERROR_FLOOR_M),
@@ -639,6 +668,12 @@ def radio_map(
             a.axvline(ho, color="red", lw=0.8, ls="--")
     cover = info.get("coverage")
     covered = f" In coverage {cover:.0%} of the run." if isinstance(cover, float) else ""
+    capacity_note = (
+        ", the Mbit/s the serving cell's air link carried at that MCS and BLER (its radio "
+        "from links.json; log axis)"
+        if capacity is not None
+        else ""
+    )
     error_note = ", and EdgeLoc's position error per frame (log axis)" if errors is not None else ""
     return Plot(
         _save(fig, out, f"radio_{safe(vehicle)}.png"),
@@ -646,7 +681,7 @@ def radio_map(
         "Left: the route, each channel step coloured by its downlink SINR over a halo of its "
         "serving cell's colour, and the cell sites (triangles in their cell's colour; crosses "
         "at the handovers). Right: SINR and the MCS link adaptation ran, downlink and uplink"
-        f"{error_note}, over the run (dashed: handovers)." + covered,
+        f"{capacity_note}{error_note}, over the run (dashed: handovers)." + covered,
     )
 
 

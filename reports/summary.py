@@ -54,9 +54,12 @@ report can be compared with the run's own. Keys of summary.json (`version` 1):
   handovers [{t_s, from, to, interruption_ms, lossless, lateness_ms, error (null: applied)}],
   handovers_source ("/handover": as applied; "/radio/<vehicle>": changes of the serving cell,
   whose interruption, lossless, lateness and error are null), sinr_db and ul_sinr_db {min, p5,
-  median, p95, max}, mean_mcs, mean_ul_mcs, mean_bler, mean_ul_bler, by_uplink_mcs [{mcs [lo,
-  hi], time_share, plays, share {split: fraction}, mean_payload_bytes}] (the learner's
-  decisions by the uplink MCS at their time, `nodes.edgeloc.bands`; null without decisions),
+  median, p95, max}, mean_mcs, mean_ul_mcs, mean_bler, mean_ul_bler, capacity_mbps {ul, dl:
+  {min, p5, median, p95, max}} (Mbit/s the serving cell's air link carried at each step's MCS
+  and BLER, `radio_capacity`; null without links.json's radios, a run older than it),
+  by_uplink_mcs [{mcs [lo, hi], time_share, plays, share {split: fraction},
+  mean_payload_bytes}] (the learner's decisions by the uplink MCS at their time,
+  `nodes.edgeloc.bands`; null without decisions),
   handover_window_s (W, `HANDOVER_WINDOW_S`), away_from_handovers {plays, top_split, top_share,
   mean_payload_bytes} (the plays outside every [t - W, t + W)), around_handovers [one per
   handover: its keys above, and before and after ([t - W, t) and [t, t + W)), as
@@ -84,6 +87,7 @@ report can be compared with the run's own. Keys of summary.json (`version` 1):
 
 from __future__ import annotations
 
+import dataclasses
 import itertools
 import json
 import math
@@ -97,6 +101,7 @@ import numpy as np
 import yaml
 from numpy.typing import NDArray
 
+from netem.nr import Direction
 from nodes.edgeloc import bands
 from nodes.edgeloc.metrics import (
     METHODS,
@@ -820,12 +825,50 @@ def _around_handovers(
     return away, rows
 
 
+def radio_capacity(data: RunData, r: RadioSeries) -> dict[str, NDArray[np.float64]] | None:
+    """Per channel step, the Mbit/s the serving cell's air link carried, uplink (`ul`) and
+    downlink (`dl`): `Radio.goodput_bps` of the link's radio (`<vehicle>-<cell>`, as
+    links.json's starting profiles give it) at the step's MCS and BLER (`ul_mcs`/`ul_bler`
+    up, `mcs`/`bler` down), which is what the channel set on that link then. The MCS alone
+    hides what it is worth: the same MCS carries more on a wider carrier or a TDD pattern
+    with more slots of that direction. NaN at a step whose link has no radio in links.json
+    or whose MCS is no MCS; None when no step has a capacity (no links.json: an older run)."""
+    if not data.link_radios or not len(r):
+        return None
+    goodput: dict[tuple[str, Direction, int, float], float] = {}
+
+    def mbps(cell: str, direction: Direction, mcs: float, bler: float) -> float:
+        radio = data.link_radios.get((f"{r.vehicle}-{cell}", direction))
+        if radio is None or not (math.isfinite(mcs) and math.isfinite(bler)):
+            return math.nan
+        key = (cell, direction, int(mcs), float(bler))
+        if key not in goodput:
+            try:
+                step = dataclasses.replace(radio, mcs=int(mcs), bler=float(bler))
+                goodput[key] = step.goodput_bps(direction) / 1e6
+            except ValueError:  # NrError: an MCS outside TS 38.214's table
+                goodput[key] = math.nan
+        return goodput[key]
+
+    out = {
+        key: np.array(
+            [mbps(c, direction, m, b) for c, m, b in zip(r.cell, mcs, bler, strict=True)],
+            dtype=np.float64,
+        )
+        for key, direction, mcs, bler in (
+            ("ul", "uplink", r.ul_mcs, r.ul_bler),
+            ("dl", "downlink", r.mcs, r.bler),
+        )
+    }
+    return out if any(np.isfinite(x).any() for x in out.values()) else None
+
+
 def radio_summary(data: RunData, edgeloc: Mapping[str, FrameErrors]) -> dict[str, Any]:
     """Per vehicle of a `channel:` run, from `/radio/<vehicle>` and `/handover`: steps,
     coverage (share of steps at downlink CQI >= 1), the serving cells' shares, handovers,
-    SINR and MCS figures of both directions, and what EdgeLoc (its fused errors `edgeloc`,
-    by vehicle) and its learner did around each handover; `sites` as the recorder's
-    `edgeloc.run` metadata gives them. {} without /radio."""
+    SINR, MCS and capacity figures of both directions, and what EdgeLoc (its fused errors
+    `edgeloc`, by vehicle) and its learner did around each handover; `sites` as the
+    recorder's `edgeloc.run` metadata gives them. {} without /radio."""
     if not data.radio:
         return {}
     out: dict[str, Any] = {}
@@ -835,6 +878,7 @@ def radio_summary(data: RunData, edgeloc: Mapping[str, FrameErrors]) -> dict[str
         cells = Counter(r.cell)
         source, handovers = _handovers(data, r)
         away, around = _around_handovers(data, r, handovers, edgeloc.get(v))
+        capacity = radio_capacity(data, r)
         out[v] = {
             "steps": len(r),
             "coverage": _r(float(np.mean(r.cqi >= 1))),
@@ -847,6 +891,9 @@ def radio_summary(data: RunData, edgeloc: Mapping[str, FrameErrors]) -> dict[str
             "mean_ul_mcs": _r(float(np.mean(r.ul_mcs))),
             "mean_bler": _r(float(np.mean(r.bler))),
             "mean_ul_bler": _r(float(np.mean(r.ul_bler))),
+            "capacity_mbps": (
+                {k: _spread(x) for k, x in capacity.items()} if capacity is not None else None
+            ),
             "by_uplink_mcs": _plays_by_uplink_mcs(data, v),
             "handover_window_s": HANDOVER_WINDOW_S,
             "away_from_handovers": away,

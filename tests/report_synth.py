@@ -13,6 +13,10 @@ from typing import Any
 from mcap.writer import CompressionType
 from mcap_ros2.writer import Writer
 
+from netem.nr import Radio
+from netem.profile import LinkProfile
+from nodes.recording.layout import LINKS_CONFIG_FILE
+
 MSG_DIR = Path(__file__).resolve().parents[1] / "nodes" / "edgeloc_interfaces" / "msg"
 PKG = "edgeloc_interfaces"
 SEP = "=" * 80
@@ -162,8 +166,12 @@ class SynthRun:
         y: float = 0.0,
         sinr_db: float = 10.0,
         vehicle: str = "av1",
+        mcs: int = 15,
+        bler: float = 0.1,
+        ul_bler: float = 0.1,
     ) -> None:
-        """The vehicle's RadioState of the channel step at `t` (downlink MCS 15, CQI 9)."""
+        """The vehicle's RadioState of the channel step at `t` (CQI 9; downlink MCS 15 and
+        both BLERs 0.1 unless given)."""
         self.add(
             t,
             f"/radio/{vehicle}",
@@ -177,11 +185,11 @@ class SynthRun:
                 "rsrp_dbm": -90.0,
                 "sinr_db": sinr_db,
                 "cqi": 9,
-                "mcs": 15,
-                "bler": 0.1,
+                "mcs": mcs,
+                "bler": bler,
                 "ul_sinr_db": sinr_db - 5.0,
                 "ul_mcs": ul_mcs,
-                "ul_bler": 0.1,
+                "ul_bler": ul_bler,
             },
         )
 
@@ -214,6 +222,27 @@ class SynthRun:
                 "error": error,
             },
         )
+
+    def links(self, radios: dict[str, Radio | None], backend: str = "userspace") -> None:
+        """Attach links.json as `testbed.run.links_config` writes it: per link (name ->
+        its radio, None for a backhaul link) both directions' `LinkProfile.to_dict`, the radio
+        serialised inside as the run serialises it."""
+        config = {
+            "backend": backend,
+            "links": {
+                name: {
+                    "kind": "air" if radio is not None else "backhaul",
+                    "lower": name.split("-")[0],
+                    "upper": name.split("-")[-1],
+                    "profiles": {
+                        d: LinkProfile(delay_s=0.001, radio=radio).to_dict()
+                        for d in ("uplink", "downlink")
+                    },
+                }
+                for name, radio in radios.items()
+            },
+        }
+        self.attachments[LINKS_CONFIG_FILE] = json.dumps(config).encode()
 
     def write(self, path: Path, chunk_size: int = 1024 * 1024, finish: bool = True) -> Path:
         """Write the file; `finish=False` leaves it as a killed recorder would (no footer)."""
