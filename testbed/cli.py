@@ -223,8 +223,38 @@ def up(
             "--dry-run", help="Print the equivalent ip/tc (and relay) commands; change nothing."
         ),
     ] = False,
+    host: Annotated[
+        str | None,
+        typer.Option(
+            "--host",
+            help=(
+                "Build only this host's part of a topology across hosts (topology.hosts): its "
+                "nodes, the links among them, and its VXLAN ends of the links to the others. "
+                "Without it, every node is built here."
+            ),
+            show_default=False,
+        ),
+    ] = None,
+    run_id: Annotated[
+        str | None,
+        typer.Option(
+            "--run-id",
+            help=(
+                "The run id (6 lowercase hex characters) instead of a fresh one. Every host of "
+                "a topology across hosts is given the same: its tunnels' VNIs come from it."
+            ),
+            show_default=False,
+        ),
+    ] = None,
 ) -> None:
     """Build the scenario's network (namespaces, links, routes) and leave it up.
+
+    A topology across hosts is built one part per host, each with the same run id (the first
+    `up` prints the command for the others):
+
+      sudo testbed up FILE --host a --run-id 4a2cf3   # on host a
+
+      sudo testbed up FILE --host b --run-id 4a2cf3   # on host b
 
     Example: testbed up scenarios/default.yaml ; ip netns exec <ns> ping ... ; testbed down
     """
@@ -235,17 +265,42 @@ def up(
         scenario = load(file)
     except ScenarioError as err:
         raise _fail(err) from None
+    hosts = [h.name for h in scenario.topology.hosts]
+    if host is None and len(hosts) > 1:
+        con.plain(
+            f"note: topology.hosts names {', '.join(hosts)}; building every node here "
+            "(--host NAME builds one host's part)"
+        )
     try:
-        net = build(scenario, dry_run=dry_run, echo=con.plain if dry_run else None)
+        net = build(
+            scenario,
+            dry_run=dry_run,
+            echo=con.plain if dry_run else None,
+            run_id=run_id,
+            host=host,
+        )
     except KNOWN_ERRORS as err:
         raise _fail(err) from None
     if dry_run:
         return
-    con.ok(f"run {net.run_id} is up: {len(net.nodes)} namespaces, {len(net.links)} links")
+    nodes = net.local_nodes()
+    where = f" on host {host}" if host is not None else ""
+    across = f", {len(net.tunnels)} to other hosts" if net.tunnels else ""
+    con.ok(
+        f"run {net.run_id} is up{where}: {len(nodes)} namespaces, "
+        f"{len(net.local_links())} links{across}"
+    )
     con.plain(f"link backend: {net.backend_text()}")
-    for node in net.nodes.values():
+    for node in nodes:
         con.plain(f"  {node.name:<10} {node.role:<8} {node.netns:<18} {node.addresses()}")
-    con.plain(f"tear down with: testbed down {net.run_id}")
+    for tunnel in net.tunnels.values():
+        con.plain(f"  {tunnel.describe()}")
+    others = [h for h in hosts if h != host] if host is not None else []
+    if others:
+        con.plain("build the other hosts' parts with the same run id:")
+        for other in others:
+            con.plain(f"  testbed up {file} --host {other} --run-id {net.run_id}")
+    con.plain(f"tear down with: testbed down {net.run_id}" + (" (on each host)" if others else ""))
 
 
 @app.command()
@@ -788,7 +843,11 @@ def down(
         str | None, typer.Argument(help="Run id (default: the only live run).", show_default=False)
     ] = None,
 ) -> None:
-    """Tear down a run made by `testbed up`: exactly what its state file records."""
+    """Tear down a run made by `testbed up`: exactly what its state file records.
+
+    A topology across hosts is torn down on each host: each removes its part (its nodes'
+    namespaces, its VXLAN tunnels, relays and transit namespaces).
+    """
     from testbed.topology import teardown_run
 
     try:
@@ -825,7 +884,8 @@ def clean(
         bool, typer.Option("--all", help="Also tear down detached runs made by `testbed up`.")
     ] = False,
 ) -> None:
-    """Remove what dead runs left: namespaces, links, qdiscs, TUN devices, processes, cgroups.
+    """Remove what dead runs left: namespaces, links, qdiscs, TUN and VXLAN devices, processes,
+    cgroups (on a topology across hosts, this host's part of them).
 
     Only this project's resources are touched (names prefixed 'el-' and runs in its state dir).
     A run whose orchestrator was killed gets its run.mcap: the parts its nodes recorded are

@@ -110,6 +110,11 @@ class Net(Protocol):
 
     def record_pid(self, pid: int, what: str) -> None: ...
 
+    def emulates(self, link: str) -> bool:
+        """Whether this process applies `link`'s emulation (on one host of a topology across
+        hosts, only the links it holds the emulating end of)."""
+        ...
+
     def prepare_handover(self, vehicle: str) -> None: ...
 
     def hand_over(self, vehicle: str, target: str) -> None: ...
@@ -495,6 +500,8 @@ class _Base:
     def _link(self, name: str) -> Link:
         if name not in self.net.links:
             raise BadInput(f"no link {name!r} in this run ({', '.join(self.net.links)})")
+        if not self.net.emulates(name):
+            raise BadInput(f"link {name} is emulated on another host of the topology, not here")
         return self.net.links[name]
 
     @staticmethod
@@ -581,6 +588,8 @@ class UserspaceController(_Base):
 
     def apply(self) -> None:
         for name in self.net.links:
+            if not self.net.emulates(name):
+                continue  # its relay runs on the other host
             for d in DIRECTIONS:
                 self._relay(name).set(d, self.profiles[name, d])
 
@@ -651,6 +660,8 @@ class TcController(_Base):
         self.dry_run = dry_run
         self.shapers: dict[str, TcLinkBackend] = {}
         for link in net.links.values():
+            if not net.emulates(link.name):
+                continue  # its shaping end is on another host, which shapes it
             end = shaping_end(link.kind)
             node = link.upper if end == "upper" else link.lower
             ifname = link.ends.upper_ifname if end == "upper" else link.ends.lower_ifname

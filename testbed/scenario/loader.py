@@ -14,8 +14,10 @@ than piling up errors that only repeat the first one.
 from __future__ import annotations
 
 import dataclasses
+import ipaddress
 import math
 import re
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any, Literal
 
@@ -306,10 +308,14 @@ class _Builder:
         self.topology_ok = False  # every node known: references to unknown names are errors
         self.link_kinds: dict[str, str] = {}  # link name -> air | backhaul
         self.link_specs: dict[str, model.LinkSpec] = {}  # the links, once they checked out
+        # node -> (its host, the field path and YAML node where it is listed): `topology.hosts`
+        self.placed: dict[str, tuple[str, str, Node]] = {}
 
     def build(self) -> model.Scenario | None:
         topology = self._topology()
         links = self._links()
+        if topology is not None and links is not None:
+            self._check_links_across_hosts(topology, links)
         timeline = self._timeline()
         workload = self._workload()
         channel.check_sites(self.ctx, self.root)
@@ -452,7 +458,8 @@ class _Builder:
                     f"'{pool}' (room for {room})",
                 )
         qos = self._qos(topo.get("qos"))
-        if not self.topology_ok or qos is None:
+        hosts = self._hosts(topo)
+        if not self.topology_ok or qos is None or hosts is None:
             return None
         assert cells is not None and vehicles is not None
         return model.Topology(
@@ -462,7 +469,119 @@ class _Builder:
             ue_pool=ue_pool,
             ue_mtu=topo.get("ue_mtu", model.MAX_UE_MTU),
             qos=qos,
+            hosts=hosts,
         )
+
+    def _hosts(self, topo: Section) -> tuple[model.Host, ...] | None:
+        """`topology.hosts`: each host's underlay address and nodes; None when one is wrong
+        (reported). A node is on one host at most; hosts have addresses of their own; and the
+        link addresses must be the same on every host, so the pool is written down."""
+        hosts: dict[str, Any] | None = topo.get("hosts")
+        if not hosts:
+            return ()  # every node on this host (a broken `hosts` is reported already)
+        ok = True
+        built: list[model.Host] = []
+        owner: dict[ipaddress.IPv4Address, str] = {}  # address -> the host that has it
+        for name, host in hosts.items():
+            if not isinstance(host, Section) or not host.clean:
+                ok = False
+                continue
+            address = self._underlay_address(host, owner.get)
+            if address is None:
+                ok = False
+            else:
+                owner.setdefault(address, name)
+            nodes: Items | None = host.get("nodes")
+            for i, node, at in nodes.good() if nodes else ():
+                path = item(nodes.path, i) if nodes else ""
+                if self.topology_ok and node not in self.roles:
+                    ok = False
+                    self.ctx.add(
+                        at,
+                        path,
+                        f"the name of a node of this topology ({_listing(list(self.roles))})",
+                        repr(node),
+                        did_you_mean(node, list(self.roles), NAME_CUTOFF),
+                    )
+                elif node in self.placed:
+                    ok = False
+                    other, where, first = self.placed[node]
+                    self.ctx.add(
+                        at,
+                        path,
+                        "each node on one host",
+                        f"{node!r} again (already on host {other!r} at {where}, line "
+                        f"{first.start_mark.line + 1})",
+                        "a node is one namespace on one machine; list it under one host",
+                    )
+                else:
+                    self.placed[node] = (name, path, at)
+            if address is not None:
+                listed = tuple(node for _, node, _ in nodes.good()) if nodes else ()
+                built.append(model.Host(name, address, listed))
+        if len(hosts) > 1 and topo.get("address_pool") is None:
+            ok = False
+            self.ctx.add(
+                self.ctx.key_of.get(id(topo.at("hosts")), topo.at("hosts")),
+                topo.path_of("address_pool"),
+                "topology.address_pool with topology.hosts",
+                f"{len(hosts)} hosts and no address_pool",
+                "every host must give the links the same addresses, so write the pool "
+                "down (a private network none of the hosts uses, e.g. 10.77.0.0/16)",
+            )
+        return tuple(built) if ok else None
+
+    def _underlay_address(
+        self, host: Section, taken: Callable[[ipaddress.IPv4Address], str | None]
+    ) -> ipaddress.IPv4Address | None:
+        """A host's `address` as an IPv4 address another host can send VXLAN to; None when
+        it is not one (reported). `taken(address)` names a host that has it already."""
+        text = host["address"]
+        expected = "a unicast IPv4 address of this host that the other hosts reach"
+        try:
+            address = ipaddress.IPv4Address(text)
+        except ValueError as err:
+            self.ctx.add(host.at("address"), host.path_of("address"), expected, repr(text),
+                         str(err))  # fmt: skip
+            return None
+        why = (
+            "it is a loopback address, which no other host reaches"
+            if address.is_loopback
+            else "VXLAN here is unicast from host to host"
+            if address.is_multicast
+            else "it is no host's address"
+            if address.is_unspecified or address.is_reserved
+            else None
+        )
+        other = taken(address)
+        if why is None and other is not None:
+            expected = "an address of its own"
+            why = f"host {other} has it too; each host's tunnels end at its own address"
+        if why is not None:
+            self.ctx.add(host.at("address"), host.path_of("address"), expected, repr(text), why)
+            return None
+        return address
+
+    def _check_links_across_hosts(self, topology: model.Topology, links: model.Links) -> None:
+        """An air link whose profiles have an NR radio stays on one host: the air links of a
+        gNB share its cell's slots in one relay, which cannot reach across a tunnel."""
+        for spec in links.links:
+            if spec.uplink.radio is None and spec.downlink.radio is None:
+                continue
+            lower, upper = topology.host_of(spec.lower), topology.host_of(spec.upper)
+            if lower == upper:
+                continue
+            # At least one end is listed (unlisted nodes share the first host): report there.
+            node = spec.lower if spec.lower in self.placed else spec.upper
+            _, path, at = self.placed[node]
+            self.ctx.add(
+                at,
+                path,
+                "the two ends of an air link with a radio on one host",
+                f"{spec.lower} on host {lower!r}, {spec.upper} on host {upper!r} ({spec.name})",
+                f"the gNB's NR slots are scheduled in one relay on its host; put "
+                f"{spec.lower} on host {upper!r} with {spec.upper}",
+            )
 
     def _qos(self, qos: Section | None) -> model.Qos | None:
         """The sessions' QoS flows; None when a rule or the default names a QFI the flows lack

@@ -165,6 +165,16 @@ class Cell:
 
 
 @dataclass(frozen=True)
+class Host:
+    """A machine of a topology across hosts (`topology.hosts`): its underlay address (where
+    the VXLAN tunnels of links to other hosts end) and the nodes it holds."""
+
+    name: str
+    address: ipaddress.IPv4Address
+    nodes: tuple[str, ...] = ()
+
+
+@dataclass(frozen=True)
 class Topology:
     vehicles: tuple[Vehicle, ...]
     cells: tuple[Cell, ...]
@@ -172,6 +182,8 @@ class Topology:
     ue_pool: ipaddress.IPv4Network = DEFAULT_UE_POOL  # vehicles' addresses behind a UPF
     ue_mtu: int = MAX_UE_MTU  # their air interface's MTU: room for GTP-U on N3
     qos: Qos = field(default_factory=Qos)
+    #: The machines the nodes are spread over; empty: every node on the one host.
+    hosts: tuple[Host, ...] = ()
 
     def node_names(self) -> list[str]:
         names = [v.name for v in self.vehicles]
@@ -198,6 +210,20 @@ class Topology:
 
     def cell_of_gnb(self, gnb: str) -> Cell:
         return next(c for c in self.cells if c.gnb == gnb)
+
+    def host_of(self, node: str) -> str | None:
+        """The host `node` is on: the one that lists it, else the first; None without hosts."""
+        for host in self.hosts:
+            if node in host.nodes:
+                return host.name
+        return self.hosts[0].name if self.hosts else None
+
+    def host(self, name: str) -> Host:
+        """The host called `name` (KeyError when the topology has none of that name)."""
+        for host in self.hosts:
+            if host.name == name:
+                return host
+        raise KeyError(name)
 
     @property
     def tunnelled(self) -> bool:

@@ -45,6 +45,8 @@ from testbed.scenario.kinds import (
 JSON_SCHEMA_DIALECT = "https://json-schema.org/draft/2020-12/schema"
 
 NODE_NAME_PATTERN = r"^[a-z][a-z0-9]{0,9}$"
+HOST_NAME_PATTERN = r"^[a-z][a-z0-9-]{0,31}$"
+IPV4_ADDRESS_PATTERN = r"^[0-9]{1,3}(\.[0-9]{1,3}){3}$"
 LINK_NAME_PATTERN = r"^[a-z][a-z0-9]{0,9}-[a-z][a-z0-9]{0,9}$"
 SCENARIO_NAME_PATTERN = r"^[a-z0-9][a-z0-9_-]{0,31}$"
 
@@ -597,6 +599,24 @@ QOS = Obj(
     ],
 )
 
+HOST = Obj(
+    "A machine that holds part of the topology: its underlay address and its nodes.",
+    [
+        Field(
+            "address",
+            Str("an IPv4 address like 192.168.1.10", IPV4_ADDRESS_PATTERN),
+            "This host's underlay address: where the VXLAN tunnels (UDP 4789) of its links to"
+            " nodes on other hosts end. The other hosts must reach it.",
+            required=True,
+        ),
+        Field(
+            "nodes",
+            ListOf(node_name("a node name"), unique=True),
+            "The nodes on this host (nodes no host lists are on the first host).",
+        ),
+    ],
+)
+
 TOPOLOGY = Obj(
     "Nodes: cells (gNB + core, or gNB + UPF + edge) and vehicles. Names are unique across all"
     " of them, but cells may share a UPF and an edge.",
@@ -628,6 +648,21 @@ TOPOLOGY = Obj(
         Field("qos", QOS, "QoS flows on N3 (cells with a UPF)."),
         Field("cells", ListOf(CELL, min_items=1), "At least one cell.", required=True),
         Field("vehicles", ListOf(VEHICLE, min_items=1), "At least one vehicle.", required=True),
+        Field(
+            "hosts",
+            MapOf(
+                Str(
+                    "a host name: a lowercase letter then up to 31 lowercase letters, digits"
+                    " or dashes",
+                    HOST_NAME_PATTERN,
+                ),
+                HOST,
+            ),
+            "The machines the topology spans (default: every node on this one). A link whose"
+            " ends are on two hosts is carried by a VXLAN tunnel between their addresses;"
+            " `testbed up FILE --host NAME --run-id ID` builds one host's part. Needs"
+            " `address_pool`, so that every host gives the links the same addresses.",
+        ),
     ],
 )
 

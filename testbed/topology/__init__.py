@@ -14,6 +14,11 @@ Nouns (Mininet-like):
   `with build(scenario, mode="run") as net: ...` tears everything down on exit, exceptions and
   Ctrl-C included.
 - `build`, `teardown_run`, `clean`: what `testbed up`, `down` and `clean` call.
+- host (`topology.hosts`): a machine holding part of the topology. `build(..., host=NAME)`
+  builds that part (its nodes, the links among them) and, for each link to a node on another
+  host, a `vxlan.Tunnel`: a VXLAN device between the two hosts' underlay addresses, with the
+  link's emulation at one end (`vxlan` says which and how). `Net.here(node)` says whether a
+  node is this host's; the plan, its addresses and routes are the whole topology's everywhere.
 
 Routing, first form (`core:`): a vehicle's default route goes via its gNB; a core routes the
 whole pool via its gNB; a gNB only has connected routes and is the only node with
@@ -28,8 +33,8 @@ pool via its N6 peer. Links carry no route between the cells' link addresses bey
 
 Modules: `names` (namespace names and owner tags), `model` (Node, Link, Net), `plan` (a
 scenario into nodes, links, addresses, routes; nothing built), `build` (the plan made real),
-`corepath` (PDU sessions, the GTP-U endpoints and their routes), `teardown` (down, and `clean`
-of what dead runs left).
+`corepath` (PDU sessions, the GTP-U endpoints and their routes), `vxlan` (links across hosts),
+`teardown` (down, and `clean` of what dead runs left).
 """
 
 from testbed.topology.build import build

@@ -15,16 +15,23 @@ from testbed.addressing import choose_pool, host_networks
 from testbed.errors import BadInput
 from testbed.namespaces import LinkEnds, require_root
 from testbed.scenario.model import Scenario
+from testbed.topology import vxlan
 from testbed.topology.corepath import CorePath
 from testbed.topology.model import Net
 from testbed.topology.names import RUN_NETNS_RE, Echo
-from testbed.topology.plan import check_names, link_pairs, plan
+from testbed.topology.plan import check_host, check_names, link_pairs, plan
 
 # ---- build ---------------------------------------------------------------------------------
 
 
 def _live_pools(runs: list[st.RunState]) -> dict[str, IPv4Network]:
     return {r.run_id: IPv4Network(r.pool) for r in runs if r.pool and r.liveness() != "dead"}
+
+
+def _namespaces(net: Net) -> list[str]:
+    """Every namespace `net` creates on this host: its nodes', then its transit namespaces."""
+    transit = [t.transit.netns for t in net.tunnels.values() if t.transit is not None]
+    return [n.netns for n in net.local_nodes()] + transit
 
 
 def _ids_in_use(runs: list[st.RunState]) -> set[str]:
@@ -62,6 +69,7 @@ def build(
     run_id: str | None = None,
     mode: st.Mode = "up",
     backend: LinkEnds | None = None,
+    host: str | None = None,
 ) -> Net:
     """Build the scenario's network and return it.
 
@@ -75,12 +83,21 @@ def build(
     and every link's profiles are applied once the network is up (`net.control` then changes
     them live). An explicit `backend` (plain `VethEnds` in topology tests and benchmarks)
     builds those ends as they are, unshaped.
+
+    `host`: build only that host's part of a topology across hosts (`topology.hosts`; see
+    `testbed.topology.vxlan`): its nodes, the links among them, and its ends of the links to
+    the other hosts. Every host must be given the same `run_id`: the tunnels' VNIs come from
+    it. Another host's namespaces of that run may exist (a rehearsal on one machine): only
+    this part's names must be free.
     """
     if run_id is not None and not st.RUN_ID_RE.match(run_id):
         raise BadInput(f"run id {run_id!r} must be 6 lowercase hex characters")
     if not dry_run:
         require_root()
     check_names(scenario)
+    check_host(scenario, host)
+    if host is not None and not dry_run:
+        vxlan.check_underlay(host, scenario.topology.host(host).address)
     choice: links.BackendChoice | None = None
     if backend is None:
         choice = links.choose_backend(scenario)
@@ -94,14 +111,20 @@ def build(
             # A ROS domain of its own too: runs are apart by namespaces already, but a stray
             # process started with a run's environment must not meet another run's nodes.
             run_id = st.fresh_run_id(in_use, key=domain_id_for)
-        elif run_id in in_use:
+        elif run_id in (in_use if host is None else {r.run_id for r in runs}):
             raise BadInput(f"run id {run_id} is already in use (testbed status lists runs)")
         hosts = host_networks()
         pool = choose_pool(scenario.topology.address_pool, n_links, hosts, _live_pools(runs))
         if scenario.topology.tunnelled:
             check_ue_pool(scenario.topology.ue_pool, pool, hosts, scenario.source)
-        net = plan(scenario, run_id, pool, mode, backend, dry_run)
+        net = plan(scenario, run_id, pool, mode, backend, dry_run, host)
         net.link_backend = choice
+        taken = sorted(set(_namespaces(net)) & set(list_netns()))
+        if taken and not dry_run:
+            raise BadInput(
+                f"run id {run_id} is already in use on this host: namespace "
+                f"{', '.join(taken)} exists (testbed status lists runs)"
+            )
         if dry_run:
             lines = net.commands()
             if choice is not None and choice.name == "tc":  # relays start with their profiles
@@ -116,7 +139,7 @@ def build(
             return net
         # Write-ahead: every namespace is on file before the first one exists.
         net.state = st.new_run(scenario.name, source, mode, run_id, str(pool))
-        net.state.record_namespaces([n.netns for n in net.nodes.values()])
+        net.state.record_namespaces(_namespaces(net))
     try:
         if choice is not None:
             links.write_backend(run_id, choice)

@@ -142,18 +142,23 @@ class CorePath:
         self.final: dict[str, dict[str, Any]] = {}
 
     def start(self) -> CorePath:
-        """Start every endpoint, then the routes into their TUN devices."""
+        """Start every endpoint, then the routes into their TUN devices. On one host of a
+        topology across hosts, only the ends of its own gNBs and UPFs (N3 may cross hosts:
+        GTP-U is plain UDP to the tunnel)."""
         try:
             for cell in self._cells():
                 mine = tuple(s for s in self.sessions if s.gnb == cell.gnb)
                 gnb, upf = self.net[cell.gnb], self.net[cell.uplink_peer]
                 n3 = self.net.links[f"{cell.gnb}-{cell.uplink_peer}"].addresses
-                self._endpoint(cell.gnb, "gnb", gnb.netns, GNB_TUN, n3.lower.ip, mine)
-                self._endpoint(f"{upf.name}/{cell.gnb}", "upf", upf.netns, upf_tun(cell.gnb),
-                               n3.upper.ip, mine)  # fmt: skip
+                if self.net.here(gnb):
+                    self._endpoint(cell.gnb, "gnb", gnb.netns, GNB_TUN, n3.lower.ip, mine)
+                if self.net.here(upf):
+                    self._endpoint(f"{upf.name}/{cell.gnb}", "upf", upf.netns,
+                                   upf_tun(cell.gnb), n3.upper.ip, mine)  # fmt: skip
                 routes = self._routes(cell)
                 for node, tun in ((gnb, GNB_TUN), (upf, upf_tun(cell.gnb))):
-                    self._route(node, tun, [r for r in routes if r.node == node.name])
+                    if self.net.here(node):
+                        self._route(node, tun, [r for r in routes if r.node == node.name])
         except BaseException:
             self.close()
             raise
@@ -277,12 +282,19 @@ class CorePath:
                 for s in self.sessions
                 if s.gnb == cell.gnb
             )
-            out.append(f"# GTP-U gNB {cell.gnb} on {n3.lower.ip}:2152 (TUN {GNB_TUN}): {teids}")
-            out.append(qos)
-            out.append(f"ip netns exec {gnb.netns} python -m netem.gtp <gnb config> &")
-            out.append(f"# GTP-U UPF {upf.name} on {n3.upper.ip}:2152 (TUN {upf_tun(cell.gnb)})")
-            out.append(f"ip netns exec {upf.netns} python -m netem.gtp <upf config> &")
-            out += [r.command(self.net[r.node].netns) for r in self._routes(cell)]
+            if self.net.here(gnb):
+                out.append(f"# GTP-U gNB {cell.gnb} on {n3.lower.ip}:2152 (TUN {GNB_TUN}): {teids}")
+                out.append(qos)
+                out.append(f"ip netns exec {gnb.netns} python -m netem.gtp <gnb config> &")
+            if self.net.here(upf):
+                tun = upf_tun(cell.gnb)
+                out.append(f"# GTP-U UPF {upf.name} on {n3.upper.ip}:2152 (TUN {tun})")
+                out.append(f"ip netns exec {upf.netns} python -m netem.gtp <upf config> &")
+            out += [
+                r.command(self.net[r.node].netns)
+                for r in self._routes(cell)
+                if self.net.here(self.net[r.node])
+            ]
         return out
 
     def stats(self) -> dict[str, dict[str, Any]]:

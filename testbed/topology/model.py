@@ -18,14 +18,17 @@ from pyroute2.netlink.exceptions import NetlinkError as PyNetlinkError
 
 from netem.errors import NetlinkError
 from netem.netns import netns_path
+from netem.tc import shaping_end
 from testbed import links
 from testbed import state as st
 from testbed.addressing import LinkAddresses
 from testbed.errors import TestbedError
-from testbed.namespaces import EndNames, LinkEnds, Netns
+from testbed.namespaces import GSO_MAX_SIZE, EndNames, LinkEnds, Netns, VethEnds
 from testbed.scenario.model import Cell, LinkKind, LinkSpec, Role, Scenario
+from testbed.topology import vxlan
 from testbed.topology.names import OWNER_TAG
 from testbed.topology.teardown import Removed, remove_run
+from testbed.topology.vxlan import Transit
 
 # ---- the parts of a network ----------------------------------------------------------------
 
@@ -56,6 +59,8 @@ class Node:
     ue_address: IPv4Address | None = None
     #: Interfaces whose MTU is not the link's: a UE's air interface leaves room for GTP-U.
     mtus: dict[str, int] = field(default_factory=dict)
+    #: The machine it is on (`topology.hosts`); None when the topology names no hosts.
+    host: str | None = None
     ns: Netns | None = field(default=None, repr=False)  # None in a dry run or after teardown
 
     def addresses(self) -> str:
@@ -144,6 +149,45 @@ class Link:
         return self.lower._ns(), self.upper._ns()
 
 
+class RelayLeg:
+    """A link across hosts as its relay sees it: one end in the lower node's namespace (as on
+    one host), the other in the link's transit namespace instead of the upper node's (which is
+    on another host). What `testbed.links.TunRelayEnds` is given to start the relay."""
+
+    def __init__(self, link: Link, transit: Transit) -> None:
+        self.link = link
+        self.transit = transit
+
+    @property
+    def name(self) -> str:
+        return self.link.name
+
+    @property
+    def kind(self) -> LinkKind:
+        return self.link.kind
+
+    @property
+    def lower(self) -> Node:
+        return self.link.lower
+
+    @property
+    def upper(self) -> Node:
+        return self.link.upper
+
+    @property
+    def spec(self) -> LinkSpec | None:
+        return self.link.spec
+
+    @property
+    def ends(self) -> EndNames:
+        return EndNames(
+            lower_netns=self.link.lower.netns,
+            lower_ifname=self.link.upper.name,
+            upper_netns=self.transit.netns,
+            upper_ifname=self.transit.relay_end,
+        )
+
+
 class Net:
     """A run's network. Build it with `build`; use it as a context manager to tear it down."""
 
@@ -155,6 +199,7 @@ class Net:
         mode: st.Mode,
         backend: LinkEnds,
         dry_run: bool,
+        host: str | None = None,
     ) -> None:
         self.scenario = scenario
         self.run_id = run_id
@@ -162,8 +207,13 @@ class Net:
         self.mode = mode
         self.backend = backend
         self.dry_run = dry_run
+        #: The host whose part this is (`testbed up --host`); None: every node is built here.
+        self.host = host
         self.nodes: dict[str, Node] = {}
         self.links: dict[str, Link] = {}
+        #: This host's ends of the links to nodes on other hosts, by link name (`vxlan`).
+        self.tunnels: dict[str, vxlan.Tunnel] = {}
+        self._transit: dict[str, Netns] = {}  # transit namespaces, by link name
         self.state: st.RunState | None = None
         # What carries the links (`links.choose_backend`), and the controller of the live
         # links; None when the caller chose plain ends itself (links not emulated).
@@ -187,6 +237,31 @@ class Net:
     def __exit__(self, *exc: object) -> None:
         self.teardown()
 
+    # ---- which part is this host's -----------------------------------------------------
+
+    def here(self, node: Node) -> bool:
+        """Whether `node` is built by this process: every node, or this host's."""
+        return self.host is None or node.host == self.host
+
+    def local_nodes(self) -> list[Node]:
+        return [n for n in self.nodes.values() if self.here(n)]
+
+    def local_links(self) -> list[Link]:
+        """The links whose two ends are here (made by the backend, as on one host)."""
+        return [ln for ln in self.links.values() if self.here(ln.lower) and self.here(ln.upper)]
+
+    def emulating_node(self, link: Link) -> Node:
+        """The node at whose end `link` is emulated: the lower one's, where its relay runs
+        (userspace), or the shaping end's, where its qdiscs sit (tc)."""
+        if self.backend.name == "userspace":
+            return link.lower
+        return link.upper if shaping_end(link.kind) == "upper" else link.lower
+
+    def emulates(self, link: str) -> bool:
+        """Whether this process applies `link`'s emulation: every link's, or on one host of a
+        topology across hosts those it holds the emulating end of."""
+        return self.host is None or self.here(self.emulating_node(self.links[link]))
+
     # ---- resources other modules add ---------------------------------------------------
 
     def record_pid(self, pid: int, what: str = "") -> None:
@@ -208,28 +283,46 @@ class Net:
 
     def commands(self) -> list[str]:
         """The `ip` commands equivalent to what `build` does (what `--dry-run` prints)."""
-        cmds = [f"ip netns add {n.netns}" for n in self.nodes.values()]
-        cmds += [f"ip -n {n.netns} link set lo up" for n in self.nodes.values()]
-        for link in self.links.values():
+        nodes = self.local_nodes()
+        cmds = [f"ip netns add {n.netns}" for n in nodes]
+        cmds += [f"ip netns add {t.transit.netns}" for t in self.tunnels.values() if t.transit]
+        cmds += [f"ip -n {n.netns} link set lo up" for n in nodes]
+        cmds += [
+            f"ip -n {t.transit.netns} link set lo up" for t in self.tunnels.values() if t.transit
+        ]
+        for link in self.local_links():
             cmds += self.backend.commands(link.ends)
-        for link in self.links.values():
-            for node, ifname in ((link.lower, link.upper.name), (link.upper, link.lower.name)):
-                cmds.append(f"ip -n {node.netns} addr add {node.interfaces[ifname]} dev {ifname}")
-                if ifname in node.mtus:
-                    cmds.append(f"ip -n {node.netns} link set {ifname} mtu {node.mtus[ifname]}")
-                cmds.append(f"ip -n {node.netns} link set {ifname} up")
-        for node in self.nodes.values():
+        for name, tunnel in self.tunnels.items():
+            if tunnel.transit is not None:
+                cmds += self.backend.commands(RelayLeg(self.links[name], tunnel.transit).ends)
+            cmds += tunnel.commands()
+        for node, ifname in self._local_ends():
+            cmds.append(f"ip -n {node.netns} addr add {node.interfaces[ifname]} dev {ifname}")
+            if ifname in node.mtus:
+                cmds.append(f"ip -n {node.netns} link set {ifname} mtu {node.mtus[ifname]}")
+            cmds.append(f"ip -n {node.netns} link set {ifname} up")
+        for node in nodes:
             if node.ue_address is not None:
                 dev = next(iter(node.interfaces))
                 cmds.append(f"ip -n {node.netns} addr add {node.ue_address}/32 dev {dev}")
-        for node in self.nodes.values():
+        for node in nodes:
             for r in node.routes:
                 src = f" src {r.src}" if r.src else ""
                 cmds.append(f"ip -n {node.netns} route add {r.dst} via {r.via} dev {r.dev}{src}")
-        for node in self.nodes.values():
+        for node in nodes:
             if node.forwarding:
                 cmds.append(f"ip netns exec {node.netns} sysctl -w net.ipv4.ip_forward=1")
         return cmds
+
+    def _local_ends(self) -> list[tuple[Node, str]]:
+        """(node, interface) of every link end in a namespace of this host's nodes: both ends
+        of a local link, the near end of a link across hosts."""
+        return [
+            (node, ifname)
+            for link in self.links.values()
+            for node, ifname in ((link.lower, link.upper.name), (link.upper, link.lower.name))
+            if self.here(node)
+        ]
 
     # ---- realise -----------------------------------------------------------------------
 
@@ -237,29 +330,52 @@ class Net:
         tag = f"{OWNER_TAG}{self.state.path if self.state else '?'}"
         step = ""
         index: dict[tuple[str, str], int] = {}  # (node, ifname) -> ifindex, looked up once
+        nodes = self.local_nodes()
         try:
-            for node in self.nodes.values():
+            for node in nodes:
                 step = f"creating namespace {node.netns}"
                 node.ns = Netns.create(node.netns)
                 # lo up, and tagged with the owning state file so `clean` run against another
                 # state directory can tell this namespace is somebody's, not an orphan.
                 node.ns.ipr.link("set", index=1, state="up", ifalias=tag)
-            for link in self.links.values():
+            for name, tunnel in self.tunnels.items():
+                if tunnel.transit is not None:
+                    step = f"creating transit namespace {tunnel.transit.netns}"
+                    ns = self._transit[name] = Netns.create(tunnel.transit.netns)
+                    ns.ipr.link("set", index=1, state="up", ifalias=tag)
+            for link in self.local_links():
                 step = f"creating link {link.name} ({self.backend.name})"
                 self.backend.create(link, self)
-            for link in self.links.values():
-                for node, ifname in ((link.lower, link.upper.name), (link.upper, link.lower.name)):
-                    step = f"configuring {ifname} in {node.netns}"
-                    ns = node._ns()
-                    idx = index[node.name, ifname] = ns.ifindex(ifname)
-                    addr = node.interfaces[ifname]
-                    ns.ipr.addr(
-                        "add", index=idx, address=str(addr.ip), prefixlen=addr.network.prefixlen
-                    )
-                    if ifname in node.mtus:
-                        ns.ipr.link("set", index=idx, mtu=node.mtus[ifname])
-                    ns.ipr.link("set", index=idx, state="up")
-            for node in self.nodes.values():
+            for name, tunnel in self.tunnels.items():
+                link = self.links[name]
+                if tunnel.transit is not None:
+                    step = f"creating link {name}'s relay to {tunnel.transit.netns}"
+                    self.backend.create(RelayLeg(link, tunnel.transit), self)
+                step = (
+                    f"creating link {name}'s VXLAN tunnel (VNI {tunnel.vni}, {tunnel.local} to "
+                    f"host {tunnel.peer_host} at {tunnel.remote}) in {tunnel.netns}"
+                )
+                near = link.lower if self.here(link.lower) else link.upper
+                into = self._transit.get(name) or near._ns()
+                vxlan.create(tunnel, into)
+                if tunnel.transit is not None:
+                    step = f"routing {tunnel.transit.netns} between the relay and the tunnel"
+                    vxlan.configure_transit(tunnel, into)
+                elif isinstance(self.backend, VethEnds):  # qdiscs on it: as on a veth end
+                    into.ipr.link("set", index=into.ifindex(tunnel.ifname),
+                                  gso_max_size=GSO_MAX_SIZE)  # fmt: skip
+            for node, ifname in self._local_ends():
+                step = f"configuring {ifname} in {node.netns}"
+                ns = node._ns()
+                idx = index[node.name, ifname] = ns.ifindex(ifname)
+                addr = node.interfaces[ifname]
+                ns.ipr.addr(
+                    "add", index=idx, address=str(addr.ip), prefixlen=addr.network.prefixlen
+                )
+                if ifname in node.mtus:
+                    ns.ipr.link("set", index=idx, mtu=node.mtus[ifname])
+                ns.ipr.link("set", index=idx, state="up")
+            for node in nodes:
                 if node.ue_address is not None:
                     step = f"adding UE address {node.ue_address} in {node.netns}"
                     dev = next(iter(node.interfaces))  # a vehicle has its air interface
@@ -267,7 +383,7 @@ class Net:
                         "add", index=index[node.name, dev], address=str(node.ue_address),
                         prefixlen=32,
                     )  # fmt: skip
-            for node in self.nodes.values():
+            for node in nodes:
                 for r in node.routes:
                     step = f"adding route {r.dst} via {r.via} in {node.netns}"
                     dst = "0.0.0.0/0" if r.dst == "default" else r.dst
@@ -275,7 +391,7 @@ class Net:
                     node._ns().ipr.route(
                         "add", dst=dst, gateway=str(r.via), oif=index[node.name, r.dev], **extra
                     )
-            for node in self.nodes.values():
+            for node in nodes:
                 if node.forwarding:
                     step = f"enabling forwarding in {node.netns}"
                     node._ns().write_sysctl("net.ipv4.ip_forward", "1")
@@ -304,6 +420,7 @@ class Net:
         removed = remove_run(self.state, children=self._children, open_ns=self._open_ns())
         for node in self.nodes.values():
             node.ns = None
+        self._transit.clear()
         self._removed = removed
         return removed
 
@@ -359,4 +476,6 @@ class Net:
         return self.link_backend.describe()
 
     def _open_ns(self) -> list[Netns]:
-        return [n.ns for n in self.nodes.values() if n.ns is not None]
+        return [n.ns for n in self.nodes.values() if n.ns is not None] + list(
+            self._transit.values()
+        )

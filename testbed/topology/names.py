@@ -18,3 +18,9 @@ Echo = Callable[[str], None]
 
 def netns_name(run_id: str, node: str) -> str:
     return f"{NETNS_PREFIX}{run_id}-{node}"
+
+
+def transit_netns_name(run_id: str, link: str) -> str:
+    """The transit namespace of a link across hosts (`testbed.topology.vxlan`): `vx-` and the
+    link's name, which no node name can be (node names have no dash)."""
+    return f"{NETNS_PREFIX}{run_id}-vx-{link}"

@@ -13,7 +13,8 @@ from testbed.namespaces import LinkEnds, VethEnds
 from testbed.scenario.model import Cell, LinkKind, Links, LinkSpec, Scenario, Topology, Vehicle
 from testbed.scenario.schema_v1 import NODE_NAME_PATTERN
 from testbed.topology.model import Link, Net, Node, Route
-from testbed.topology.names import NODE_NAME_RE, netns_name
+from testbed.topology.names import NODE_NAME_RE, netns_name, transit_netns_name
+from testbed.topology.vxlan import Transit, Tunnel, vnis
 
 # ---- plan ----------------------------------------------------------------------------------
 
@@ -70,6 +71,21 @@ def ue_addresses(topo: Topology) -> dict[str, IPv4Address]:
     return {v.name: next(hosts) for v in topo.vehicles if v.gnb in tunnelled}
 
 
+def check_host(scenario: Scenario, host: str | None) -> None:
+    """`host` (one host's part of the topology) must be one of `topology.hosts`."""
+    if host is None:
+        return
+    names = [h.name for h in scenario.topology.hosts]
+    where = f"{scenario.source}: " if scenario.source is not None else ""
+    if not names:
+        raise BadInput(
+            f"--host {host}: {where}the scenario has no topology.hosts, so all of it is built on "
+            "one host; leave --host out"
+        )
+    if host not in names:
+        raise BadInput(f"--host {host}: {where}topology.hosts has {', '.join(names)}, not {host}")
+
+
 def plan(
     scenario: Scenario,
     run_id: str,
@@ -77,13 +93,21 @@ def plan(
     mode: st.Mode = "up",
     backend: LinkEnds | None = None,
     dry_run: bool = True,
+    host: str | None = None,
 ) -> Net:
-    """The Net a scenario asks for, fully addressed and routed, with nothing created yet."""
+    """The Net a scenario asks for, fully addressed and routed, with nothing created yet.
+
+    With `host` (a topology across hosts), the plan is still the whole topology, so that
+    addresses and routes are the same on every host, but only that host's nodes are built and
+    its ends of the links to other hosts are tunnels (`Net.tunnels`)."""
     check_names(scenario)
-    net = Net(scenario, run_id, pool, mode, backend or VethEnds(), dry_run)
+    check_host(scenario, host)
+    net = Net(scenario, run_id, pool, mode, backend or VethEnds(), dry_run, host)
     topo = scenario.topology
     for name in topo.node_names():
-        net.nodes[name] = Node(name, topo.role_of(name), netns_name(run_id, name), net)
+        node = Node(name, topo.role_of(name), netns_name(run_id, name), net)
+        node.host = topo.host_of(name)
+        net.nodes[name] = node
     pairs = link_pairs(scenario)
     addrs = assign(pool, [p[0] for p in pairs])
     specs = {s.name: s for s in scenario.links.links}
@@ -117,7 +141,41 @@ def plan(
         route = Route(str(topo.ue_pool), n6.addresses.lower.ip, near)
         if route not in edge.routes:
             edge.routes.append(route)
+    net.tunnels = plan_tunnels(net, relay=net.backend.name == "userspace")
     return net
+
+
+def plan_tunnels(net: Net, relay: bool) -> dict[str, Tunnel]:
+    """This host's tunnels: one per link with one end here and the other on another host.
+    `relay`: the links are the userspace backend's, so the lower node's host emulates each
+    through a transit namespace. Empty when the net is not one host's part."""
+    if net.host is None:
+        return {}
+    topo = net.scenario.topology
+    across = [link for link in net.links.values() if link.lower.host != link.upper.host]
+    numbers = vnis(net.run_id, [link.name for link in across])
+    out: dict[str, Tunnel] = {}
+    for link in across:
+        near, far = (link.lower, link.upper) if net.here(link.lower) else (link.upper, link.lower)
+        if not net.here(near):
+            continue  # both ends on other hosts: theirs to build
+        assert near.host is not None and far.host is not None
+        transit = None
+        if relay and near is link.lower:
+            transit = Transit(
+                transit_netns_name(net.run_id, link.name), link.lower.name, link.addresses.upper.ip
+            )
+        out[link.name] = Tunnel(
+            link=link.name,
+            vni=numbers[link.name],
+            local=topo.host(near.host).address,
+            remote=topo.host(far.host).address,
+            peer_host=far.host,
+            netns=transit.netns if transit is not None else near.netns,
+            ifname=far.name,
+            transit=transit,
+        )
+    return out
 
 
 def example_scenario(

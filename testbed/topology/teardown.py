@@ -1,5 +1,5 @@
-"""Taking a run's network down: its processes stopped, cgroups and namespaces removed (`down`,
-the end of `run`), and what dead runs left behind found and removed (`clean`)."""
+"""Taking a run's network down: its processes stopped, its VXLAN tunnels, cgroups and namespaces
+removed (`down`, the end of `run`), and what dead runs left behind found and removed (`clean`)."""
 
 from __future__ import annotations
 
@@ -21,6 +21,7 @@ from testbed import cgroups, check, links
 from testbed import state as st
 from testbed.errors import BadInput
 from testbed.namespaces import Netns, require_root
+from testbed.topology import vxlan
 from testbed.topology.names import OWNER_TAG, RUN_NETNS_RE, STOP_GRACE_S
 
 
@@ -32,11 +33,13 @@ class Removed:
     namespaces: int = 0
     processes: int = 0
     cgroups: int = 0
+    tunnels: int = 0  # VXLAN devices of links across hosts
     problems: list[str] = field(default_factory=list)
 
     def summary(self) -> str:
+        tunnels = f"{self.tunnels} VXLAN tunnel(s), " if self.tunnels else ""
         text = (
-            f"{self.namespaces} namespace(s), {self.processes} process(es), "
+            f"{self.namespaces} namespace(s), {tunnels}{self.processes} process(es), "
             f"{self.cgroups} cgroup(s) removed"
         )
         if self.problems:
@@ -130,12 +133,29 @@ def _remove_namespaces(names: Sequence[str], removed: Removed, open_ns: Sequence
         removed.processes += _stop([*(_processes_in(identities) if identities else []), *relays])
     for ns in open_ns:
         ns.close()  # our sockets keep a namespace alive after it is unregistered
+    _remove_tunnels(names, removed)
     for name in names:
         try:
             if delete_netns(name):
                 removed.namespaces += 1
         except OSError as err:
             removed.problems.append(f"namespace {name} ({err.strerror})")
+
+
+def _remove_tunnels(names: Sequence[str], removed: Removed) -> None:
+    """Delete the VXLAN devices in these namespaces now: a namespace is freed in the
+    background once unregistered, and until then its tunnels would keep their VNIs and the
+    underlay's UDP socket (a quick `up` again would find its VNI taken)."""
+    for name in names:
+        try:
+            ns = Netns.open(name)
+        except OSError:
+            continue  # gone already, or never made
+        with ns:
+            try:
+                removed.tunnels += vxlan.remove_all(ns)
+            except PyNetlinkError as err:
+                removed.problems.append(f"VXLAN tunnels in {name} ({err.args[-1]})")
 
 
 def remove_run(
@@ -242,12 +262,14 @@ def clean(include_detached: bool = False) -> str:
         totals.namespaces += r.namespaces
         totals.processes += r.processes
         totals.cgroups += r.cgroups
+        totals.tunnels += r.tunnels
         totals.problems += r.problems
     claimed = {n for r in st.list_runs() for n in r.namespaces}
     orphans = [n for n in list_netns() if _is_orphan(n, claimed)]
     orphan_removed = Removed("orphans")
     _remove_namespaces(orphans, orphan_removed, ())
     totals.processes += orphan_removed.processes
+    totals.tunnels += orphan_removed.tunnels
     totals.problems += orphan_removed.problems
     # Budget trees of runs that neither a state file nor a namespace claims any more.
     live_ids = {r.run_id for r in st.list_runs()} | {
