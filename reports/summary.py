@@ -795,22 +795,22 @@ def _around_handovers(
     result = {i.frame_id: i for i in vd.inference}  # a play's request, by its frame
     sent = [d.t for d in vd.decisions]
     outcome = [result.get(d.frame_id) for d in vd.decisions]
-    series: dict[str, Any] = {  # `bands.around`'s arguments besides the handover's time
-        "sent_s": sent,
-        "splits": [d.chosen for d in vd.decisions],
-        "latency_s": [i.latency_s if i is not None and i.ok else math.nan for i in outcome],
-        "payload_bytes": payload,
-        "frame_t": fe.t.tolist() if fe is not None else [],
-        "frame_error_m": fe.position_m.tolist() if fe is not None else [],
-        "mcs_t": r.t.tolist(),
-        "ul_mcs": r.ul_mcs.tolist(),
-    }
+    series = bands.Series(
+        sent_s=sent,
+        splits=[d.chosen for d in vd.decisions],
+        latency_s=[i.latency_s if i is not None and i.ok else math.nan for i in outcome],
+        payload_bytes=payload,
+        frame_t=fe.t.tolist() if fe is not None else [],
+        frame_error_m=fe.position_m.tolist() if fe is not None else [],
+        mcs_t=r.t.tolist(),
+        ul_mcs=r.ul_mcs.tolist(),
+    )
     times = [t for t, _ in handovers]
     far = [d.chosen for d in vd.decisions if all(not t - w <= d.t < t + w for t in times)]
     away = _away(far, payload)
     rows = []
     for t, row in handovers:
-        windows = bands.around(t, window_s=w, **series)
+        windows = bands.around(t, series, window_s=w)
         for side, (a, b) in (("before", (t - w, t)), ("after", (t, t + w))):
             x = windows[side]
             x["timed_out"] = sum(

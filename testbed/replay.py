@@ -579,8 +579,16 @@ def radio_bands(
         if figures.get("mean_bytes") is not None
     }
     rows = bands.by_band(at_play, decisions["split"], payload, bands.time_shares(ul))
-    frame_t = (result.timestamps - result.timestamps[0]).tolist()
-    error = np.hypot(*(result.poses["edgeloc"][:, :2] - result.gt[:, :2]).T).tolist()
+    series = bands.Series(
+        sent_s=decisions["sent_s"],
+        splits=decisions["split"],
+        latency_s=[math.inf if x is None else x for x in decisions["latency_s"]],
+        payload_bytes=payload,
+        frame_t=(result.timestamps - result.timestamps[0]).tolist(),
+        frame_error_m=np.hypot(*(result.poses["edgeloc"][:, :2] - result.gt[:, :2]).T).tolist(),
+        mcs_t=[s.t for s in plan.steps],
+        ul_mcs=ul,
+    )
     handovers = [
         {
             "t_s": e.at_s,
@@ -588,17 +596,7 @@ def radio_bands(
             "target": e.target,
             "interruption_s": e.interruption_s,
             "lossless": e.lossless,
-            "around": bands.around(
-                e.at_s,
-                sent_s=decisions["sent_s"],
-                splits=decisions["split"],
-                latency_s=[math.inf if x is None else x for x in decisions["latency_s"]],
-                payload_bytes=payload,
-                frame_t=frame_t,
-                frame_error_m=error,
-                mcs_t=[s.t for s in plan.steps],
-                ul_mcs=ul,
-            ),
+            "around": bands.around(e.at_s, series),
         }
         for e in scenario.timeline
         if isinstance(e, HandoverEvent) and e.vehicle == vehicle

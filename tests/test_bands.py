@@ -66,8 +66,7 @@ def test_a_channel_scenario_s_replay_sorts_its_plays_by_the_uplink_mcs(tmp_path:
 
 
 def test_around_a_handover_splits_the_window_at_it() -> None:
-    got = bands.around(
-        10.0,
+    series = bands.Series(
         sent_s=[6.9, 7.5, 8.0, 9.9, 10.0, 12.9, 13.0],
         splits=["image", "fc", "fc", "conv1", "vehicle", "vehicle", "image"],
         latency_s=[0.1, 0.05, 0.07, float("inf"), 0.2, 0.04, 0.1],
@@ -77,6 +76,7 @@ def test_around_a_handover_splits_the_window_at_it() -> None:
         mcs_t=[6.0, 8.0, 11.0, 12.0],
         ul_mcs=[28, 10, 4, 20],
     )
+    got = bands.around(10.0, series)
     before, after = got["before"], got["after"]
     # [7, 10): 7.5, 8.0, 9.9 (6.9 is outside); the lost one's latency is left out.
     assert (before["plays"], before["top_split"]) == (3, "fc")

@@ -9,7 +9,6 @@ gap acts where packets leave the link, after the delay, so what is in flight is 
 from __future__ import annotations
 
 import contextlib
-import json
 import math
 import socket
 import threading
@@ -24,6 +23,7 @@ from netem.gso import Frame
 from netem.profile import LinkProfile
 from netem.relay import Relay
 from netem.stages import Delay, HandoverGap, Pipeline
+from tests.test_stages import ask
 
 
 def packet(seq: int, size: int = 100) -> bytes:
@@ -289,17 +289,6 @@ def socket_relay(
         relay.close()
         for s in (a_app, a_relay, b_app, b_relay):
             s.close()
-
-
-def ask(path: str, message: dict) -> dict:
-    with socket.socket(socket.AF_UNIX, socket.SOCK_STREAM) as s:
-        s.settimeout(2)
-        s.connect(path)
-        s.sendall((json.dumps(message) + "\n").encode())
-        data = b""
-        while not data.endswith(b"\n"):
-            data += s.recv(65536)
-    return json.loads(data)
 
 
 def test_the_relay_wakes_at_the_end_of_a_hold_to_deliver_what_it_held(tmp_path: Path) -> None:

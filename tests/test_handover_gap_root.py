@@ -24,6 +24,7 @@ import pytest
 
 from netem.profile import LinkProfile
 from tests.test_relay_root import ADDR_B, PORT, link_for, namespaces, udp_socket
+from tests.test_rrc_root import _stamp
 
 pytestmark = pytest.mark.root
 
@@ -40,15 +41,6 @@ PROFILE = LinkProfile(delay_s=DELAY_S)
 def pair() -> Iterator[tuple[str, ...]]:
     with namespaces("a", "b") as names:
         yield names
-
-
-def _stamp(ancillary: list[tuple[int, int, bytes]]) -> float:
-    """The kernel's receive time (SO_TIMESTAMPNS, wall clock) of a datagram."""
-    for level, kind, data in ancillary:
-        if level == socket.SOL_SOCKET and kind == SO_TIMESTAMPNS:
-            sec, nsec = struct.unpack("qq", data[:16])
-            return sec + nsec * 1e-9
-    raise AssertionError("the kernel gave no receive timestamp")
 
 
 def send_through_a_gap(pair: tuple[str, ...], mode: str) -> tuple[list[tuple[int, float]], Any]:

@@ -16,6 +16,7 @@ import bisect
 import math
 from collections import Counter
 from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
 from typing import Any
 
 #: Bands of the uplink MCS (TS 38.214 Table 5.1.3.1-1, 0..28): QPSK-ish cell edge, the
@@ -95,57 +96,50 @@ def lines(rows: Sequence[Mapping[str, Any]]) -> list[str]:
 AROUND_S = 3.0
 
 
-def _window(
-    lo: float,
-    hi: float,
-    sent_s: Sequence[float],
-    splits: Sequence[str],
-    latency_s: Sequence[float],
-    payload_bytes: Mapping[str, float],
-    frame_t: Sequence[float],
-    frame_error_m: Sequence[float],
-    mcs_t: Sequence[float],
-    ul_mcs: Sequence[int],
-) -> dict[str, Any]:
-    chosen = [i for i, t in enumerate(sent_s) if lo <= t < hi]
-    count = Counter(splits[i] for i in chosen)
-    top, n = count.most_common(1)[0] if count else (None, 0)
-    sent = [payload_bytes[splits[i]] for i in chosen if splits[i] in payload_bytes]
-    lat = [latency_s[i] for i in chosen if math.isfinite(latency_s[i])]
-    err = [e for t, e in zip(frame_t, frame_error_m, strict=True) if lo <= t < hi]
-    mcs = [m for t, m in zip(mcs_t, ul_mcs, strict=True) if lo <= t < hi]
-    return {
-        "plays": len(chosen),
-        "top_split": top,
-        "top_share": n / len(chosen) if chosen else None,
-        "mean_payload_bytes": sum(sent) / len(sent) if sent else None,
-        "mean_latency_s": sum(lat) / len(lat) if lat else None,
-        "mean_error_m": sum(err) / len(err) if err else None,
-        "mean_ul_mcs": sum(mcs) / len(mcs) if mcs else None,
-    }
+@dataclass(frozen=True)
+class Series:
+    """What `around` looks at, on one clock (seconds since the run's start): the plays (when
+    each was sent, its split, its request's latency, inf or NaN when lost), the mean payload
+    of each split, EdgeLoc's error per frame, and the uplink MCS per channel step."""
+
+    sent_s: Sequence[float]
+    splits: Sequence[str]
+    latency_s: Sequence[float]
+    payload_bytes: Mapping[str, float]
+    frame_t: Sequence[float]
+    frame_error_m: Sequence[float]
+    mcs_t: Sequence[float]
+    ul_mcs: Sequence[int]
+
+    def window(self, lo: float, hi: float) -> dict[str, Any]:
+        """The figures of [lo, hi) (see `around`)."""
+        chosen = [i for i, t in enumerate(self.sent_s) if lo <= t < hi]
+        count = Counter(self.splits[i] for i in chosen)
+        top, n = count.most_common(1)[0] if count else (None, 0)
+        payload = self.payload_bytes
+        sent = [payload[self.splits[i]] for i in chosen if self.splits[i] in payload]
+        lat = [self.latency_s[i] for i in chosen if math.isfinite(self.latency_s[i])]
+        err = [e for t, e in zip(self.frame_t, self.frame_error_m, strict=True) if lo <= t < hi]
+        mcs = [m for t, m in zip(self.mcs_t, self.ul_mcs, strict=True) if lo <= t < hi]
+        return {
+            "plays": len(chosen),
+            "top_split": top,
+            "top_share": n / len(chosen) if chosen else None,
+            "mean_payload_bytes": sum(sent) / len(sent) if sent else None,
+            "mean_latency_s": sum(lat) / len(lat) if lat else None,
+            "mean_error_m": sum(err) / len(err) if err else None,
+            "mean_ul_mcs": sum(mcs) / len(mcs) if mcs else None,
+        }
 
 
-def around(
-    at_s: float,
-    *,
-    sent_s: Sequence[float],
-    splits: Sequence[str],
-    latency_s: Sequence[float],
-    payload_bytes: Mapping[str, float],
-    frame_t: Sequence[float],
-    frame_error_m: Sequence[float],
-    mcs_t: Sequence[float],
-    ul_mcs: Sequence[int],
-    window_s: float = AROUND_S,
-) -> dict[str, Any]:
+def around(at_s: float, series: Series, window_s: float = AROUND_S) -> dict[str, Any]:
     """The learner, EdgeLoc and the uplink in [at - window, at) ("before") and [at, at +
     window) ("after"): plays, the most played split and its share, mean payload and request
     latency, EdgeLoc's mean error over the frames, the mean uplink MCS over the channel's
-    steps. Times on one clock (seconds since the run's start)."""
-    args = (sent_s, splits, latency_s, payload_bytes, frame_t, frame_error_m, mcs_t, ul_mcs)
+    steps."""
     return {
-        "before": _window(at_s - window_s, at_s, *args),
-        "after": _window(at_s, at_s + window_s, *args),
+        "before": series.window(at_s - window_s, at_s),
+        "after": series.window(at_s, at_s + window_s),
     }
 
 
