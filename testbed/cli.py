@@ -79,6 +79,20 @@ ScenarioFile = Annotated[
 ]
 JsonFlag = Annotated[bool, typer.Option("--json", help="Print machine-readable JSON.")]
 RunsDir = Annotated[Path, typer.Option("--runs-dir", help="Where run folders go.", file_okay=False)]
+HostsEngine = Annotated[
+    str,
+    typer.Option(
+        "--engine",
+        help="local: this host only; ray: every host of topology.hosts, each on its own Ray "
+        "node (the one offering the resource testbed-host-<name>; pip install '.[ray]').",
+    ),
+]
+HostsAddress = Annotated[
+    str,
+    typer.Option(
+        "--address", help="--engine ray: the Ray cluster: auto (a running one) or HOST:PORT."
+    ),
+]
 
 
 def _fail(err: BaseException) -> typer.Exit:
@@ -246,6 +260,8 @@ def up(
             show_default=False,
         ),
     ] = None,
+    engine: HostsEngine = "local",
+    address: HostsAddress = "auto",
 ) -> None:
     """Build the scenario's network (namespaces, links, routes) and leave it up.
 
@@ -256,16 +272,26 @@ def up(
 
       sudo testbed up FILE --host b --run-id 4a2cf3   # on host b
 
+    or from any one of them, each host's part by a Ray task on that host's node (started with
+    `ray start ... --resources='{"testbed-host-a": 1}'`; see the README):
+
+      sudo testbed up FILE --engine ray --address HEAD:6379
+
     Example: testbed up scenarios/default.yaml ; ip netns exec <ns> ping ... ; testbed down
     """
     from testbed.scenario import ScenarioError, load
     from testbed.topology import build
 
+    if engine not in ("local", "ray"):
+        raise _fail(BadInput(f"--engine: expected local or ray, found {engine!r}"))
     try:
         scenario = load(file)
     except ScenarioError as err:
         raise _fail(err) from None
     hosts = [h.name for h in scenario.topology.hosts]
+    if engine == "ray":
+        _up_on_ray(file, hosts, run_id, address, host=host, dry_run=dry_run)
+        return
     if host is None and len(hosts) > 1:
         con.plain(
             f"note: topology.hosts names {', '.join(hosts)}; building every node here "
@@ -301,6 +327,60 @@ def up(
         for other in others:
             con.plain(f"  testbed up {file} --host {other} --run-id {net.run_id}")
     con.plain(f"tear down with: testbed down {net.run_id}" + (" (on each host)" if others else ""))
+
+
+def _up_on_ray(
+    file: Path, hosts: list[str], run_id: str | None, address: str, host: str | None, dry_run: bool
+) -> None:
+    """`up --engine ray`: each host's part on its Ray node (testbed.multihost); per host what
+    it built, or why it failed (the hosts that came up are then taken down again)."""
+    from testbed.multihost import up_on_ray
+
+    if host is not None or dry_run:
+        raise _fail(
+            BadInput(
+                f"--engine ray builds every host's part; {'--host' if host else '--dry-run'} is "
+                "for one host (testbed up FILE --dry-run --host NAME prints its commands)"
+            )
+        )
+    if len(hosts) < 2:
+        raise _fail(
+            BadInput(
+                f"--engine ray builds a topology across hosts, and {file} has "
+                f"{'one host' if hosts else 'no topology.hosts'}: `testbed up {file}` builds it "
+                "here"
+            )
+        )
+    try:
+        outcome = up_on_ray(file, hosts, run_id, address, progress=con.plain)
+    except KNOWN_ERRORS as err:
+        raise _fail(err) from None
+    for part in outcome.parts:
+        if part.ok:
+            con.ok(f"host {part.host} ({part.machine}): up in {part.seconds:.1f} s")
+            for line in part.result():
+                con.plain(f"  {line}")
+        else:
+            con.error(f"host {part.host} ({part.machine}): `testbed up` failed (exit {part.code})")
+            for line in part.lines[-6:]:
+                con.plain(f"  {line}")
+    for part in outcome.undone:
+        if part.ok:
+            con.plain(f"host {part.host}: taken down again: {part.lines[-1] if part.lines else ''}")
+        else:
+            con.error(
+                f"host {part.host} could not be taken down again: run `testbed down "
+                f"{outcome.run_id}` there ({part.lines[-1] if part.lines else part.code})"
+            )
+    if outcome.failed:
+        code = outcome.failed[0].code
+        raise typer.Exit(code if code in (EXIT_FAILED, EXIT_BAD_INPUT, EXIT_HOST) else EXIT_FAILED)
+    where = "" if address == "auto" else f" --address {address}"
+    con.ok(
+        f"run {outcome.run_id} is up on {len(outcome.parts)} hosts "
+        f"({', '.join(p.host for p in outcome.parts)}) in {outcome.seconds:.1f} s"
+    )
+    con.plain(f"tear down with: testbed down {outcome.run_id} --engine ray{where}")
 
 
 @app.command()
@@ -842,19 +922,63 @@ def down(
     run_id: Annotated[
         str | None, typer.Argument(help="Run id (default: the only live run).", show_default=False)
     ] = None,
+    engine: HostsEngine = "local",
+    address: HostsAddress = "auto",
 ) -> None:
     """Tear down a run made by `testbed up`: exactly what its state file records.
 
     A topology across hosts is torn down on each host: each removes its part (its nodes'
-    namespaces, its VXLAN tunnels, relays and transit namespaces).
+    namespaces, its VXLAN tunnels, relays and transit namespaces). With --engine ray, on every
+    host whose Ray node offers a testbed-host-<name> resource, from any one of them:
+
+      sudo testbed down 4a2cf3 --engine ray --address HEAD:6379
     """
     from testbed.topology import teardown_run
 
+    if engine not in ("local", "ray"):
+        raise _fail(BadInput(f"--engine: expected local or ray, found {engine!r}"))
+    if engine == "ray":
+        _down_on_ray(run_id, address)
+        return
     try:
         removed = teardown_run(run_id)
     except KNOWN_ERRORS as err:
         raise _fail(err) from None
     con.ok(f"run {removed.run_id} is down ({removed.summary()})")
+
+
+def _down_on_ray(run_id: str | None, address: str) -> None:
+    """`down --engine ray`: `testbed down RUN_ID` on every host's Ray node; per host what it
+    removed, or that it had nothing of the run."""
+    from testbed.multihost import down_on_ray
+
+    if run_id is None:
+        raise _fail(BadInput("--engine ray: name the run: testbed down <run id> --engine ray"))
+    try:
+        parts = down_on_ray(run_id, address)
+    except KNOWN_ERRORS as err:
+        raise _fail(err) from None
+    for part in parts:
+        if part.absent:
+            con.plain(f"host {part.host} ({part.machine}): no run {run_id} there")
+        elif part.ok:
+            con.ok(f"host {part.host} ({part.machine}): {part.lines[-1] if part.lines else 'down'}")
+        else:
+            con.error(
+                f"host {part.host} ({part.machine}): `testbed down` failed (exit {part.code})"
+            )
+            for line in part.lines[-6:]:
+                con.plain(f"  {line}")
+    failed = [p for p in parts if not p.ok]
+    if failed:
+        code = failed[0].code
+        raise typer.Exit(code if code in (EXIT_FAILED, EXIT_BAD_INPUT, EXIT_HOST) else EXIT_FAILED)
+    if all(p.absent for p in parts):
+        raise _fail(
+            BadInput(
+                f"no host of the Ray cluster ({', '.join(p.host for p in parts)}) has run {run_id}"
+            )
+        )
 
 
 @app.command()

@@ -62,8 +62,11 @@ def _ray() -> Any:
     return ray
 
 
-def connect(options: RayOptions) -> tuple[Any, bool]:
-    """Ray, connected to the cluster; and whether this process started it (`local`)."""
+def connect(options: RayOptions, how_to_start: str | None = None) -> tuple[Any, bool]:
+    """Ray, connected to the cluster; and whether this process started it (`local`).
+
+    `how_to_start` replaces the sweep's advice in the error for a cluster that is not there
+    (`testbed up --engine ray` wants other resources on its hosts than a sweep)."""
     ray = _ray()
     if ray.is_initialized():
         return ray, False
@@ -94,11 +97,12 @@ def connect(options: RayOptions) -> tuple[Any, bool]:
                 "or it refused: copy the head's ~/.ray/auth_token here (or set RAY_AUTH_TOKEN), "
                 "and leave RAY_AUTH_MODE unset or 'token'"
             ) from None
-        raise HostError(
-            f"no Ray cluster at {options.address!r} ({err}); start one with "
-            f"`ray start --head --resources='{{\"{options.resource}\": 1}}'` on a testbed host "
-            "(see the README), or use --address local for this host alone"
-        ) from None
+        if how_to_start is None:
+            how_to_start = (
+                f"start one with `ray start --head --resources='{{\"{options.resource}\": 1}}'`"
+                " on a testbed host (see the README), or use --address local for this host alone"
+            )
+        raise HostError(f"no Ray cluster at {options.address!r} ({err}); {how_to_start}") from None
     return ray, False
 
 
