@@ -835,20 +835,21 @@ def radio_capacity(data: RunData, r: RadioSeries) -> dict[str, NDArray[np.float6
     or whose MCS is no MCS; None when no step has a capacity (no links.json: an older run)."""
     if not data.link_radios or not len(r):
         return None
-    goodput: dict[tuple[str, Direction, int, float], float] = {}
+    # `goodput_bps` is the MCS's block rate times (1 - bler): the rate is looked up once per
+    # link, direction and MCS, not once per step (every step's BLER is its own).
+    rates: dict[tuple[str, Direction, int], float] = {}
 
     def mbps(cell: str, direction: Direction, mcs: float, bler: float) -> float:
         radio = data.link_radios.get((f"{r.vehicle}-{cell}", direction))
-        if radio is None or not (math.isfinite(mcs) and math.isfinite(bler)):
+        if radio is None or not (math.isfinite(mcs) and 0.0 <= bler < 1.0):
             return math.nan
-        key = (cell, direction, int(mcs), float(bler))
-        if key not in goodput:
+        key = (cell, direction, int(mcs))
+        if key not in rates:
             try:
-                step = dataclasses.replace(radio, mcs=int(mcs), bler=float(bler))
-                goodput[key] = step.goodput_bps(direction) / 1e6
+                rates[key] = dataclasses.replace(radio, mcs=int(mcs)).rate_bps(direction) / 1e6
             except ValueError:  # NrError: an MCS outside TS 38.214's table
-                goodput[key] = math.nan
-        return goodput[key]
+                rates[key] = math.nan
+        return rates[key] * (1.0 - bler)
 
     out = {
         key: np.array(

@@ -159,11 +159,10 @@ class _PathPlan:
             )
         self.vehicle = next(v for v in vehicles if v.name == name)
         self.cell = topo.cell_of_gnb(self.vehicle.gnb)
-        self.air = self._link(scenario, "air", name)
         known = set(scenario.links.names())
         # With handovers, the path of each cell the vehicle may be served by (`states_at`
         # takes the one serving at its time).
-        self.airs: dict[str, LinkSpec] = {self.vehicle.gnb: self.air}
+        self.airs: dict[str, LinkSpec] = {}
         self.paths: dict[str, list[LinkSpec]] = {}
         for gnb in scenario.gnbs_of(self.vehicle):
             cell = topo.cell_of_gnb(gnb)
@@ -174,11 +173,11 @@ class _PathPlan:
             missing = [n for n in (f"{name}-{gnb}", *path) if n not in known]
             if missing:
                 raise BadInput(f"{scenario.name}: no link {missing[0]}; cannot build {name}'s path")
-            self.airs.setdefault(gnb, scenario.links.get(f"{name}-{gnb}"))
+            self.airs[gnb] = scenario.links.get(f"{name}-{gnb}")
             # The wired hops to the edge server: the backhaul, or N3 and N6 (N6 alone to an
             # edge at the cell). GTP-U's 44 bytes per packet on N3 are left out (1-3%).
             self.paths[gnb] = [scenario.links.get(n) for n in path]
-        self.wired = self.paths[self.vehicle.gnb]
+        self.air, self.wired = self.airs[self.vehicle.gnb], self.paths[self.vehicle.gnb]
         self.handovers = sorted(
             (e for e in scenario.timeline if isinstance(e, HandoverEvent) and e.vehicle == name),
             key=lambda e: e.at_s,
@@ -194,13 +193,6 @@ class _PathPlan:
                     self.traces[(e.link, e.direction)] = (e, load_trace(e.path, e.format))
                 except ValueError as err:
                     raise BadInput(f"trace of {e.link} at {e.at_s:g} s: {err}") from None
-
-    @staticmethod
-    def _link(scenario: Scenario, kind: str, lower: str) -> LinkSpec:
-        for link in scenario.links.links:
-            if link.kind == kind and lower in (link.lower, link.upper):
-                return link
-        raise BadInput(f"{scenario.name}: no {kind} link at {lower}; cannot build its path")
 
     def breakpoints(self, horizon: float) -> list[float]:
         times = {0.0}

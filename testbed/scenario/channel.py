@@ -19,6 +19,7 @@ from __future__ import annotations
 import dataclasses
 import math
 from pathlib import Path
+from typing import Literal
 
 from netem.channel import RadioTrace, RadioTraceError
 from netem.handover import FILTER_COEFFICIENTS, TTT_MS
@@ -188,7 +189,7 @@ def check_handover(ctx: Context, root: Section) -> None:
         )
     upfs = sorted({str(c.get("upf")) for c in good if c.get("upf")})
     plain = [c.get("gnb") for c in good if not c.get("upf")]
-    at_cell = [c.get("gnb") for c in good if c.get("upf") and _placement(c) == "cell"]
+    at_cell = [c.get("gnb") for c in good if c.get("upf") and placement(c) == "cell"]
     if plain or at_cell or len(upfs) > 1:
         found = (
             f"cells without a UPF ({', '.join(map(str, plain))})"
@@ -244,6 +245,7 @@ def _half_db(value: float) -> bool:
     return bool((value * 2).is_integer())
 
 
-def _placement(cell: Section) -> str:
+def placement(cell: Section) -> Literal["core", "cell"]:
+    """Where a cell's edge server is written to stand (`edge: {placement: ...}`; core if not)."""
     edge = cell.get("edge")
-    return str(edge.get("placement", "core")) if isinstance(edge, Section) else "core"
+    return edge.get("placement", "core") if isinstance(edge, Section) else "core"

@@ -19,7 +19,7 @@ import math
 import re
 from collections.abc import Callable
 from pathlib import Path
-from typing import Any, Literal
+from typing import Any
 
 import yaml
 from yaml.nodes import Node
@@ -287,11 +287,6 @@ def _edge_name(cell: Section) -> str | None:
     return edge.get("name") if isinstance(edge, Section) else edge
 
 
-def _placement(cell: Section) -> Literal["core", "cell"]:
-    edge = cell.get("edge")
-    return edge.get("placement", "core") if isinstance(edge, Section) else "core"
-
-
 # ---- rules that join fields -----------------------------------------------------------------
 
 
@@ -431,7 +426,7 @@ class _Builder:
                 self.link_kinds[f"{gnb}-{core}"] = "backhaul"
             elif gnb and upf and edge:
                 self.link_kinds[f"{gnb}-{upf}"] = "n3"
-                lower = gnb if _placement(cell) == "cell" else upf
+                lower = gnb if channel.placement(cell) == "cell" else upf
                 self.link_kinds[f"{lower}-{edge}"] = "n6"
         pool = topo.get("address_pool")
         ue_pool = topo.get("ue_pool") or model.DEFAULT_UE_POOL
@@ -664,7 +659,9 @@ class _Builder:
             edge = _edge_name(cell)
             if edge is None or not cell.written("upf"):
                 continue
-            where = "placement cell" if _placement(cell) == "cell" else f"behind {cell['upf']}"
+            where = (
+                "placement cell" if channel.placement(cell) == "cell" else f"behind {cell['upf']}"
+            )
             if edge not in first:
                 first[edge] = (where, cell.path_of("edge"))
             elif first[edge][0] != where:
@@ -682,7 +679,9 @@ class _Builder:
         if cell.written("site"):
             built = dataclasses.replace(built, site=channel.site(cell))  # type: ignore[arg-type]
         if cell.written("edge"):
-            built = dataclasses.replace(built, edge=_edge_name(cell), placement=_placement(cell))
+            built = dataclasses.replace(
+                built, edge=_edge_name(cell), placement=channel.placement(cell)
+            )
         radio = cell.get("radio")
         if not isinstance(radio, Section) or "scheduler" not in radio:
             return built

@@ -79,17 +79,15 @@ class PduSession:
 
 def sessions(net: Net) -> list[PduSession]:
     """One session per vehicle behind a UPF, in the order the vehicles are written; with
-    handovers, then the same session prepared at each other gNB (as Xn handover preparation
-    sets it up at a target), so that routing alone decides which tunnel carries it."""
+    handovers, each followed by the same session prepared at every other gNB (as Xn handover
+    preparation sets it up at a target), so that routing alone decides which tunnel carries
+    it."""
     topo = net.scenario.topology
     out = []
     vehicles = [v for v in topo.vehicles if net[v.name].ue_address is not None]
-    for rank in range(max((len(net.scenario.gnbs_of(v)) for v in vehicles), default=0)):
-        for i, v in enumerate(vehicles):
-            gnbs = net.scenario.gnbs_of(v)
-            if rank >= len(gnbs):
-                continue
-            cell = topo.cell_of_gnb(gnbs[rank])
+    for i, v in enumerate(vehicles):
+        for gnb in net.scenario.gnbs_of(v):  # its first cell's session first
+            cell = topo.cell_of_gnb(gnb)
             n3 = net.links[f"{cell.gnb}-{cell.uplink_peer}"].addresses
             ue = net[v.name].ue_address
             assert ue is not None
