@@ -9,17 +9,21 @@ drift states must converge to the scale and bias the trace drew.
 from __future__ import annotations
 
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
 
 from nodes.edgeloc import geometry
-from nodes.edgeloc.ekf import DelayedEkf, EkfNoise
+from nodes.edgeloc.ekf import MAX_INFLATION, DelayedEkf, EkfNoise, correlation_inflation
 from nodes.edgeloc.fusion import EdgeLocFuser
 from nodes.edgeloc.settings import KalmanSettings, ReplayConfig
 from nodes.edgeloc.world import VoNoise, vo_trace
+from testbed.replay import replay_config
+from testbed.scenario import load
 
 RATE_HZ = 20.0
+SCENARIOS = Path(__file__).resolve().parents[1] / "scenarios"
 
 
 def _route(seconds: float, speed: float = 10.0) -> np.ndarray:
@@ -196,3 +200,88 @@ def test_the_settings_build_the_fuser_they_name() -> None:
     assert isinstance(ReplayConfig().build_fuser(), EdgeLocFuser)
     with pytest.raises(ValueError, match="unknown fusion method 'kf'; known: paper, ekf"):
         ReplayConfig(fusion_method="kf")
+
+
+# ---- correlated answers (`correlation_s`) -----------------------------------------------------
+
+
+def test_the_inflation_is_the_variance_of_the_mean_of_correlated_pairs() -> None:
+    tau = 0.2
+    # ρ = exp(-gap/τ); gap = τ ln 3 gives ρ = 1/3, so (1 + ρ) / (1 − ρ) = 2
+    assert correlation_inflation(tau * math.log(3), tau) == pytest.approx(2.0)
+    assert correlation_inflation(10.0, tau) == pytest.approx(1.0, abs=1e-12)
+    assert correlation_inflation(0.0, tau) == MAX_INFLATION
+    gaps = [0.01, 0.05, 0.1, 0.2, 0.5]
+    factors = [correlation_inflation(g, tau) for g in gaps]
+    assert factors == sorted(factors, reverse=True)
+
+
+def _ar1_answers(gt: np.ndarray, tau: float, sigma: float, rng: np.random.Generator) -> dict:
+    """An answer every frame whose position error is AR(1): correlation exp(-gap/τ)."""
+    rho = math.exp(-1.0 / (RATE_HZ * tau))
+    e = rng.normal(0.0, sigma, 2)
+    out = {}
+    for i in range(len(gt)):
+        e = rho * e + math.sqrt(1 - rho**2) * rng.normal(0.0, sigma, 2)
+        out[i] = gt[i] + np.array([e[0], e[1], rng.normal(0.0, 0.05)])
+    return out
+
+
+def _nees_on_correlated_answers(correlation_s: float | None) -> float:
+    nees = []
+    for seed in range(16):
+        rng = np.random.default_rng(300 + seed)
+        gt = _route(30)
+        vo = vo_trace(gt, RATE_HZ, rng, VoNoise())
+        answers = _ar1_answers(gt, 0.25, 1.0, rng)
+        ekf = DelayedEkf(EkfNoise(r_pos=1.0, r_yaw=0.0025), correlation_s=correlation_s)
+        for i in range(len(gt)):
+            ekf.on_vo(vo[i], i / RATE_HZ)
+            ekf.on_dnn(answers[i], i / RATE_HZ, i / RATE_HZ)
+            if i > 200 and i % 20 == 0:
+                x, p = ekf._x[-1], ekf._p[-1]
+                e = x[:2] - gt[i, :2]
+                nees.append(float(e @ np.linalg.solve(p[:2, :2], e)))
+    return float(np.mean(nees))
+
+
+def test_with_the_answers_correlation_time_its_covariance_stays_honest() -> None:
+    """Answers every 50 ms whose errors are correlated over 250 ms: taken as white, the filter
+    believes it knows the pose far better than it does (NEES well above 2); told the
+    correlation time, its confidence comes back towards what its errors are."""
+    white = _nees_on_correlated_answers(None)
+    told = _nees_on_correlated_answers(0.25)
+    print(f"mean NEES: taken as white {white:.2f}, told the correlation {told:.2f}")
+    assert white > 4.0
+    assert told < 0.5 * white
+    assert abs(told - 2.0) < abs(white - 2.0)
+
+
+def test_an_answer_right_after_another_moves_the_estimate_less() -> None:
+    gt = _route(5)
+    vo = vo_trace(gt, RATE_HZ, np.random.default_rng(9), VoNoise())
+    gains = {}
+    for corr in (None, 0.25):
+        ekf = DelayedEkf(EkfNoise(r_pos=1.0), correlation_s=corr)
+        for i in range(40):
+            ekf.on_vo(vo[i], i / RATE_HZ)
+        ekf.on_dnn(gt[30], 30 / RATE_HZ, 39 / RATE_HZ)
+        first = ekf.last_update.weight  # type: ignore[union-attr]
+        ekf.on_dnn(gt[31], 31 / RATE_HZ, 39 / RATE_HZ)
+        gains[corr] = (first, ekf.last_update.weight)  # type: ignore[union-attr]
+    assert gains[0.25][0] == pytest.approx(gains[None][0])  # the first answer is as before
+    assert gains[0.25][1] < 0.5 * gains[None][1]  # its neighbour counts for much less
+    with pytest.raises(ValueError, match="correlation time must be a positive number"):
+        DelayedEkf(correlation_s=0.0)
+
+
+def test_the_scenario_sets_the_correlation_time(tmp_path: Path) -> None:
+    text = (SCENARIOS / "default.yaml").read_text()
+    assert "fusion: {k_s: 2, dt0: -1400ms, robust: 2}" in text
+    file = tmp_path / "ekf.yaml"
+    file.write_text(text.replace("robust: 2}", "robust: 2, method: ekf, correlation: 150ms}"))
+    cfg = replay_config(load(file))
+    assert cfg.dnn_correlation_s == pytest.approx(0.15)
+    fuser = cfg.build_fuser()
+    assert isinstance(fuser, DelayedEkf) and fuser.correlation_s == 0.15
+    assert "correlated over 150 ms" in cfg.describe_fusion()

@@ -12,6 +12,8 @@ from nodes.edgeloc.metrics import (
     PAPER_REDUCTIONS_PCT,
     PAPER_TOTALS,
     ErrorStats,
+    correlation_time,
+    error_autocorrelation,
     heading_errors_deg,
     paper_comparison,
     position_errors,
@@ -110,3 +112,30 @@ def test_paper_comparison_puts_ours_beside_the_paper() -> None:
     assert partial.to_dict()["totals"][1] == {"method": "kalman", "paper": 3837.65, "ours": None}
     with pytest.raises(ValueError, match="unknown method"):
         paper_comparison({"edgeloc": 1.0, "ekf": 2.0})
+
+
+def _ar1(n: int, tau_s: float, frame_s: float, seed: int) -> np.ndarray:
+    """(n, 2) errors with autocorrelation exp(-lag/τ) (an AR(1) sampled every frame)."""
+    rng = np.random.default_rng(seed)
+    rho = np.exp(-frame_s / tau_s)
+    e = np.empty((n, 2))
+    e[0] = rng.normal(0, 1, 2)
+    for i in range(1, n):
+        e[i] = rho * e[i - 1] + np.sqrt(1 - rho**2) * rng.normal(0, 1, 2)
+    return e
+
+
+def test_autocorrelation_and_its_time_recover_an_ar1_process() -> None:
+    frame_s = 0.05
+    for tau in (0.1, 0.25):
+        e = _ar1(40_000, tau, frame_s, seed=int(tau * 100))
+        rho = error_autocorrelation(e, 6)
+        expected = np.exp(-frame_s * np.arange(1, 7) / tau)
+        np.testing.assert_allclose(rho, expected, atol=0.02)
+        assert correlation_time(rho, frame_s) == pytest.approx(tau, rel=0.06)
+    white = error_autocorrelation(np.random.default_rng(3).normal(size=(20_000, 2)), 4)
+    assert np.all(np.abs(white) < 0.03)
+    with pytest.raises(ValueError, match="white at one frame"):
+        correlation_time(white, frame_s)
+    with pytest.raises(ValueError, match=r"need \(N, 2\) errors"):
+        error_autocorrelation(np.zeros((5, 3)), 2)

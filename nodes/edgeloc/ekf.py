@@ -19,7 +19,16 @@ filter weighs each answer by what it is worth instead:
   what the VO noise accumulated since t0 costs, not a fixed curve;
 - `robust_c` as in `fusion`: the answer's measurement noise is divided by its Cauchy weight
   1 / (1 + (r / (c·s))²), r its innovation distance and s the median of the recent ones, so
-  a look-alike-street mistake barely moves the estimate.
+  a look-alike-street mistake barely moves the estimate;
+- `correlation_s` (optional): the DNN's errors are not white. Frames 50 ms apart see nearly
+  the same street, so their answers are wrong in nearly the same way (`python tests/bench/run.py
+  splits` prints the committed DNN's error autocorrelation: about 0.5 one frame apart, 0.2
+  four frames apart, 0 after 0.5 s). A filter that takes every answer as independent trusts a
+  split that answers twice as often twice as much, although its extra answers repeat what it
+  already heard. With `correlation_s = τ` the answer's R is inflated by (1 + ρ) / (1 − ρ),
+  ρ = exp(−Δ/τ), Δ the time between its capture and the previous answer's: the variance of the
+  mean of two samples with correlation ρ, so a pair of answers close together carries about
+  the information of one, and answers far apart keep their own.
 
 Thread 2 is sequential, so answers arrive in capture order and a replay from t0 never drops an
 earlier correction. Same entry points as `fusion.EdgeLocFuser` (`on_vo`, `on_dnn`, `pose`,
@@ -106,6 +115,16 @@ def correct(x: F64, p: F64, z: Pose, r: F64) -> tuple[F64, F64, F64]:
     return out, i_kh @ p @ i_kh.T + k @ r @ k.T, k
 
 
+#: The largest factor R is inflated by: answers of one frame are ~independent of nothing else.
+MAX_INFLATION = 50.0
+
+
+def correlation_inflation(gap_s: float, correlation_s: float) -> float:
+    """(1 + ρ) / (1 − ρ), ρ = exp(−gap/τ): R's factor for an answer `gap_s` after the last."""
+    rho = math.exp(-max(gap_s, 0.0) / correlation_s)
+    return min((1.0 + rho) / max(1.0 - rho, 1e-9), MAX_INFLATION)
+
+
 class DelayedEkf:
     """EdgeLoc's fused pose from a delayed-measurement EKF (see the module doc).
 
@@ -120,13 +139,21 @@ class DelayedEkf:
         robust_c: float | None = None,
         history_s: float = 10.0,
         initial: Pose | None = None,
+        correlation_s: float | None = None,
     ) -> None:
         if robust_c is not None and not (math.isfinite(robust_c) and robust_c > 0):
             raise ValueError(f"fusion robust c must be a positive number, got {robust_c!r}")
+        if correlation_s is not None and not (math.isfinite(correlation_s) and correlation_s > 0):
+            raise ValueError(
+                f"DNN error correlation time must be a positive number of seconds, "
+                f"got {correlation_s!r}"
+            )
         if not (history_s > 0 and math.isfinite(history_s)):
             raise ValueError(f"EKF history must be a positive number of seconds: {history_s!r}")
         self.noise = noise or EkfNoise()
         self.robust_c = robust_c
+        self.correlation_s = correlation_s
+        self._t0_prev: float | None = None  # capture time of the previous answer
         self.history_s = float(history_s)
         self._initial = None if initial is None else as_pose(initial, "initial pose")
         self._r = np.diag([self.noise.r_pos, self.noise.r_pos, self.noise.r_yaw])
@@ -144,6 +171,13 @@ class DelayedEkf:
     def pose(self) -> Pose | None:
         with self._lock:
             return self._x[-1][:3].copy() if self._x else None
+
+    def _inflation(self, t0: float) -> float:
+        """R's factor for an answer captured at t0 (1 without `correlation_s`); remembers t0."""
+        prev, self._t0_prev = self._t0_prev, t0
+        if self.correlation_s is None or prev is None:
+            return 1.0
+        return correlation_inflation(t0 - prev, self.correlation_s)
 
     @property
     def drift(self) -> tuple[float, float] | None:
@@ -193,7 +227,7 @@ class DelayedEkf:
             if self.robust_c is not None:
                 innovation = float(np.hypot(*(z[:2] - x[:2])))
                 weight = self._scale.weight(innovation, self.robust_c)
-            r = self._r / max(weight, 1e-6)
+            r = self._r / max(weight, 1e-6) * self._inflation(t0)
             x, p, k = correct(x, p, z, r)
             self._x[j], self._p[j] = x, p
             for i in range(j + 1, len(self._t)):

@@ -199,3 +199,33 @@ def read_tum(path: Path | str) -> tuple[NDArray[np.float64], NDArray[np.float64]
     qx, qy, qz, qw = a[:, 4], a[:, 5], a[:, 6], a[:, 7]
     yaw = np.arctan2(2.0 * (qw * qz + qx * qy), 1.0 - 2.0 * (qy * qy + qz * qz))
     return a[:, 0], np.stack([a[:, 1], a[:, 2], geometry.wrap(yaw)], axis=-1)
+
+
+def error_autocorrelation(errors: object, max_lag: int) -> NDArray[np.float64]:
+    """Autocorrelation of (N, 2) position errors at lags 1..max_lag frames, x and y averaged.
+
+    The DNN's errors on consecutive frames are what `ekf`'s correlation time models: a white
+    DNN would give ~0 at every lag.
+    """
+    e = np.asarray(errors, dtype=np.float64)
+    if e.ndim != 2 or e.shape[1] != 2 or len(e) <= max_lag + 1 or max_lag < 1:
+        raise ValueError(f"need (N, 2) errors with N > {max_lag + 1}, got shape {e.shape}")
+    e = e - e.mean(axis=0)
+    var = (e * e).sum(axis=0)
+    return np.array(
+        [float(np.mean((e[:-k] * e[k:]).sum(axis=0) / var)) for k in range(1, max_lag + 1)]
+    )
+
+
+def correlation_time(rho: object, frame_s: float) -> float:
+    """The τ (s) whose exp(−k·frame_s/τ) fits autocorrelations `rho` at lags 1, 2, ... best
+    (least squares on a log grid from 1 ms to 10 s), up to the first lag where rho <= 0.05."""
+    r = np.asarray(rho, dtype=np.float64)
+    cut = np.flatnonzero(r <= 0.05)
+    r = r[: cut[0]] if len(cut) else r
+    if len(r) == 0:
+        raise ValueError("the errors are white at one frame: no correlation time to fit")
+    lags = frame_s * np.arange(1, len(r) + 1)
+    taus = np.geomspace(1e-3, 10.0, 2000)
+    cost = ((np.exp(-lags[None, :] / taus[:, None]) - r[None, :]) ** 2).sum(axis=1)
+    return float(taus[int(np.argmin(cost))])

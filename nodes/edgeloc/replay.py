@@ -92,6 +92,26 @@ class InferenceCache:
         return self._cache[key]
 
 
+class WhiteNoiseAnswers(InferenceCache):
+    """An ablation, not a DNN: ground truth plus white Gaussian noise per frame (σ per axis),
+    with the real DNN's payload per split, so latencies are the real ones.
+
+    It isolates what the DNN's error structure does to the splits' comparison: the same
+    replay with white answers of the same spread shows what latency alone costs.
+    """
+
+    def __init__(self, real: InferenceCache, sigma_m: float, sigma_yaw: float = 0.02) -> None:
+        if not (sigma_m > 0 and sigma_yaw >= 0):
+            raise ValueError(f"white-noise answers need sigma > 0, got {sigma_m!r}")
+        super().__init__(real.model, real.dataset, real.codec)
+        self.real, self.sigma_m, self.sigma_yaw = real, float(sigma_m), float(sigma_yaw)
+
+    def answer(self, frame: int, split: str) -> Answer:
+        rng = np.random.default_rng(frame)  # the same answer for a frame at every split
+        noise = np.array([*rng.normal(0.0, self.sigma_m, 2), rng.normal(0.0, self.sigma_yaw)])
+        return Answer(self.dataset.gt_pose(frame) + noise, self.real.answer(frame, split).payload)
+
+
 @dataclass(frozen=True)
 class Play:
     """One inference request: which frame, which split, when, how long, and what became of it.

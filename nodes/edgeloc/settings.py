@@ -108,6 +108,8 @@ class ReplayConfig:
     dt0_s: float = -1.4
     robust_c: float | None = 2.0  # beyond the paper; None: the paper's bare u (see fusion)
     fusion_method: str = "paper"  # or "ekf" (beyond the paper: nodes.edgeloc.ekf)
+    # The EKF's DNN error correlation time (s): None takes every answer as independent.
+    dnn_correlation_s: float | None = None
     kalman: KalmanSettings = field(default_factory=KalmanSettings)
     gate: GateSettings | None = field(default_factory=GateSettings)
     phases: tuple[float, ...] = (0.0,)
@@ -138,9 +140,12 @@ class ReplayConfig:
             robust = f", robust Cauchy weight c = {self.robust_c:g} (BEYOND THE PAPER)"
         if self.fusion_method == "ekf":
             kc = self.kalman
+            corr = ""
+            if self.dnn_correlation_s is not None:
+                corr = f", answers correlated over {1e3 * self.dnn_correlation_s:g} ms"
             return (
                 "delayed-measurement EKF over pose, VO scale and yaw-rate bias (BEYOND THE "
-                f"PAPER), DNN noise R = {kc.r_pos:g} m^2, {kc.r_yaw:g} rad^2" + robust
+                f"PAPER), DNN noise R = {kc.r_pos:g} m^2, {kc.r_yaw:g} rad^2" + robust + corr
             )
         bare = " (the paper's bare form)" if self.robust_c is None else ""
         return f"the paper's latency weight, k_s {self.k_s:g}/s, dt0 {self.dt0_s:g} s{bare}{robust}"
@@ -151,7 +156,7 @@ class ReplayConfig:
         baseline's R as the DNN's measurement noise."""
         if self.fusion_method == "ekf":
             noise = EkfNoise(r_pos=self.kalman.r_pos, r_yaw=self.kalman.r_yaw)
-            return DelayedEkf(noise, robust_c=self.robust_c)
+            return DelayedEkf(noise, robust_c=self.robust_c, correlation_s=self.dnn_correlation_s)
         return EdgeLocFuser(self.k_s, self.dt0_s, robust_c=self.robust_c)
 
 

@@ -1184,6 +1184,19 @@ class _Builder:
                 repr(fixed),
                 did_you_mean(fixed, list(splits), NAME_CUTOFF),
             )
+        fusion: Section | None = workload.get("fusion")
+        if (
+            isinstance(fusion, Section)
+            and fusion.get("correlation") is not None
+            and fusion.get("method", "paper") != "ekf"
+        ):
+            self.ctx.add(
+                fusion.at("correlation"),
+                fusion.path_of("correlation"),
+                "no correlation with the paper's fusion (it weighs answers by latency only): "
+                "method: ekf, or no correlation",
+                f"correlation with method {fusion.get('method', 'paper')!r}",
+            )
         if not workload.clean or self.ctx.issues:
             return model.Workload()
         built: model.Workload = schema_v1.WORKLOAD.build(workload)

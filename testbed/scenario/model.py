@@ -410,6 +410,8 @@ class Fusion:
     # delayed-measurement EKF that also estimates the VO's scale and yaw-rate bias, with the
     # Kalman baseline's R as the DNN's noise and robust_c as above; k_s and Δt0 unused.
     method: Literal["paper", "ekf"] = "paper"
+    # ekf only: the DNN's error correlation time (`nodes.edgeloc.ekf`); None: white answers.
+    correlation_s: float | None = None
 
 
 @dataclass(frozen=True)

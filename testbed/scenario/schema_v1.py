@@ -798,6 +798,14 @@ FUSION = Obj(
             " capture time and replays the VO since, with the kalman block's r_pos/r_yaw as the"
             " DNN's noise and robust as above (k_s and dt0 unused).",
         ),
+        Field(
+            "correlation",
+            Nullable(Duration(10.0, lo_open=True, noun="a correlation time")),
+            "ekf only (BEYOND THE PAPER): the DNN's errors are correlated over this time, so an"
+            " answer soon after the previous one counts for less (its R times (1 + rho) /"
+            " (1 - rho), rho = exp(-gap / correlation)); null: every answer independent.",
+            attr="correlation_s",
+        ),
     ],
     model=model.Fusion,
 )
