@@ -65,7 +65,6 @@ from nodes.ros.env import RosEnv, domain_id_for
 from testbed import cgroups
 from testbed.cgroups import CpuBudget
 from testbed.errors import BadInput, TestbedError
-from testbed.replay import replay_config
 from testbed.scenario.model import Scenario, TopicRecord, Vehicle
 from testbed.topology import Net
 
@@ -232,6 +231,8 @@ class Supervisor:
         self.budgets: dict[str, Budget] = {}
         self.stopping = False
         self.config_path = self.folder / names.NODE_CONFIG_FILE
+        from testbed.replay import replay_config  # imports torch: not for `testbed exec`
+
         self.config = replay_config(net.scenario)
 
     # ---- plan --------------------------------------------------------------------------

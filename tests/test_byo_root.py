@@ -52,6 +52,15 @@ def on_pose(msg):
 
 node.create_subscription(PoseEstimate, "/av1/pose", on_pose, 50)
 print("byo subscriber listening", flush=True)
+# Joining a running domain, this participant meets each of the run's participants at the
+# latest at that one's next periodic announcement (Fast DDS: every 3 s): the window of
+# `seconds` starts once it met the pose publisher and a subscriber of its count (the recorder).
+start = time.monotonic()
+while not stop.is_set() and time.monotonic() < start + 15 and not (
+    node.count_publishers("/av1/pose") and out.get_subscription_count()
+):
+    rclpy.spin_once(node, timeout_sec=0.1)
+print(f"matched after {time.monotonic() - start:.2f} s", flush=True)
 end = time.monotonic() + seconds
 while not stop.is_set() and time.monotonic() < end:
     rclpy.spin_once(node, timeout_sec=0.1)
@@ -126,6 +135,7 @@ apps:
 record:
   topics: [{regex: "^/byo/", node: av1}]
 """,
+        duration_s=20,  # the attached copy: ~4 s to start, up to ~3 s to meet the run, 4 s
     )
     proc = testbed_popen("run", str(path), "--runs-dir", str(runs), "--no-capacity-check")
     assert proc.stdout is not None
@@ -135,7 +145,8 @@ record:
         if "playing the timeline" in line:
             break
     run_id = _run_id(lines)
-    # While the run plays: the same script, attached with `testbed exec`, for 4 s.
+    # While the run plays: the same script, attached with `testbed exec`, for 4 s from when
+    # it met the fused poses' publisher and the recorder.
     t = time.monotonic()
     sub = str(apps / "sub.py")
     attached = testbed_cli("exec", run_id, "av1", "--", "python", sub, "4", "/byo/exec")
@@ -174,8 +185,9 @@ record:
     app_counts, exec_counts = counts["/byo/count"], counts["/byo/exec"]
     print(f"recorded /byo/count: {len(app_counts)}, /byo/exec: {len(exec_counts)} messages")
     assert app_counts == sorted(app_counts) and len(app_counts) >= 0.8 * n_app
-    # The recorder meets a topic that appears mid-run after discovery (up to ~3 s here), so
-    # the attached copy's first counts may precede it; from then on, every one to its last.
+    # The attached copy may meet the pose publisher before the recorder (discovery of a
+    # participant that joins mid-run: up to ~3 s per peer), so its first counts may precede
+    # the recording; from then on, every one to its last.
     assert exec_counts == list(range(exec_counts[0], exec_counts[0] + len(exec_counts)))
     assert exec_counts[-1] >= n_exec - 2 and len(exec_counts) >= 0.4 * n_exec
     _nothing_left(run_id, folder)
