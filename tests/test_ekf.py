@@ -8,6 +8,7 @@ drift states must converge to the scale and bias the trace drew.
 
 from __future__ import annotations
 
+import json
 import math
 from pathlib import Path
 
@@ -17,7 +18,12 @@ import pytest
 from nodes.edgeloc import geometry
 from nodes.edgeloc.ekf import MAX_INFLATION, DelayedEkf, EkfNoise, correlation_inflation
 from nodes.edgeloc.fusion import EdgeLocFuser
-from nodes.edgeloc.settings import KalmanSettings, ReplayConfig
+from nodes.edgeloc.settings import (
+    KalmanSettings,
+    ReplayConfig,
+    config_from_dict,
+    config_to_dict,
+)
 from nodes.edgeloc.world import VoNoise, vo_trace
 from testbed.replay import replay_config
 from testbed.scenario import load
@@ -285,3 +291,6 @@ def test_the_scenario_sets_the_correlation_time(tmp_path: Path) -> None:
     fuser = cfg.build_fuser()
     assert isinstance(fuser, DelayedEkf) and fuser.correlation_s == 0.15
     assert "correlated over 150 ms" in cfg.describe_fusion()
+    # the nodes read it from their settings file (JSON), as a real run passes it
+    again = config_from_dict(json.loads(json.dumps(config_to_dict(cfg))))
+    assert again == cfg and again.build_fuser().correlation_s == 0.15  # type: ignore[union-attr]
