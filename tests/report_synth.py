@@ -223,6 +223,24 @@ class SynthRun:
             },
         )
 
+    def channel_run(
+        self, run_id: str, sites: dict[str, tuple[float, float]], handover: Any = None
+    ) -> None:
+        """run.json's metadata of a run with a UMa channel stepped every 100 ms: its cell
+        `sites` (gNB -> x, y in metres) and its `handover` settings (None: no handovers)."""
+        self.metadata["edgeloc.run"] = {
+            "run_id": run_id,
+            "status": "ok",
+            "channel": {
+                "model": "UMa",
+                "los": "auto",
+                "step_s": 0.1,
+                "trace": None,
+                "sites": [{"name": n, "x": x, "y": y} for n, (x, y) in sites.items()],
+                "handover": handover,
+            },
+        }
+
     def links(self, radios: dict[str, Radio | None], backend: str = "userspace") -> None:
         """Attach links.json as `testbed.run.links_config` writes it: per link (name ->
         its radio, None for a backhaul link) both directions' `LinkProfile.to_dict`, the radio

@@ -64,21 +64,7 @@ def capacity_run(links: bool = True) -> SynthRun:
             bler=bler_of(k),
             ul_bler=ul_bler_of(k),
         )
-    s.metadata["edgeloc.run"] = {
-        "run_id": "cap1",
-        "status": "ok",
-        "channel": {
-            "model": "UMa",
-            "los": "auto",
-            "step_s": 0.1,
-            "trace": None,
-            "sites": [
-                {"name": "gnb1", "x": 0.0, "y": 50.0},
-                {"name": "gnb2", "x": 40.0, "y": 50.0},
-            ],
-            "handover": None,
-        },
-    }
+    s.channel_run("cap1", {"gnb1": (0.0, 50.0), "gnb2": (40.0, 50.0)})
     if links:
         s.links({"av1-gnb1": RADIOS["gnb1"], "av1-gnb2": RADIOS["gnb2"], "gnb1-upf": None})
     return s

@@ -99,21 +99,7 @@ def handover_run(with_topic: bool = True, moves: bool = True) -> SynthRun:
         s.handover(H, "gnb1", "gnb2", scheduled_s=5.98, interruption_s=0.05, lossless=True)
         # another vehicle's handover (it has no radio here): not av1's
         s.handover(T0 + 2.0, "gnb2", "gnb1", 1.9, 0.05, False, vehicle="av2")
-    s.metadata["edgeloc.run"] = {
-        "run_id": "ho1",
-        "status": "ok",
-        "channel": {
-            "model": "UMa",
-            "los": "auto",
-            "step_s": 0.1,
-            "trace": None,
-            "sites": [
-                {"name": "gnb1", "x": 0.0, "y": 50.0},
-                {"name": "gnb2", "x": 120.0, "y": 50.0},
-            ],
-            "handover": SETTINGS,
-        },
-    }
+    s.channel_run("ho1", {"gnb1": (0.0, 50.0), "gnb2": (120.0, 50.0)}, handover=SETTINGS)
     return s
 
 

@@ -415,8 +415,8 @@ def main() -> int:
             [name, *[x for g in per for x in (g[i][1], "PASS" if g[i][2] else "MISS")]]
             for i, name in enumerate(names)
         ]
-        short = {**{f: TITLES[f].split(":")[0] for f in fusions}, "white": "white answers"}
-        short.update({"ekf": "ekf", "ekf-corr": "ekf-corr"})
+        short = {"paper": "before", "scenario": "after", "ekf": "ekf", "ekf-corr": "ekf-corr",
+                 "white": "white answers"}  # fmt: skip
         headers = ["goal", *[x for k in keys for x in (short[k], "verdict")]]
         print(table(headers, rows))
     print(f"\nreplays took {time.perf_counter() - t0:.1f} s")
