@@ -523,6 +523,10 @@ class Radio:
     #: From a residual loss to the packets being back in the sender's buffer: t-Reassembly
     #: and the status report, "tens of ms" (an assumption: 20 ms).
     rlc_status_s: float = 0.02
+    #: RLC-AM's maxRetxThreshold (TS 38.322 §5.3.2, TS 38.331 UL-AM-RLC: t1..t32): a packet
+    #: sent again this many times and lost once more is given up on (the UE would declare a
+    #: radio link failure). OpenAirInterface configures its DRBs with t32.
+    rlc_max_retx: int = 32
     #: PDCP in-order delivery (TS 38.323): a packet waits for those before it.
     in_order: bool = True
     #: The buffer for this UE and direction, in bytes (drop-tail beyond it; None: only the
@@ -652,6 +656,8 @@ class Radio:
             raise NrError(f"rlc must be am or um, got {self.rlc!r}")
         if not 0.0 <= self.rlc_status_s <= 1.0:
             raise NrError(f"rlc_status must be 0 to 1 s, got {self.rlc_status_s}")
+        if not 1 <= self.rlc_max_retx <= 32:
+            raise NrError(f"rlc_max_retx must be 1..32 (TS 38.331), got {self.rlc_max_retx}")
         if not 0.0 <= self.core_delay_s <= 1.0:
             raise NrError(f"core_delay must be 0 to 1 s, got {self.core_delay_s}")
         if self.ul_access not in UL_ACCESS:

@@ -828,9 +828,11 @@ class Slots(Stage):
     (they are taken from its new data), at most `max_retx` times; a block that still fails is
     a residual loss (its BSR is lost too, and what it announced is asked for again). With
     RLC-AM (`rlc_am`, TS 38.322) every packet that had bytes in it comes back into the buffer
-    `rlc_status_s` later (the receiver's status report) and is sent again; with RLC-UM it is
-    lost. Packets leave in order (`in_order`), as PDCP delivers them: one held back by a
-    retransmission, or by RLC, holds back those behind it; without, each leaves when decoded.
+    `rlc_status_s` later (the receiver's status report) and is sent again, at most
+    `rlc_max_retx` times (then it is lost: out of coverage, BLER near 1, a packet would
+    otherwise come back for ever); with RLC-UM it is lost. Packets leave in order
+    (`in_order`), as PDCP delivers them: one held back by a retransmission, or by RLC, holds
+    back those behind it; without, each leaves when decoded.
     """
 
     name = "slots"
@@ -888,6 +890,8 @@ class Slots(Stage):
         # RLC and PDCP.
         self.rlc_am, self.rlc_status_s, self.in_order = False, 0.0, True
         self._recovering: list[tuple[float, bytes]] = []  # (back in the buffer at, packet)
+        self.rlc_max_retx = 32
+        self._rlc_sent: dict[int, int] = {}  # times RLC-AM sent a packet again, by id
         # PDCP: each packet's place in the order it came (by id), and those decoded before
         # an earlier one (None: one that was lost, which nothing waits for).
         self._order: dict[int, int] = {}
@@ -941,12 +945,14 @@ class Slots(Stage):
             while self._queue:  # a radio switched off: what waited for a slot leaves now
                 self._left.append((self._queue[0][0], self._queue.popleft()[1]))
             self._queued_packets = 0
+            self._rlc_sent.clear()
             self.set_access("ideal")
             return
         grid = radio.grid(self.direction)
         self.buffer_bytes = radio.buffer_bytes
         self.tdd_period_s = radio.pattern().period_s
         self.rlc_am, self.rlc_status_s = radio.rlc == "am", radio.rlc_status_s
+        self.rlc_max_retx = radio.rlc_max_retx
         self.in_order = radio.in_order
         self.set_access(grid.access, grid.sr_windows, grid.grant_delay_s, grid.first_grant_bytes)
         self.set_occasions(grid.occasions, grid.period_s, grid.lead_s)
@@ -964,6 +970,7 @@ class Slots(Stage):
             "retransmissions": list(self.retransmissions),
             "scheduling_requests": self.scheduling_requests,
             "rlc_recovered": self.recovered,
+            "rlc_given_up": self.counters.dropped_packets.get("rlc", 0),
         }
 
     def _lead(self) -> float:
@@ -1105,12 +1112,15 @@ class Slots(Stage):
         for packet, floor, lost_at in completing:
             if lost_at is not None or ok_at is None:
                 given_up = self._failed_at if lost_at is None else lost_at
-                if self.rlc_am:
+                if self.rlc_am and self._rlc_sent.get(id(packet), 0) < self.rlc_max_retx:
                     self._recover(packet, given_up + self.rlc_status_s)
                 else:
-                    self.counters.drop("harq", len(packet), wire_packets(packet))
+                    reason = "rlc" if self.rlc_am else "harq"
+                    self.counters.drop(reason, len(packet), wire_packets(packet))
+                    self._rlc_sent.pop(id(packet), None)
                     self._decoded(0.0, None, id(packet))
                 continue
+            self._rlc_sent.pop(id(packet), None)
             self._decoded(max(ok_at, floor), packet, id(packet))
         if partial:
             if ok_at is None:
@@ -1139,6 +1149,7 @@ class Slots(Stage):
     def _recover(self, packet: bytes, at: float) -> None:
         """RLC-AM: `packet` was lost in a block; it is back in the buffer at `at`."""
         self.recovered += 1
+        self._rlc_sent[id(packet)] = self._rlc_sent.get(id(packet), 0) + 1
         bisect.insort(self._recovering, (at, packet), key=lambda e: e[0])
 
     def _readmit(self, now: float) -> None:

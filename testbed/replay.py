@@ -363,6 +363,7 @@ class RadioHop:
         return self.carried.goodput_bps(self.direction)
 
     def deliver(self, start_s: float, nbytes: int, rng: np.random.Generator) -> float:
+        """When the message's last packet leaves the air hop (inf: one was lost)."""
         from netem.profile import LinkProfile
         from netem.stages import Slots
 
@@ -377,7 +378,8 @@ class RadioHop:
         while (due := stage.next_due()) is not None:
             if stage.pop_ready(due):
                 done = due
-        return done
+        # A packet RLC gave up on (out of coverage): the message never arrives whole.
+        return math.inf if stage.counters.dropped else done
 
 
 #: IPv4 + UDP headers of a traffic datagram; IPv4 + TCP with timestamps of a segment.

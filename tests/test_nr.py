@@ -480,6 +480,21 @@ def test_rlc_am_sends_what_harq_gave_up_on_again_so_nothing_is_lost_and_order_is
     assert len(late) >= 0.9 * slots.recovered
 
 
+def test_rlc_am_gives_a_packet_up_after_its_max_retx_threshold() -> None:
+    """Out of coverage (BLER near 1) RLC-AM stops after maxRetxThreshold resends, as the UE
+    would declare a radio link failure: packets are lost, not sent again for ever."""
+    slots, _ = radio_stage(21, bler=0.999, max_retx=0, ul_access="ideal", rlc_max_retx=3)
+    n = 40
+    got = run(slots, poisson_probes(n, 0.05, 100, seed=22))
+    assert slots.queued() == 0
+    lost = slots.counters.dropped_packets.get("rlc", 0)
+    # Each packet has 1 + 3 tries, each failing with 0.999: about 0.4% get through.
+    assert lost + len(got) == n and lost >= n - 2
+    # A lost packet was sent again exactly 3 times; one that got through, at most 3.
+    assert 3 * lost <= slots.recovered <= 3 * n
+    assert slots.radio_counters()["rlc_given_up"] == lost
+
+
 def test_without_in_order_delivery_a_packet_leaves_when_it_is_decoded() -> None:
     ordered, _ = harq_stage(0.2)
     loose, _ = radio_stage(bler=0.2, ul_access="ideal", in_order=False)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 
 import numpy as np
@@ -24,6 +25,17 @@ def test_the_radio_hop_of_an_idle_ue_is_the_oracles_delay() -> None:
     assert np.mean(delays) == pytest.approx(oracle.mean(), abs=0.0003)
     assert np.median(delays) == pytest.approx(oracle.quantile(0.5), abs=0.0005)
     assert hop.rate_bps == pytest.approx(radio.goodput_bps("uplink"))
+
+
+def test_out_of_coverage_a_message_is_lost_not_waited_for() -> None:
+    """At BLER near 1 RLC-AM gives each packet up after its maxRetxThreshold resends: the
+    hop says the message never arrives (before that bound a replay drove the slot model's
+    virtual clock for days and never finished)."""
+    hop = RadioHop(Radio(bler=0.999, mcs=0, n_prb=24), "uplink")
+    rng = np.random.default_rng(4)
+    assert hop.deliver(10.0, 38_000, rng) == math.inf
+    fine = RadioHop(Radio(bler=0.1, mcs=0, n_prb=24), "uplink")
+    assert 10.0 < fine.deliver(10.0, 38_000, rng) < 13.0
 
 
 def test_the_nr_cell_replay_pays_the_scheduling_request_and_the_cell_edge() -> None:

@@ -90,7 +90,8 @@ def packets_of(payload: int) -> int:
 
 class AirHop(Protocol):
     """A radio hop: when a message of `nbytes` on the wire, there at `start_s`, has been
-    carried (its last transport block decoded), slots, grants and HARQ included."""
+    carried (its last transport block decoded), slots, grants and HARQ included; inf when
+    part of it never is."""
 
     def deliver(self, start_s: float, nbytes: int, rng: np.random.Generator) -> float: ...
 
@@ -466,6 +467,8 @@ class LatencyModel:
         """(seconds from `start` to delivery, lost) for one message on one direction."""
         air = path.at(start).air
         begin = start if air is None else air.deliver(start, wire_bytes(payload), rng)
+        if begin == math.inf:  # the air hop lost it for good (RLC gave up)
+            return math.inf, True
         done, outage = path.transmit(begin, 8.0 * wire_bytes(payload))
         if done == math.inf:
             return math.inf, True

@@ -36,6 +36,7 @@ ATTRS = {
     "cg_offset": "cg_offset",
     "rlc": "rlc",
     "rlc_status": "rlc_status_s",
+    "rlc_max_retx": "rlc_max_retx",
     "in_order": "in_order",
     "buffer": "buffer_bytes",
     "core_delay": "core_delay_s",

@@ -208,6 +208,13 @@ RADIO = Obj(
             attr=None,
         ),
         Field(
+            "rlc_max_retx",
+            Int(1, 32, noun="a number of RLC retransmissions"),
+            "RLC-AM's maxRetxThreshold: times a packet is sent again before it is lost"
+            " (OpenAirInterface: 32).",
+            attr=None,
+        ),
+        Field(
             "buffer",
             Int(1500, 1 << 30, noun="a number of bytes"),
             "Bytes this UE's buffer holds in this direction (drop-tail beyond).",
