@@ -223,3 +223,49 @@ def test_the_replay_reports_the_learner_and_edgeloc_around_each_handover(
     assert before["plays"] == sum(event.at_s - 3 <= t < event.at_s for t in plays) > 0
     assert after["plays"] == sum(event.at_s <= t < event.at_s + 3 for t in plays) > 0
     assert before["mean_error_m"] > 0 and after["mean_ul_mcs"] is not None
+
+
+def test_the_learner_leaves_the_camera_frame_at_the_cell_edge_and_takes_it_again_after(
+    tmp_path: Path,
+) -> None:
+    """#19 item 6 on the replay of scenarios/drive_two_cells.yaml (its 90 s, ~7 s here): where
+    the uplink MCS falls at the first cell edge the learner sends a smaller split than the
+    camera frame, and after the uplink has recovered it sends the frame again."""
+    from testbed.replay import replay_scenario
+    from testbed.scenario import load
+
+    repo = Path(__file__).resolve().parents[1]
+    scenario = load(repo / "scenarios" / "drive_two_cells.yaml")
+    done = replay_scenario(scenario, tmp_path / "runs", compare=False)
+    bands = {tuple(b["mcs"]): b for b in done.summary["radio"]["by_uplink_mcs"]}
+    good, mid, edge = bands[(20, 28)], bands[(10, 19)], bands[(0, 9)]
+    assert edge["plays"] >= 40 and mid["plays"] >= 40  # long enough for the learner to act
+    assert max(good["share"], key=good["share"].get) == "image"
+    assert max(edge["share"], key=edge["share"].get) != "image"
+    for weak in (edge, mid):
+        assert weak["mean_payload_bytes"] < 0.5 * good["mean_payload_bytes"], weak
+
+    # In time: before the first cell edge, in it, and once the uplink has recovered for good.
+    steps = mobility.plans(scenario)["av1"].steps
+    falls = next(s.t for s in steps if s.ul_mcs <= 9)
+    recovered = next(
+        s.t for s in steps
+        if s.t > falls and all(r.ul_mcs >= 20 for r in steps if s.t <= r.t < s.t + 10.0)
+    )  # fmt: skip
+    decisions = done.summary["learner"]["decisions"]
+    plays = list(zip(decisions["sent_s"], decisions["split"], strict=True))
+
+    def image_share(a: float, b: float) -> float:
+        inside = [split for t, split in plays if a <= t < b]
+        assert len(inside) >= 20, (a, b, len(inside))
+        return sum(split == "image" for split in inside) / len(inside)
+
+    def ul_mcs(t: float) -> int:  # the uplink MCS a play was sent at
+        return steps[min(len(steps) - 1, int(t / scenario.channel.step_s))].ul_mcs  # type: ignore[union-attr]
+
+    at_edge = [split for t, split in plays if falls <= t < recovered and ul_mcs(t) <= 9]
+    assert len(at_edge) >= 20
+    assert image_share(falls - 15.0, falls) >= 0.5
+    assert sum(split == "image" for split in at_edge) / len(at_edge) <= 0.3
+    # The learner takes ~3 s (its window and change detector) to trust the frame again.
+    assert image_share(recovered + 3.0, recovered + 18.0) >= 0.6
