@@ -25,6 +25,7 @@ How the scenario becomes a latency model (for the first vehicle, or `vehicle=`):
 
 from __future__ import annotations
 
+import bisect
 import dataclasses
 import json
 import math
@@ -46,11 +47,13 @@ from nodes.edgeloc.gate import GateSettings
 from nodes.edgeloc.latency import (
     PACKET_OVERHEAD,
     PACKET_PAYLOAD,
+    REQUEST_HEADER,
     ComputeProfile,
     Exchange,
     LatencyModel,
     PathSchedule,
     PathState,
+    wire_bytes,
 )
 from nodes.edgeloc.replay import (
     InferenceCache,
@@ -66,6 +69,7 @@ from nodes.recording import layout as names
 from nodes.recording.jsonfile import write_json
 from testbed.errors import BadInput
 from testbed.scenario.model import (
+    Cell,
     ClearEvent,
     HandoverEvent,
     LinkSpec,
@@ -382,6 +386,99 @@ class RadioHop:
         return math.inf if stage.counters.dropped else done
 
 
+@dataclass(frozen=True)
+class OtherMessage:
+    """A message another UE of the cell sent on the same direction: from `start_s`, `nbytes`
+    on the wire, over its `radio` at the time."""
+
+    ue: str
+    start_s: float
+    nbytes: int
+    radio: Radio
+
+
+@dataclass(frozen=True)
+class ContendedHop:
+    """The air hop of one UE whose cell's other UEs sent known messages (a real run's
+    requests of the other EdgeLoc vehicles, `others`, by start): each message of this UE
+    goes through one `netem.cell.Cell` on a virtual clock beside the others' messages that
+    start within `window_s` of it, each UE with its own `Slots` (SR, grants, HARQ) and MCS,
+    the cell's PRBs split by `scheduler` as a real run's relay splits them. Without such a
+    message it is `own`'s idle UE."""
+
+    own: RadioHop
+    others: tuple[OtherMessage, ...]
+    scheduler: str = "rr"
+    window_s: float = 0.5
+
+    @property
+    def rate_bps(self) -> float:
+        return self.own.rate_bps
+
+    def deliver(self, start_s: float, nbytes: int, rng: np.random.Generator) -> float:
+        """When this UE's message's last packet leaves (inf: one was lost)."""
+        from netem.cell import Cell
+        from netem.profile import LinkProfile
+        from netem.stages import Slots
+
+        starts = [o.start_s for o in self.others]
+        lo = bisect.bisect_left(starts, start_s - self.window_s)
+        hi = bisect.bisect_right(starts, start_s + self.window_s)
+        near = self.others[lo:hi]
+        if not near:
+            return self.own.deliver(start_s, nbytes, rng)
+        cell = Cell(self.scheduler)
+        stages: dict[str, Slots] = {}
+
+        def stage_of(ue: str, radio: Radio) -> Slots:
+            if ue not in stages:
+                stage = Slots(direction=self.own.direction, seed=int(rng.integers(1 << 31)))
+                stage.configure(LinkProfile(radio=radio, queue_packets=None))
+                cell.join(stage)
+                stages[ue] = stage
+            return stages[ue]
+
+        mine = stage_of("", self.own.carried)
+        pushes = sorted(
+            [(o.start_s, o.ue, o.nbytes, o.radio) for o in near]
+            + [(start_s, "", nbytes, self.own.carried)],
+            key=lambda m: (m[0], m[1] != ""),
+        )
+        own_packets: set[int] = set()
+        keep: list[bytes] = []  # the packets stay alive, so their ids stay theirs
+        for t, ue, size, radio in pushes:
+            stage = stage_of(ue, radio)
+            for part in _packets(size):
+                packet = bytes(part)
+                keep.append(packet)
+                if ue == "":
+                    own_packets.add(id(packet))
+                stage.push(packet, t)
+        done, left = start_s, len(own_packets)
+        while left:
+            dues = [d for d in (s.next_due() for s in stages.values()) if d is not None]
+            if not dues:
+                break
+            due = min(dues)
+            for stage in stages.values():
+                for packet in stage.pop_ready(due):
+                    if stage is mine and id(packet) in own_packets:
+                        left -= 1
+                        done = due
+            if mine.counters.dropped:
+                return math.inf
+        return math.inf if left else done
+
+
+def _packets(nbytes: int) -> list[int]:
+    """The sizes of the packets a message of `nbytes` on the wire leaves in."""
+    out, left = [], nbytes
+    while left > 0:
+        out.append(min(left, PACKET_PAYLOAD + PACKET_OVERHEAD))
+        left -= out[-1]
+    return out
+
+
 #: IPv4 + UDP headers of a traffic datagram; IPv4 + TCP with timestamps of a segment.
 UDP_HEADERS, TCP_HEADERS = 28, 52
 #: The payload of a full TCP segment on a 1500-byte link (what `wire_bps` scales by).
@@ -673,6 +770,53 @@ class RunAgreement:
         return max((abs(a.ratio - 1) for a in self.tested()), default=0.0)
 
 
+def _cell_neighbours(
+    scenario: Scenario, data: Any, vehicle: str, payloads: dict[str, int], folder: Path
+) -> tuple[OtherMessage, ...]:
+    """The uplink requests the run's other EdgeLoc vehicles of `vehicle`'s cell sent, as
+    `OtherMessage`s by start (their head compute after the request began); () when the
+    vehicle's air link has no radio or no other vehicle shares its cell."""
+    from reports.splits import measured_requests
+
+    plan = _PathPlan(scenario, vehicle)
+    if plan.air.uplink.radio is None or plan.handovers:
+        return ()
+    w = scenario.workload
+    reference = compute_profile(w.codec, None if w.weights is None else str(w.weights))
+    out: list[OtherMessage] = []
+    for name, vd in data.vehicles.items():
+        if name == vehicle or not vd.inference:
+            continue
+        try:
+            theirs = _PathPlan(scenario, name)
+        except BadInput:
+            continue
+        if theirs.vehicle.gnb != plan.vehicle.gnb or theirs.handovers:
+            continue
+        compute = run_compute(reference, vd.inference, theirs, folder)
+        model = latency_model(scenario, compute=compute, vehicle=name)
+        for r in measured_requests(vd, data.t0, model.timeout_s):
+            if r.split not in payloads:
+                continue
+            start = r.t_s + model.compute.head_s(r.split)
+            air = model.uplink.at(start).air
+            if isinstance(air, RadioHop):
+                size = wire_bytes(payloads[r.split] + REQUEST_HEADER)
+                out.append(OtherMessage(name, start, size, air.carried))
+    return tuple(sorted(out, key=lambda o: o.start_s))
+
+
+def _contended(path: PathSchedule, others: tuple[OtherMessage, ...], cell: Cell) -> PathSchedule:
+    """`path` with each radio hop shared with `others` in one cell (`ContendedHop`)."""
+    states = tuple(
+        dataclasses.replace(s, air=ContendedHop(s.air, others, cell.scheduler))
+        if isinstance(s.air, RadioHop)
+        else s
+        for s in path.states
+    )
+    return PathSchedule(path.times, states)
+
+
 #: The split whose requests carry no activation: its latency beyond the model's network and
 #: compute is the fixed overhead of the machine the run was on (how `ACTION_EXCHANGE`'s was
 #: found), measured from a run with at least this many answers of it.
@@ -720,6 +864,9 @@ def latency_against_run(
     compute = run_compute(reference, vd.inference, _PathPlan(scenario, vd.name), folder)
     bare = Exchange(handshakes=ACTION_EXCHANGE.handshakes, overhead_s=0.0)
     model = latency_model(scenario, compute=compute, vehicle=vd.name, exchange=bare)
+    others = _cell_neighbours(scenario, data, vd.name, payloads, folder)
+    if others:
+        model.uplink = _contended(model.uplink, others, _PathPlan(scenario, vd.name).cell)
     rng = np.random.default_rng(seed)
     pairs: dict[str, list[tuple[float, float]]] = {}
     for r in measured_requests(vd, data.t0, model.timeout_s):

@@ -38,6 +38,65 @@ def test_out_of_coverage_a_message_is_lost_not_waited_for() -> None:
     assert 10.0 < fine.deliver(10.0, 38_000, rng) < 13.0
 
 
+def test_a_message_beside_another_ues_in_the_cell_shares_its_slots() -> None:
+    """`ContendedHop` (the `--against` model of a cell's other EdgeLoc vehicles): two UEs of
+    one `rr` cell that each send a 37 kB frame at once finish together, about when one UE
+    alone would have sent both frames (the cell's blocks are shared, not doubled); a
+    neighbour's message far away in time changes nothing."""
+    from testbed.replay import ContendedHop, OtherMessage
+
+    radio = Radio(bler=0.0)
+    alone = RadioHop(radio, "uplink")
+    rng = np.random.default_rng(5)
+    frame = 37_000
+    t = 10.0
+    one = alone.deliver(t, frame, rng) - t
+    both = alone.deliver(t, 2 * frame, rng) - t
+    shared = ContendedHop(alone, (OtherMessage("av2", t, frame, radio),))
+    got = shared.deliver(t, frame, rng) - t
+    period = radio.pattern().period_s
+    assert got > one + period  # the other UE's frame took half of the PRBs
+    assert abs(got - both) <= period, (one, both, got)
+    far = ContendedHop(alone, (OtherMessage("av2", t + 5.0, frame, radio),))
+    assert far.deliver(t, frame, rng) - t == pytest.approx(one)
+    assert shared.rate_bps == alone.rate_bps
+
+
+def test_against_a_run_the_other_vehicles_requests_share_the_cell(tmp_path: Path) -> None:
+    """`testbed replay --against` on a shared cell: the other EdgeLoc vehicles' answered and
+    lost requests become the messages beside this vehicle's in its uplink (their start plus
+    their head compute, their radio at that time: av4's MCS 5 after 20 s), and only the
+    radio hops of its path are shared."""
+    from types import SimpleNamespace
+
+    from netem.nr import RADIO_PROFILES
+    from reports.mcapread import Inference, VehicleData
+    from testbed.replay import ContendedHop, _cell_neighbours, _contended, _PathPlan
+
+    scenario = load(SCENARIOS / "multi_vehicle_nr.yaml")
+    t0 = 1000.0
+    vehicles = {}
+    for k, name in enumerate(("av1", "av2", "av4")):
+        vd = VehicleData(name)
+        head = 0.002 * (k + 1)
+        vd.inference = [
+            Inference(t0 + t, t0 + t, i, "image", 0, 37_000, head, 0.01, 0.1, True, False, "")
+            for i, t in enumerate((5.1, 25.1))
+        ]
+        vehicles[name] = vd
+    data = SimpleNamespace(vehicles=vehicles, t0=t0)
+    others = _cell_neighbours(scenario, data, "av1", {"image": 37_000}, tmp_path)
+    assert [o.ue for o in others] == ["av2", "av4", "av2", "av4"]  # by start, not av1
+    av4 = [o for o in others if o.ue == "av4"]
+    assert [o.radio.mcs for o in av4] == [RADIO_PROFILES["oai-tdd-30k"].mcs, 5]
+    assert all(o.nbytes > 37_000 for o in others)  # headers on the wire
+    assert all(5.0 < o.start_s < 5.2 for o in others[:2])
+    model = latency_model(scenario, vehicle="av1")
+    shared = _contended(model.uplink, others, _PathPlan(scenario, "av1").cell)
+    assert all(isinstance(st.air, ContendedHop) for st in shared.states)
+    assert shared.times == model.uplink.times
+
+
 def test_the_nr_cell_replay_pays_the_scheduling_request_and_the_cell_edge() -> None:
     model = latency_model(load(SCENARIOS / "nr_cell.yaml"))
     rng = np.random.default_rng(4)
