@@ -164,6 +164,18 @@ def udp_receive(
     return out
 
 
+#: getsockopt(IPPROTO_IP, IP_MTU) on a connected socket: the MTU of its route (linux/in.h).
+IP_MTU = 14
+
+
+def route_mtu(addr: str) -> int:
+    """The MTU of this namespace's route to `addr` (a UE's air interface: 1456, room for
+    GTP-U on N3)."""
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as sock:
+        sock.connect((addr, PORT))
+        return int(sock.getsockopt(socket.IPPROTO_IP, IP_MTU))
+
+
 def udp_send(addr: str, port: int, count: int, size: int, rate_bps: float) -> int:
     """Send `count` stamped datagrams of `size` bytes, paced at `rate_bps` of UDP payload."""
     sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
@@ -626,10 +638,14 @@ class LinkTest:
         udp_ok = profile.rate_bps is not None and profile.rate_bps * 1.2 <= UDP_MAX_BPS
         if udp_ok and (lossy or not self.quick):
             assert profile.rate_bps is not None
-            want = profile.rate_bps * UDP_PAYLOAD / packet
-            count = int(1.2 * want * seconds / (UDP_PAYLOAD * 8))
+            # Datagrams that fill the sender's route MTU: one a UE (MTU 1456) sized for 1500
+            # would leave in two IP fragments and measure fragmentation, not the link.
+            mtu = min(IP_PACKET, in_namespace(src.netns, route_mtu, addr).result(10))
+            payload = mtu - (IP_PACKET - UDP_PAYLOAD)
+            want = profile.rate_bps * payload / (mtu + self.control.frame_overhead)
+            count = int(1.2 * want * seconds / (payload * 8))
             got = udp_stream(
-                src.netns, dst.netns, addr, count, UDP_PAYLOAD, 1.2 * want, profile.delay_s + 0.3
+                src.netns, dst.netns, addr, count, payload, 1.2 * want, profile.delay_s + 0.3
             )
             if got:
                 first = got[0][0]
