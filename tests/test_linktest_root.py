@@ -134,21 +134,9 @@ def test_a_radio_link_is_measured_against_its_oracle(
     assert not late.ok and late.measured > 1.5  # four 0.5 ms slots off the oracle
 
 
-N3_SCENARIO = """\
-name: lt-n3
-seed: 5
-duration: 10s
-topology:
-  cells:
-    - {gnb: gnb1, upf: upf1, edge: edge1}
-  vehicles:
-    - {name: av1, gnb: gnb1}
-links:
-  backend: userspace
-  air:
-    uplink: {rate: 20mbit, delay: 4ms, loss: 1%}
-    downlink: {rate: 40mbit, delay: 4ms}
-"""
+# The same links behind a UPF: the UE's address from the pool, on an air interface of MTU 1456.
+N3_SCENARIO = SCENARIO.replace("{gnb: gnb1, core: core1}", "{gnb: gnb1, upf: upf1, edge: edge1}")
+N3_SCENARIO = N3_SCENARIO[: N3_SCENARIO.index("  backhaul:")]
 
 
 def test_a_ues_udp_rate_is_measured_in_datagrams_that_fit_its_mtu(
