@@ -341,7 +341,15 @@ def test_loaded_cell_reports_edgeloc_with_and_without_the_background_ues_load(
     path = _shipped(
         "loaded_cell",
         tmp_path,
-        {"duration: 60s": "duration: 30s", "start: 20s, stop: 40s": "start: 10s, stop: 20s"},
+        {
+            "duration: 60s": "duration: 30s",
+            "start: 20s, stop: 40s": "start: 10s, stop: 20s",
+            # One split throughout: the learner's move to smaller splits under load would
+            # hide what the load does to a request (a median over all splits rose only
+            # 13-45% between runs of this 2-core host, against a 15% threshold).
+            "  splits: [image, conv3, vehicle]\n": "  splits: [image, conv3, vehicle]\n"
+            "  learner: {fixed_split: image}\n",
+        },
     )
     out = testbed_cli("run", str(path), "--runs-dir", str(tmp_path), "--no-capacity-check")
     assert out.returncode == 0, out.stdout + out.stderr
@@ -354,8 +362,10 @@ def test_loaded_cell_reports_edgeloc_with_and_without_the_background_ues_load(
         f" error {on['edgeloc_error_m']:.3f} m; without: {off['answers']} answers, p50"
         f" {off['latency_s']['median'] * 1e3:.1f} ms, error {off['edgeloc_error_m']:.3f} m"
     )
-    # Three UEs offering 30 Mbit/s in a ~22 Mbit/s uplink leave av1 a quarter of the slots.
-    assert on["latency_s"]["median"] > 1.15 * off["latency_s"]["median"]
+    # Three UEs offering 30 Mbit/s in a ~22 Mbit/s uplink leave av1 a quarter of the slots:
+    # a 37 kB frame's air time goes from ~25 to ~69 ms (tests/test_replay_load.py); on top
+    # of ~60 ms of compute and exchange, 1.36-1.57x in three runs of this host.
+    assert on["latency_s"]["median"] > 1.25 * off["latency_s"]["median"]
     report = (folder / "report.md").read_text()
     assert "## EdgeLoc under load" in report and "| av1 | with load |" in report
     flows = _flows(folder)
