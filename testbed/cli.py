@@ -602,6 +602,11 @@ def replay(
             f"fixed overhead per request: {agreement.overhead_s * 1000:.1f} ms, from "
             f"{agreement.overhead_from}"
         )
+        if agreement.neighbours:
+            con.plain(
+                f"the cell shared with {agreement.neighbours} other EdgeLoc vehicle(s): their "
+                f"{agreement.neighbour_requests} uplink requests beside these in the slot model"
+            )
         worst = agreement.worst()
         con.plain(f"largest disagreement: {worst * 100:.0f}% (the model's requests are the run's)")
         return

@@ -760,6 +760,10 @@ class RunAgreement:
     overhead_s: float
     overhead_from: str  # where that overhead came from
     calibrated: str | None  # the split it was measured on (which then agrees by construction)
+    #: Uplink requests of the run's other EdgeLoc vehicles that shared the cell in the model
+    #: (`ContendedHop`), and how many vehicles sent them.
+    neighbour_requests: int = 0
+    neighbours: int = 0
 
     def tested(self) -> list[SplitAgreement]:
         """The rows that test the model: all but the split the overhead came from."""
@@ -891,4 +895,6 @@ def latency_against_run(
         )
         for split, values in pairs.items()
     ]
-    return RunAgreement(rows, overhead, source, calibrated)
+    return RunAgreement(
+        rows, overhead, source, calibrated, len(others), len({o.ue for o in others})
+    )

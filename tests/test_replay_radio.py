@@ -132,6 +132,7 @@ def test_a_real_runs_latencies_are_set_beside_the_models_for_the_same_requests(
     # No request without payload: the reference machine's overhead, and every split tested.
     assert agreement.calibrated is None and agreement.overhead_s == ACTION_EXCHANGE.overhead_s
     assert agreement.tested() == agreement.rows
+    assert (agreement.neighbours, agreement.neighbour_requests) == (0, 0)  # one vehicle
     # The synthetic run answered image in 40 then 150 ms, and conv3 in 80 ms.
     assert 0.04 <= rows["image"].measured_s <= 0.15
     assert rows["conv3"].measured_s == pytest.approx(0.08, abs=1e-5)
