@@ -34,7 +34,7 @@ import shutil
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -69,7 +69,6 @@ from nodes.recording import layout as names
 from nodes.recording.jsonfile import write_json
 from testbed.errors import BadInput
 from testbed.scenario.model import (
-    Cell,
     ClearEvent,
     HandoverEvent,
     LinkSpec,
@@ -81,6 +80,9 @@ from testbed.scenario.model import (
     Traffic,
     from_route,
 )
+
+if TYPE_CHECKING:
+    from netem.stages import Slots
 
 DEFAULT_GATE = GateSettings()  # beyond the paper; see nodes.edgeloc.gate
 # The ROS nodes ask the edge through the SplitInference action (nodes/ros/inference_request.py):
@@ -368,16 +370,9 @@ class RadioHop:
 
     def deliver(self, start_s: float, nbytes: int, rng: np.random.Generator) -> float:
         """When the message's last packet leaves the air hop (inf: one was lost)."""
-        from netem.profile import LinkProfile
-        from netem.stages import Slots
-
-        stage = Slots(direction=self.direction, seed=int(rng.integers(1 << 31)))
-        stage.configure(LinkProfile(radio=self.carried, queue_packets=None))
-        left = nbytes
-        while left > 0:  # the message's packets, all there at once
-            size = min(left, PACKET_PAYLOAD + PACKET_OVERHEAD)
+        stage = _ue_stage(self.direction, self.carried, rng)
+        for size in _packets(nbytes):  # the message's packets, all there at once
             stage.push(bytes(size), start_s)
-            left -= size
         done = start_s
         while (due := stage.next_due()) is not None:
             if stage.pop_ready(due):
@@ -418,56 +413,52 @@ class ContendedHop:
     def deliver(self, start_s: float, nbytes: int, rng: np.random.Generator) -> float:
         """When this UE's message's last packet leaves (inf: one was lost)."""
         from netem.cell import Cell
-        from netem.profile import LinkProfile
-        from netem.stages import Slots
 
-        starts = [o.start_s for o in self.others]
-        lo = bisect.bisect_left(starts, start_s - self.window_s)
-        hi = bisect.bisect_right(starts, start_s + self.window_s)
+        def start(o: OtherMessage) -> float:
+            return o.start_s
+
+        lo = bisect.bisect_left(self.others, start_s - self.window_s, key=start)
+        hi = bisect.bisect_right(self.others, start_s + self.window_s, key=start)
         near = self.others[lo:hi]
         if not near:
             return self.own.deliver(start_s, nbytes, rng)
         cell = Cell(self.scheduler)
-        stages: dict[str, Slots] = {}
-
-        def stage_of(ue: str, radio: Radio) -> Slots:
-            if ue not in stages:
-                stage = Slots(direction=self.own.direction, seed=int(rng.integers(1 << 31)))
-                stage.configure(LinkProfile(radio=radio, queue_packets=None))
-                cell.join(stage)
-                stages[ue] = stage
-            return stages[ue]
-
-        mine = stage_of("", self.own.carried)
-        pushes = sorted(
-            [(o.start_s, o.ue, o.nbytes, o.radio) for o in near]
-            + [(start_s, "", nbytes, self.own.carried)],
-            key=lambda m: (m[0], m[1] != ""),
-        )
-        own_packets: set[int] = set()
-        keep: list[bytes] = []  # the packets stay alive, so their ids stay theirs
-        for t, ue, size, radio in pushes:
-            stage = stage_of(ue, radio)
+        mine = _ue_stage(self.own.direction, self.own.carried, rng)
+        cell.join(mine)
+        stages = {"": mine}  # UE -> its stage; "" is this one, the others by name
+        for o in near:
+            if o.ue not in stages:
+                stages[o.ue] = _ue_stage(self.own.direction, o.radio, rng)
+                cell.join(stages[o.ue])
+        pushes = [(o.start_s, o.ue, o.nbytes) for o in near]
+        # At the same instant this UE's message is in the buffer first.
+        for t, ue, size in sorted(
+            [*pushes, (start_s, "", nbytes)], key=lambda m: (m[0], m[1] != "")
+        ):
             for part in _packets(size):
-                packet = bytes(part)
-                keep.append(packet)
-                if ue == "":
-                    own_packets.add(id(packet))
-                stage.push(packet, t)
-        done, left = start_s, len(own_packets)
-        while left:
-            dues = [d for d in (s.next_due() for s in stages.values()) if d is not None]
+                stages[ue].push(bytes(part), t)
+        done, left = start_s, len(_packets(nbytes))  # `mine` carries nothing else
+        while left and not mine.counters.dropped:
+            dues = [d for d in (st.next_due() for st in stages.values()) if d is not None]
             if not dues:
                 break
             due = min(dues)
             for stage in stages.values():
-                for packet in stage.pop_ready(due):
-                    if stage is mine and id(packet) in own_packets:
-                        left -= 1
-                        done = due
-            if mine.counters.dropped:
-                return math.inf
-        return math.inf if left else done
+                out = stage.pop_ready(due)
+                if stage is mine and out:
+                    left -= len(out)
+                    done = due
+        return math.inf if left or mine.counters.dropped else done
+
+
+def _ue_stage(direction: Direction, radio: Radio, rng: np.random.Generator) -> Slots:
+    """A fresh (idle) `netem.stages.Slots` of one UE's `direction` over `radio`."""
+    from netem.profile import LinkProfile
+    from netem.stages import Slots
+
+    stage = Slots(direction=direction, seed=int(rng.integers(1 << 31)))
+    stage.configure(LinkProfile(radio=radio, queue_packets=None))
+    return stage
 
 
 def _packets(nbytes: int) -> list[int]:
@@ -775,21 +766,23 @@ class RunAgreement:
 
 
 def _cell_neighbours(
-    scenario: Scenario, data: Any, vehicle: str, payloads: dict[str, int], folder: Path
+    scenario: Scenario,
+    data: Any,
+    plan: _PathPlan,
+    reference: ComputeProfile,
+    payloads: dict[str, int],
+    folder: Path,
 ) -> tuple[OtherMessage, ...]:
-    """The uplink requests the run's other EdgeLoc vehicles of `vehicle`'s cell sent, as
-    `OtherMessage`s by start (their head compute after the request began); () when the
-    vehicle's air link has no radio or no other vehicle shares its cell."""
+    """The uplink requests the run's other EdgeLoc vehicles of `plan`'s vehicle's cell sent,
+    as `OtherMessage`s by start (their head compute, from the run over `reference`, after the
+    request began); () when its air link has no radio or no other vehicle shares its cell."""
     from reports.splits import measured_requests
 
-    plan = _PathPlan(scenario, vehicle)
     if plan.air.uplink.radio is None or plan.handovers:
         return ()
-    w = scenario.workload
-    reference = compute_profile(w.codec, None if w.weights is None else str(w.weights))
     out: list[OtherMessage] = []
     for name, vd in data.vehicles.items():
-        if name == vehicle or not vd.inference:
+        if name == plan.vehicle.name or not vd.inference:
             continue
         try:
             theirs = _PathPlan(scenario, name)
@@ -810,10 +803,12 @@ def _cell_neighbours(
     return tuple(sorted(out, key=lambda o: o.start_s))
 
 
-def _contended(path: PathSchedule, others: tuple[OtherMessage, ...], cell: Cell) -> PathSchedule:
+def _contended(
+    path: PathSchedule, others: tuple[OtherMessage, ...], scheduler: str
+) -> PathSchedule:
     """`path` with each radio hop shared with `others` in one cell (`ContendedHop`)."""
     states = tuple(
-        dataclasses.replace(s, air=ContendedHop(s.air, others, cell.scheduler))
+        dataclasses.replace(s, air=ContendedHop(s.air, others, scheduler))
         if isinstance(s.air, RadioHop)
         else s
         for s in path.states
@@ -865,12 +860,13 @@ def latency_against_run(
         raise BadInput(f"{folder}: {who} no inference request")
     w = scenario.workload
     reference = compute_profile(w.codec, None if w.weights is None else str(w.weights))
-    compute = run_compute(reference, vd.inference, _PathPlan(scenario, vd.name), folder)
+    plan = _PathPlan(scenario, vd.name)
+    compute = run_compute(reference, vd.inference, plan, folder)
     bare = Exchange(handshakes=ACTION_EXCHANGE.handshakes, overhead_s=0.0)
     model = latency_model(scenario, compute=compute, vehicle=vd.name, exchange=bare)
-    others = _cell_neighbours(scenario, data, vd.name, payloads, folder)
+    others = _cell_neighbours(scenario, data, plan, reference, payloads, folder)
     if others:
-        model.uplink = _contended(model.uplink, others, _PathPlan(scenario, vd.name).cell)
+        model.uplink = _contended(model.uplink, others, plan.cell.scheduler)
     rng = np.random.default_rng(seed)
     pairs: dict[str, list[tuple[float, float]]] = {}
     for r in measured_requests(vd, data.t0, model.timeout_s):

@@ -71,7 +71,13 @@ def test_against_a_run_the_other_vehicles_requests_share_the_cell(tmp_path: Path
 
     from netem.nr import RADIO_PROFILES
     from reports.mcapread import Inference, VehicleData
-    from testbed.replay import ContendedHop, _cell_neighbours, _contended, _PathPlan
+    from testbed.replay import (
+        ContendedHop,
+        _cell_neighbours,
+        _contended,
+        _PathPlan,
+        compute_profile,
+    )
 
     scenario = load(SCENARIOS / "multi_vehicle_nr.yaml")
     t0 = 1000.0
@@ -85,14 +91,16 @@ def test_against_a_run_the_other_vehicles_requests_share_the_cell(tmp_path: Path
         ]
         vehicles[name] = vd
     data = SimpleNamespace(vehicles=vehicles, t0=t0)
-    others = _cell_neighbours(scenario, data, "av1", {"image": 37_000}, tmp_path)
+    plan = _PathPlan(scenario, "av1")
+    reference = compute_profile(scenario.workload.codec, None)
+    others = _cell_neighbours(scenario, data, plan, reference, {"image": 37_000}, tmp_path)
     assert [o.ue for o in others] == ["av2", "av4", "av2", "av4"]  # by start, not av1
     av4 = [o for o in others if o.ue == "av4"]
     assert [o.radio.mcs for o in av4] == [RADIO_PROFILES["oai-tdd-30k"].mcs, 5]
     assert all(o.nbytes > 37_000 for o in others)  # headers on the wire
     assert all(5.0 < o.start_s < 5.2 for o in others[:2])
     model = latency_model(scenario, vehicle="av1")
-    shared = _contended(model.uplink, others, _PathPlan(scenario, "av1").cell)
+    shared = _contended(model.uplink, others, plan.cell.scheduler)
     assert all(isinstance(st.air, ContendedHop) for st in shared.states)
     assert shared.times == model.uplink.times
 
