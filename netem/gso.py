@@ -12,6 +12,8 @@ Nouns:
   all its IP packets, headers repeated per segment) and `segments` how many IP packets that
   is. `len(frame)` is `wire_len`, so every stage that charges bytes (rate, trace
   opportunities, counters) is exact without knowing about offloads.
+- `rejoin(frames)`: software GRO of a batch leaving together: `split`'s wire packets back
+  into super-packets where they run in sequence (one write, one pass of the stack behind).
 - `split(frame)`: software GSO, the IP packets a NIC would have put on the wire, each with
   complete IP and TCP/UDP checksums (so the receiving kernel verifies them). Stages whose
   effect is per wire packet (loss, a trace's delivery opportunities, a slow link's
@@ -236,6 +238,31 @@ def coalesce(packets: Sequence[bytes]) -> list[tuple[bytes, int]]:
         else:
             out.append((_merge(packets[i:j], total, last_flags), j - i))
         i = j
+    return out
+
+
+def rejoin(frames: Sequence[Frame]) -> list[tuple[bytes, int]]:
+    """What to write for `frames`, a batch that leaves a link at one instant, in order: each
+    run of wire packets that `split` made (plain header, complete checksums) coalesced as
+    `coalesce` does, every other frame (a super-packet moved whole, a packet whose checksum
+    the kernel left partial) as it is; each with how many frames of the batch it holds.
+
+    A stage that needs wire packets (a radio's slots, a slow link) hands out a slot's or a
+    burst's worth at once: written one by one, each costs a system call and a pass through
+    the receiving stack; rejoined, the stack behind gets them as a NIC's GRO would."""
+    out: list[tuple[bytes, int]] = []
+    run: list[bytes] = []
+    for frame in frames:
+        data = frame.data
+        if frame.segments == 1 and data[:VNET_LEN] == _PLAIN_HEADER:
+            run.append(data[VNET_LEN:])
+            continue
+        if run:
+            out.extend(coalesce(run))
+            run = []
+        out.append((data, 1))
+    if run:
+        out.extend(coalesce(run))
     return out
 
 

@@ -12,8 +12,10 @@ until a packet arrives, a control request comes, or the next packet is due.
 Offloads (the default): both TUN ends announce TSO/USO (`netem.tun`), so TCP hands the relay
 super-packets of up to 64 kB (`netem.gso.Frame`) and one read, one pipeline pass and one write
 move ~44 wire packets. The pipeline splits them only where an effect is per wire packet (its
-`Segment` stage). `--no-offload` reads and writes one MTU-sized packet at a time (the data
-plane before offloads; kept to measure against and for kernels without TUN offloads).
+`Segment` stage), and what such a stage hands out at one instant (a slot's transport block, a
+burst) goes back into super-packets before it is written (`netem.gso.rejoin`). `--no-offload`
+reads and writes one MTU-sized packet at a time (the data plane before offloads; kept to
+measure against and for kernels without TUN offloads).
 
 Timing: `select` oversleeps, by ~0.1 ms plus, on some VMs, a share of the sleep itself (a
 guest timer running a few per cent slow: 0.5 ms late after 10 ms). The relay sets its timer
@@ -78,7 +80,7 @@ from typing import Any
 
 from netem.cell import SCHEDULERS, Cell, CellError
 from netem.errors import NetemError, ProfileError
-from netem.gso import VNET_LEN, Frame, ip_packets
+from netem.gso import VNET_LEN, Frame, ip_packets, rejoin
 from netem.pcap import PcapngWriter
 from netem.proc import PR_SET_TIMERSLACK, die_with_parent, prctl, renice
 from netem.profile import PROFILE_FIELDS, LinkProfile, check_link, check_profile
@@ -268,6 +270,7 @@ class Relay:
             "control_requests": 0,
             "reads": 0,  # frames read: with offloads one may be many wire packets
             "writes": 0,
+            "write_calls": 0,
         }
         self._running = True
         self._hard: float | None = None  # the next departure, as the loop last planned
@@ -650,21 +653,30 @@ class Relay:
             out = pipeline.pop_ready(now)
             self.stats["writes"] += len(out)
             capture = port.capture
-            for packet in out:
-                data = packet.data if offload else packet  # type: ignore[attr-defined]
+            if offload and len(out) > 1:
+                writes = rejoin(out)
+            else:
+                writes = [(p.data if offload else p, 1) for p in out]  # type: ignore[attr-defined]
+            self.stats["write_calls"] += len(writes)
+            first = 0
+            for data, count in writes:
+                first += count
                 try:
                     os.write(fd, data)
                 except OSError:
-                    # The far end is down or its queue is full: the packet is lost, as on
-                    # a wire; count it so a report can tell.
-                    self.stats["write_errors"] += 1
+                    # The far end is down or its queue is full: the packets are lost, as on
+                    # a wire; count them so a report can tell.
+                    self.stats["write_errors"] += count
                     continue
                 if capture is not None:
-                    # The packets as a wire carries them: a super-packet (a TCP or a UDP-GSO
-                    # run, such as a GTP-U end's G-PDUs) is written segment by segment, so
-                    # every frame in the file is one packet, one G-PDU on N3.
-                    for wire in ip_packets(data) if offload else (data,):
-                        capture.write(direction, wire)
+                    # The packets as a wire carries them, as they left the stages (not as
+                    # rejoined): a super-packet (a TCP or a UDP-GSO run, such as a GTP-U
+                    # end's G-PDUs) segment by segment, so every frame in the file is one
+                    # packet, one G-PDU on N3.
+                    for packet in out[first - count : first]:
+                        wire = packet.data if offload else packet  # type: ignore[attr-defined]
+                        for one in ip_packets(wire) if offload else (wire,):
+                            capture.write(direction, one)
 
     def _deadlines(self) -> tuple[float | None, float | None]:
         """(earliest hand-off or exit, earliest exit) over both directions."""

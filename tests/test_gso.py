@@ -34,6 +34,7 @@ from netem.gso import (  # noqa: E402
     checksum,
     coalesce,
     ip_packets,
+    rejoin,
     split,
 )
 from netem.profile import GilbertElliott, LinkProfile  # noqa: E402
@@ -213,6 +214,25 @@ def test_only_a_clean_run_of_one_flow_is_coalesced() -> None:
     alone = coalesce([udp, syn])
     assert alone == [(VNET.pack(0, GSO_NONE, 0, 0, 0, 0) + udp, 1),
                      (VNET.pack(0, GSO_NONE, 0, 0, 0, 0) + syn, 1)]  # fmt: skip
+
+
+def test_a_batch_of_split_packets_is_rejoined_and_other_frames_pass_as_they_are() -> None:
+    whole = tcp4()
+    segments = split(whole)
+    partial = tcp4("A")  # a super-packet moved whole: written as the kernel gave it
+    small = bytes(IP(src="10.9.0.1", dst="10.9.0.2") / TCP(flags="A") / Raw(b"x" * 10))
+    # One packet whose checksum the kernel left partial: its header must stay as it is.
+    left = Frame(VNET.pack(VNET_F_NEEDS_CSUM, GSO_NONE, 0, 0, 20, 16) + small)
+    batch = [*segments[:3], partial, left, segments[3]]
+    out = rejoin(batch)
+    assert [n for _, n in out] == [3, 1, 1, 1]
+    assert sum(n for _, n in out) == len(batch)
+    assert out[1][0] is partial.data and out[2][0] is left.data
+    # The three rejoined segments split back into the very packets of the batch.
+    assert ip_packets(out[0][0]) == [f.data[VNET_LEN:] for f in segments[:3]]
+    assert out[3][0] == segments[3].data  # alone: as it came, behind the plain header
+    assert rejoin(segments) == coalesce([f.data[VNET_LEN:] for f in segments])
+    assert len(rejoin(segments)) == 1 and rejoin([]) == []
 
 
 @given(st.binary(min_size=0, max_size=300))
