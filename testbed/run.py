@@ -143,11 +143,16 @@ def handovers_applied(player: TimelinePlayer) -> list[dict[str, Any]]:
 
 
 def play_timeline(
-    net: Net, folder: Path, progress: Progress, watch: Callable[[float], None] | None = None
+    net: Net,
+    folder: Path,
+    progress: Progress,
+    watch: Callable[[float], None] | None = None,
+    start_epoch_s: float | None = None,
 ) -> TimelinePlayer:
     """Play the scenario's timeline for its `duration`, checking for failures every 0.2 s
     (`watch(elapsed)`, e.g. the node supervisor's check and the apps' tick, raises when
-    something else died)."""
+    something else died). `start_epoch_s` (the drives' common start, `Supervisor.release`)
+    is its 0 s; None: now."""
     assert net.control is not None
     scenario = net.scenario
 
@@ -172,7 +177,7 @@ def play_timeline(
     if scenario.channel is not None:
         for note in mobility.coverage_notes(scenario):
             progress(f"  note: {note}")
-    player.start()
+    player.start(start_epoch_s)
     try:
         next_line = PROGRESS_EVERY_S
         while (elapsed := player.elapsed()) < scenario.duration_s:
@@ -646,7 +651,7 @@ class _Run:
             result.nodes = {"skipped": ros_why}
         if not result.ok:
             return
-        nodes = Supervisor(net, result.folder, progress)
+        nodes = Supervisor(net, result.folder, progress, start_together=True)
         apps = Apps(net, result.folder, nodes.env, nodes.peers_of, progress)
         if not ros_ok and any(a.ros for a in scenario.apps):
             progress(f"  warning: apps with ros: true get no ROS 2 here: {ros_why}")
@@ -670,7 +675,8 @@ class _Run:
             _check(net)
             if self.recording is not None:
                 self.recording.start_counters(ros_ok)
-            player = play_timeline(net, result.folder, progress, watch=watch)
+            start = nodes.release() if ros_ok else None
+            player = play_timeline(net, result.folder, progress, watch, start)
             result.timeline = {
                 "events": len(scenario.timeline),
                 "applied": len(player.applied),

@@ -62,6 +62,7 @@ from nodes.recording import layout as names
 from nodes.recording.jsonfile import write_json
 from nodes.ros.common import READY
 from nodes.ros.env import RosEnv, domain_id_for
+from nodes.ros.start import MATCHED, write_start
 from testbed import cgroups
 from testbed.cgroups import CpuBudget
 from testbed.errors import BadInput, TestbedError
@@ -81,6 +82,8 @@ TAIL_LINES = 15
 LOOPBACK = "127.0.0.1"
 #: The process that records `record.topics` in a namespace.
 RECORDER = "nodes.ros.topic_recorder"
+#: The vehicle's sensor node: the one that waits for the run's common start.
+SENSOR = "nodes.ros.vehicle_sensor"
 #: The least DNN-stage budget the kernel can enforce (1 ms quota per 1 s period).
 MIN_COMPUTE_CORES = 0.001
 
@@ -107,12 +110,16 @@ class NodeProcess:
         return "\n".join(text.splitlines()[-lines:]) or "(empty log)"
 
     def ready(self) -> bool:
+        return self.logged(READY)
+
+    def logged(self, event: str) -> bool:
+        """Whether the node has logged `event` (one of its JSON event lines)."""
         try:
             text = self.log.read_text(errors="replace")
         except OSError:
             return False
         return any(
-            line.startswith("{") and f'"event": "{READY}"' in line for line in text.splitlines()
+            line.startswith("{") and f'"event": "{event}"' in line for line in text.splitlines()
         )
 
 
@@ -220,12 +227,22 @@ class Supervisor:
     """Starts, watches and stops the EdgeLoc nodes of one run (see the module doc).
 
     `edge=False` leaves the edge servers out (the vehicles then run on VO alone: what the
-    fault-tolerance test checks).
+    fault-tolerance test checks). `start_together=True` makes the vehicles' sensors wait, once
+    matched, for `release()` (`nodes.ros.start`): what a run does, so that every drive's frame
+    0 and the timeline's 0 s are one instant.
     """
 
-    def __init__(self, net: Net, folder: Path, progress: Progress, edge: bool = True) -> None:
+    def __init__(
+        self,
+        net: Net,
+        folder: Path,
+        progress: Progress,
+        edge: bool = True,
+        start_together: bool = False,
+    ) -> None:
         self.net, self.folder, self.progress = net, Path(folder).resolve(), progress
         self.edge = edge
+        self.start_file = (self.folder / names.START_FILE) if start_together else None
         self.env = RosEnv(self.folder, domain_id_for(net.run_id))
         self.nodes: list[NodeProcess] = []
         self.budgets: dict[str, Budget] = {}
@@ -285,7 +302,8 @@ class Supervisor:
                 follow = ["--edges", ",".join(f"{g}={e}" for g, e in edges.items())]
             add(v.name, "fusion", "fusion_node", who, peers)
             add(v.name, "inference", "inference_request", who + follow, peers)
-            add(v.name, "sensor", "vehicle_sensor", who, peers)
+            start = [] if self.start_file is None else ["--start-file", str(self.start_file)]
+            add(v.name, "sensor", "vehicle_sensor", who + start, peers)
         if topo.cells:
             events = ["--events", str(self.folder / names.EVENTS_FILE)]
             add(topo.cells[0].gnb, "link_events", "link_events", events, self.peers_of(None))
@@ -342,8 +360,10 @@ class Supervisor:
             self.progress(f"  warning: no CPU budgets ({why})")
 
     def start(self, timeout_s: float = READY_TIMEOUT_S) -> None:
-        """Start every node and wait until all are ready; then apply the CPU budgets.
-        Raises TestbedError (with the node's last log lines) if one dies or is not ready."""
+        """Start every node and wait until all are ready; then apply the CPU budgets and, with
+        `start_together`, wait until every sensor has its subscribers (it then waits for
+        `release`). Raises TestbedError (with the node's last log lines) if one dies or is
+        not ready."""
         self.config_path.parent.mkdir(parents=True, exist_ok=True)
         write_json(self.config_path, config_to_dict(self.config))
         (self.folder / "logs").mkdir(parents=True, exist_ok=True)
@@ -370,17 +390,7 @@ class Supervisor:
             f"ROS nodes: {len(self.nodes) - recorders} EdgeLoc process(es){also} started "
             f"(ROS domain {self.env.domain_id}); waiting until they are ready"
         )
-        pending = list(self.nodes)
-        while pending:
-            self.check()
-            pending = [n for n in pending if not n.ready()]
-            if pending and time.monotonic() - t0 > timeout_s:
-                n = pending[0]
-                raise TestbedError(
-                    f"run {self.net.run_id}: node {n.name} not ready within {timeout_s:g} s; "
-                    f"last lines of {n.log}:\n{n.tail()}"
-                )
-            time.sleep(0.1)
+        self._wait_for(READY, self.nodes, "ready", timeout_s)
         for b in self.budgets.values():
             if b.group is not None and b.applied is not None:
                 b.group.set_cores(b.applied)
@@ -390,6 +400,33 @@ class Supervisor:
             for b in self.budgets.values()
         )
         self.progress(f"  all ready in {time.monotonic() - t0:.1f} s; CPU cores: {shown}")
+        if self.start_file is not None:
+            sensors = [n for n in self.nodes if n.module == SENSOR]
+            self._wait_for(MATCHED, sensors, "matched with its subscribers", timeout_s)
+
+    def _wait_for(self, event: str, nodes: list[NodeProcess], what: str, timeout_s: float) -> None:
+        """Wait until each of `nodes` has logged `event`; raise TestbedError if one dies or
+        has not within `timeout_s`."""
+        deadline = time.monotonic() + timeout_s
+        pending = list(nodes)
+        while pending:
+            self.check()
+            pending = [n for n in pending if not n.logged(event)]
+            if pending and time.monotonic() > deadline:
+                n = pending[0]
+                raise TestbedError(
+                    f"run {self.net.run_id}: node {n.name} not {what} within {timeout_s:g} s; "
+                    f"last lines of {n.log}:\n{n.tail()}"
+                )
+            time.sleep(0.05 if pending else 0)
+
+    def release(self) -> float | None:
+        """Start the drives: write the common start time for the waiting sensors and return
+        it (seconds since the epoch), for the timeline's 0 s. None without `start_together`
+        or without a vehicle sensor."""
+        if self.start_file is None or not any(n.module == SENSOR for n in self.nodes):
+            return None
+        return write_start(self.start_file)
 
     # ---- watch -------------------------------------------------------------------------
 

@@ -195,8 +195,9 @@ class TimelinePlayer:
 
     # -- life cycle -------------------------------------------------------------------------
 
-    def start(self, t0: float | None = None) -> TimelinePlayer:
-        """Start playing in a thread; event times count from `t0` (default: now)."""
+    def start(self, at_epoch_s: float | None = None) -> TimelinePlayer:
+        """Start playing in a thread; event times count from now, or from `at_epoch_s`
+        (seconds since the epoch: e.g. the drives' common start), which it waits for."""
         if self._thread is not None:
             raise RuntimeError("this timeline player was already started")
         ready = threading.Event()
@@ -222,7 +223,11 @@ class TimelinePlayer:
         ready.wait()
         if prepared:
             raise prepared[0]
-        self.t0 = self.clock.now() if t0 is None else t0
+        if at_epoch_s is None:
+            self.t0 = self.clock.now()
+        else:
+            self.clock.wait(max(0.0, at_epoch_s - time.time()), self._stop)
+            self.t0 = self.clock.now() - (time.time() - at_epoch_s)
         # The wall clock at 0 s, for whoever places timeline times against recorded stamps.
         self.started_epoch_s = time.time() - (self.clock.now() - self.t0)
         self._go.set()

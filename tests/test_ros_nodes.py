@@ -177,6 +177,37 @@ def test_supervisor_plan_puts_each_node_in_its_namespace_with_its_peers(
     assert plan["av1.fusion"].log == (tmp_path / "run" / "logs" / "av1.fusion.log").resolve()
     no_edge = Supervisor(net, tmp_path / "run", print, edge=False).plan()
     assert "edge1.edge" not in {n.name for n in no_edge}
+    # Only a run's sensors wait for the common start, and only the sensors.
+    assert "--start-file" not in plan["av1.sensor"].argv
+    assert sup.release() is None
+    together = Supervisor(net, tmp_path / "run", print, start_together=True)
+    waiting = [n.name for n in together.plan() if "--start-file" in n.argv]
+    assert waiting == ["av1.sensor"]
+
+
+def test_the_common_start_is_read_as_written_and_a_stop_or_a_timeout_ends_the_wait(
+    tmp_path: Path,
+) -> None:
+    import threading
+
+    from nodes.ros.start import START_LEAD_S, NoStart, wait_start, write_start
+
+    path = tmp_path / "start.json"
+    stop = threading.Event()
+    with pytest.raises(NoStart, match="no start time"):
+        wait_start(path, stop, timeout_s=0.05)
+    # A sensor waiting before the start is written gets it as soon as it is.
+    got: list[float | None] = []
+    waiter = threading.Thread(target=lambda: got.append(wait_start(path, stop, 5.0)))
+    waiter.start()
+    time.sleep(0.05)
+    before = time.time()
+    start = write_start(path)
+    waiter.join(5)
+    assert got == [start] and start >= before + START_LEAD_S
+    assert not [p for p in tmp_path.iterdir() if p.name != "start.json"]  # written atomically
+    stop.set()
+    assert wait_start(tmp_path / "never.json", stop, 5.0) is None
 
 
 def test_compute_thread_joins_its_group_by_thread_id_and_runs_jobs_there(tmp_path: Path) -> None:

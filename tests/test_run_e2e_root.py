@@ -135,6 +135,10 @@ def test_run_starts_every_node_and_leaves_nothing(
     assert up >= payload, (up, payload)
     assert up <= payload + 6000 * inference["requests"] + 1_000_000, (up, payload)
     assert down <= 6000 * inference["requests"] + 1_000_000, (down, inference["requests"])
+    # The drive started at the timeline's 0 s: frame 0 was published at that instant, so a
+    # `set` at 2 s reaches the drive at its 2 s (`nodes.ros.start`).
+    sensor = procs["av1.sensor"]["stats"]
+    assert sensor["start_s"] == pytest.approx(result.timeline["started_epoch_s"], abs=0.002)
     # The timeline's events reached ROS as LinkEvent messages.
     assert procs["gnb1.link_events"]["stats"]["published"] == result.timeline["applied"] == 2
     # CPU budgets: the scenario's tiny budget for av1 is floored for real processes ...

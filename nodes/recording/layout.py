@@ -26,6 +26,8 @@ PCAP_DIR = "pcap"
 #: The nodes' settings (`nodes.edgeloc.settings.config_to_dict` of the run's ReplayConfig):
 #: the report replays the drive with them (fixed splits and the oracle beside the learner).
 NODE_CONFIG_FILE = "nodes/config.json"
+#: The run's common start time, which the vehicles' sensors wait for (`nodes.ros.start`).
+START_FILE = "nodes/start.json"
 #: The report's machine-readable figures.
 SUMMARY_FILE = "summary.json"
 #: Files of the run folder attached to run.mcap, when the run wrote them (a name with a

@@ -63,6 +63,8 @@ class NodeArgs:
     record_images: bool = False
     #: With `edge: follow`: each gNB's edge server ({} asks `edge` always; `nodes.ros.serving`).
     edges: dict[str, str] = field(default_factory=dict)
+    #: The vehicle sensor: wait for the run's common start time in this file (`START_EVENT`).
+    start_file: Path | None = None
 
     @classmethod
     def parse(cls, argv: Sequence[str] | None = None, prog: str = "") -> NodeArgs:
@@ -91,6 +93,12 @@ class NodeArgs:
             default="",
             help="gnb=edge,...: ask the serving cell's edge server (edge: follow handovers)",
         )
+        p.add_argument(
+            "--start-file",
+            default=None,
+            help="the sensor: once its subscribers are there, wait for the run's start time "
+            "(JSON {start_epoch_s}) in this file and publish frame 0 then",
+        )
         a = p.parse_args(argv)
         try:
             config = config_from_dict(json.loads(Path(a.config).read_text()))
@@ -113,6 +121,7 @@ class NodeArgs:
             record=Path(a.record) if a.record else None,
             record_images=a.record_images,
             edges=edges,
+            start_file=Path(a.start_file) if a.start_file else None,
         )
 
 

@@ -7,7 +7,8 @@ that wall-clock instant as its capture stamp t0, on
 - `/<vehicle>/gt` (PoseEstimate, method "gt": for scoring only; no estimator reads it).
 The dataset is the scenario's (synthetic world with its seed, or a recorded folder), opened
 with `DATASET_MARGIN_S` more seconds than the run lasts. Publishing starts once the fusion and
-inference nodes subscribe (or after 20 s), so no frame is lost to discovery.
+inference nodes subscribe (or after 20 s), so no frame is lost to discovery; in a run, at the
+run's common start (`nodes.ros.start`: frame 0 at the timeline's 0 s, every vehicle together).
 """
 
 from __future__ import annotations
@@ -29,8 +30,11 @@ from nodes.ros.common import (
     to_stamp,
     write_stats,
 )
+from nodes.ros.start import MATCHED, wait_start
 
 WAIT_FOR_SUBSCRIBERS_S = 20.0
+#: How long a matched sensor waits for the run's start time (`nodes.ros.start`).
+START_TIMEOUT_S = 120.0
 
 
 def pose_msg(vehicle: str, method: str, pose: np.ndarray, t: float, frame: int) -> object:
@@ -76,9 +80,14 @@ def main() -> int:
             stop.wait(0.05)
         h, w, _ = dataset.image_shape
         period = 1.0 / dataset.rate_hz
-        start = time.time()
+        start: float | None = time.time()
+        if args.start_file is not None:
+            emit(MATCHED, subscribers=vo_pub.get_subscription_count())
+            start = wait_start(args.start_file, stop, START_TIMEOUT_S)
+        if start is None:  # stopped while waiting
+            start = time.time()
         stats["start_s"] = start
-        emit("publishing", subscribers=vo_pub.get_subscription_count())
+        emit("publishing", subscribers=vo_pub.get_subscription_count(), start_s=start)
         late_max = 0.0
         for i in range(len(dataset)):
             due = start + i * period
