@@ -941,12 +941,7 @@ class Slots(Stage):
         radio = profile.radio
         self.queue_packets = profile.queue_packets
         if radio is None:
-            self.occasions = []
-            while self._queue:  # a radio switched off: what waited for a slot leaves now
-                self._left.append((self._queue[0][0], self._queue.popleft()[1]))
-            self._queued_packets = 0
-            self._rlc_sent.clear()
-            self.set_access("ideal")
+            self._radio_off()
             return
         grid = radio.grid(self.direction)
         self.buffer_bytes = radio.buffer_bytes
@@ -957,6 +952,36 @@ class Slots(Stage):
         self.set_access(grid.access, grid.sr_windows, grid.grant_delay_s, grid.first_grant_bytes)
         self.set_occasions(grid.occasions, grid.period_s, grid.lead_s)
         self.set_harq(radio.bler, radio.max_retx, radio.harq_s)
+
+    def _radio_off(self) -> None:
+        """A radio switched off (the link test's neutral moment, a `set` without `radio`):
+        what waited for a slot, what RLC was sending again and what PDCP held back for order
+        all leave now, in their order, and PDCP's order starts afresh. A packet that left
+        this way never reaches `_decoded`: had its place stayed open, every packet of the
+        next radio would have waited in `_reorder` for it, for good."""
+        out: dict[int, tuple[float, bytes]] = {}  # by place in the order they came
+        stray: list[tuple[float, bytes]] = []  # no place (it came with no order to keep)
+        waiting = [(t, p) for t, p, _ in self._queue] + self._recovering
+        for t, packet in waiting:
+            place = self._order.pop(id(packet), None)
+            if place is None:
+                stray.append((t, packet))
+            else:
+                out[place] = (t, packet)
+        out.update({k: v for k, v in self._reorder.items() if v is not None})
+        self._queue.clear()
+        self._recovering.clear()
+        self._reorder.clear()
+        self._order.clear()
+        self._next = self._came
+        for t, packet in [*stray, *(out[k] for k in sorted(out))]:
+            t = max(t, self._last_exit)
+            self._last_exit = t
+            self._left.append((t, packet))
+        self.occasions = []
+        self._queued_packets = 0
+        self._rlc_sent.clear()
+        self.set_access("ideal")
 
     def set_harq(self, bler: float, max_retx: int, harq_s: float) -> None:
         self.bler, self.max_retx, self.harq_s = bler, max_retx, harq_s

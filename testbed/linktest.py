@@ -101,6 +101,7 @@ class Worker:
 
     def __init__(self, netns: str, fn: Any, *args: Any, nice: int = -10) -> None:
         self.queue: Any = CTX.Queue()
+        self.what = f"{getattr(fn, '__name__', fn)} in {netns}"
 
         def run() -> None:
             # Endpoints get the relay's priority: on a shared 2-core host an endpoint that
@@ -122,12 +123,12 @@ class Worker:
         except Exception:
             self.proc.kill()
             raise TestbedError(
-                f"a measurement process gave no result in {timeout_s:.0f} s"
+                f"a measurement process ({self.what}) gave no result in {timeout_s:.0f} s"
             ) from None
         finally:
             self.proc.join(5)
         if status != "ok":
-            raise TestbedError(f"a measurement process failed: {value}")
+            raise TestbedError(f"a measurement process ({self.what}) failed: {value}")
         return value
 
 

@@ -74,7 +74,9 @@ def test_a_failing_measurement_says_so_and_leaves_nothing(
         raise OSError("no route")  # in the sender's process, while the receiver waits
 
     monkeypatch.setattr(capacity, "udp_flood", broken)
-    with pytest.raises(TestbedError, match="a measurement process failed: OSError: no route"):
+    with pytest.raises(
+        TestbedError, match=r"a measurement process \(\w+ in [\w-]+\) failed: OSError: no route"
+    ):
         measure_data_plane(seconds=0.5)
     assert not set(known_names) & set(list_netns())
     assert relay_pids(known_names) == []

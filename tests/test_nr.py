@@ -253,6 +253,35 @@ def test_a_profile_with_a_radio_gates_its_pipeline_and_round_trips_as_json() -> 
         check_profile(LinkProfile(radio=Radio(slots="DDQU")))
 
 
+def test_a_radio_switched_off_with_packets_waiting_lets_them_go_and_the_next_radio_delivers() -> (
+    None
+):
+    """The link test's neutral moment switches a radio off while packets wait for slots,
+    for HARQ and for PDCP's order; they leave at once, in order, and the radio that comes
+    back delivers every packet after them (it once kept each in `_reorder` for good)."""
+    from netem.nr import Radio
+    from netem.profile import LinkProfile
+    from netem.stages import Pipeline
+
+    profile = LinkProfile(radio=Radio(bler=0.5, mcs=9))
+    slots = Pipeline.from_profile(profile).stage("slots")
+    assert isinstance(slots, Slots) and slots.in_order
+    burst = [(0.0002 * i, i.to_bytes(4, "big") + bytes(196)) for i in range(60)]
+    for t, packet in burst:
+        slots.push(packet, t)
+    first = slots.pop_ready(0.02)  # a few occasions: some decoded, some held for a resend
+    assert slots.queued() > 0 and (slots._reorder or slots._recovering or slots._queue)
+    slots.configure(profile.replace(radio=None))
+    now = 0.0201
+    rest = slots.pop_ready(max(now, slots.next_due() or now) + 1.0)
+    assert slots.queued() == 0
+    assert first + rest == [p for _, p in burst]  # all of them, in the order they came
+    slots.configure(profile)
+    later = [(2.0 + 0.003 * i, (100 + i).to_bytes(4, "big") + bytes(196)) for i in range(40)]
+    got = run(slots, later)
+    assert [p for _, _, p in got] == [p for _, p in later]
+
+
 def test_a_downlink_pipeline_sends_in_the_downlink_windows() -> None:
     from netem.nr import Radio
     from netem.profile import LinkProfile
