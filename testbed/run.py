@@ -142,6 +142,10 @@ def handovers_applied(player: TimelinePlayer) -> list[dict[str, Any]]:
     return out
 
 
+#: How far past the drives' start the timeline may begin before the console says so.
+LATE_START_S = 0.1
+
+
 def play_timeline(
     net: Net,
     folder: Path,
@@ -178,6 +182,11 @@ def play_timeline(
         for note in mobility.coverage_notes(scenario):
             progress(f"  note: {note}")
     player.start(start_epoch_s)
+    if (behind := player.elapsed()) > LATE_START_S:
+        progress(
+            f"  the drives started {behind:.1f} s before the timeline could (the apps' start): "
+            "events due by now apply at once, late"
+        )
     try:
         next_line = PROGRESS_EVERY_S
         while (elapsed := player.elapsed()) < scenario.duration_s:
@@ -669,13 +678,17 @@ class _Run:
             if ros_ok:
                 nodes.start()
             _check(net)
+            # The drives start before the apps: an app may be ready only once it hears the
+            # workload (`ready: {topic: /av1/pose}`). The timeline's 0 s is still the drives'
+            # start; what the apps' start takes beyond its lead shows as the first events'
+            # lateness.
+            start = nodes.release() if ros_ok else None
             apps.start_first()
             if traffic:
                 traffic.start_receivers()
             _check(net)
             if self.recording is not None:
                 self.recording.start_counters(ros_ok)
-            start = nodes.release() if ros_ok else None
             player = play_timeline(net, result.folder, progress, watch, start)
             result.timeline = {
                 "events": len(scenario.timeline),

@@ -197,7 +197,9 @@ class TimelinePlayer:
 
     def start(self, at_epoch_s: float | None = None) -> TimelinePlayer:
         """Start playing in a thread; event times count from now, or from `at_epoch_s`
-        (seconds since the epoch: e.g. the drives' common start), which it waits for."""
+        (seconds since the epoch: e.g. the drives' common start), which it waits for; one
+        already past is 0 s all the same, and the events due since are applied at once
+        (their lateness says by how much)."""
         if self._thread is not None:
             raise RuntimeError("this timeline player was already started")
         ready = threading.Event()

@@ -135,7 +135,9 @@ apps:
 record:
   topics: [{regex: "^/byo/", node: av1}]
 """,
-        duration_s=20,  # the attached copy: ~4 s to start, up to ~3 s to meet the run, 4 s
+        # The attached copy: ~4 s to start, up to ~3 s to meet the run, 4 s; the timeline
+        # counts from the drive's start, which the app's start (~5 s) follows.
+        duration_s=25,
     )
     proc = testbed_popen("run", str(path), "--runs-dir", str(runs), "--no-capacity-check")
     assert proc.stdout is not None
