@@ -658,9 +658,9 @@ class Relay:
             else:
                 writes = [(p.data if offload else p, 1) for p in out]  # type: ignore[attr-defined]
             self.stats["write_calls"] += len(writes)
-            first = 0
+            end = 0  # `out[end - count : end]` is what this write carries
             for data, count in writes:
-                first += count
+                end += count
                 try:
                     os.write(fd, data)
                 except OSError:
@@ -673,7 +673,7 @@ class Relay:
                     # rejoined): a super-packet (a TCP or a UDP-GSO run, such as a GTP-U
                     # end's G-PDUs) segment by segment, so every frame in the file is one
                     # packet, one G-PDU on N3.
-                    for packet in out[first - count : first]:
+                    for packet in out[end - count : end]:
                         wire = packet.data if offload else packet  # type: ignore[attr-defined]
                         for one in ip_packets(wire) if offload else (wire,):
                             capture.write(direction, one)

@@ -955,29 +955,15 @@ class Slots(Stage):
 
     def _radio_off(self) -> None:
         """A radio switched off (the link test's neutral moment, a `set` without `radio`):
-        what waited for a slot, what RLC was sending again and what PDCP held back for order
-        all leave now, in their order, and PDCP's order starts afresh. A packet that left
-        this way never reaches `_decoded`: had its place stayed open, every packet of the
-        next radio would have waited in `_reorder` for it, for good."""
-        out: dict[int, tuple[float, bytes]] = {}  # by place in the order they came
-        stray: list[tuple[float, bytes]] = []  # no place (it came with no order to keep)
+        what waited for a slot and what RLC was sending again are decoded now, so PDCP
+        delivers them, and what it held back behind them, in their order. Let go any other
+        way, their places in that order would stay open, and every packet of the next radio
+        would wait in `_reorder` for them, for good."""
         waiting = [(t, p) for t, p, _ in self._queue] + self._recovering
-        for t, packet in waiting:
-            place = self._order.pop(id(packet), None)
-            if place is None:
-                stray.append((t, packet))
-            else:
-                out[place] = (t, packet)
-        out.update({k: v for k, v in self._reorder.items() if v is not None})
         self._queue.clear()
         self._recovering.clear()
-        self._reorder.clear()
-        self._order.clear()
-        self._next = self._came
-        for t, packet in [*stray, *(out[k] for k in sorted(out))]:
-            t = max(t, self._last_exit)
-            self._last_exit = t
-            self._left.append((t, packet))
+        for t, packet in waiting:
+            self._decoded(t, packet, id(packet))
         self.occasions = []
         self._queued_packets = 0
         self._rlc_sent.clear()

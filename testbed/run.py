@@ -184,8 +184,8 @@ def play_timeline(
     player.start(start_epoch_s)
     if (behind := player.elapsed()) > LATE_START_S:
         progress(
-            f"  the drives started {behind:.1f} s before the timeline could (the apps' start): "
-            "events due by now apply at once, late"
+            f"  the drives started {behind:.1f} s before the timeline could (apps and traffic "
+            "receivers starting): events due by now apply at once, late"
         )
     try:
         next_line = PROGRESS_EVERY_S

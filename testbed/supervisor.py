@@ -401,8 +401,10 @@ class Supervisor:
         )
         self.progress(f"  all ready in {time.monotonic() - t0:.1f} s; CPU cores: {shown}")
         if self.start_file is not None:
-            sensors = [n for n in self.nodes if n.module == SENSOR]
-            self._wait_for(MATCHED, sensors, "matched with its subscribers", timeout_s)
+            self._wait_for(MATCHED, self._sensors(), "matched with its subscribers", timeout_s)
+
+    def _sensors(self) -> list[NodeProcess]:
+        return [n for n in self.nodes if n.module == SENSOR]
 
     def _wait_for(self, event: str, nodes: list[NodeProcess], what: str, timeout_s: float) -> None:
         """Wait until each of `nodes` has logged `event`; raise TestbedError if one dies or
@@ -418,13 +420,14 @@ class Supervisor:
                     f"run {self.net.run_id}: node {n.name} not {what} within {timeout_s:g} s; "
                     f"last lines of {n.log}:\n{n.tail()}"
                 )
-            time.sleep(0.05 if pending else 0)
+            if pending:
+                time.sleep(0.05)
 
     def release(self) -> float | None:
         """Start the drives: write the common start time for the waiting sensors and return
         it (seconds since the epoch), for the timeline's 0 s. None without `start_together`
         or without a vehicle sensor."""
-        if self.start_file is None or not any(n.module == SENSOR for n in self.nodes):
+        if self.start_file is None or not self._sensors():
             return None
         return write_start(self.start_file)
 

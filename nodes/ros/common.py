@@ -63,7 +63,7 @@ class NodeArgs:
     record_images: bool = False
     #: With `edge: follow`: each gNB's edge server ({} asks `edge` always; `nodes.ros.serving`).
     edges: dict[str, str] = field(default_factory=dict)
-    #: The vehicle sensor: wait for the run's common start time in this file (`START_EVENT`).
+    #: The vehicle sensor: wait for the run's common start time in this file (`nodes.ros.start`).
     start_file: Path | None = None
 
     @classmethod

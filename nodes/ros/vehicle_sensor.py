@@ -80,12 +80,11 @@ def main() -> int:
             stop.wait(0.05)
         h, w, _ = dataset.image_shape
         period = 1.0 / dataset.rate_hz
-        start: float | None = time.time()
+        start = None
         if args.start_file is not None:
             emit(MATCHED, subscribers=vo_pub.get_subscription_count())
-            start = wait_start(args.start_file, stop, START_TIMEOUT_S)
-        if start is None:  # stopped while waiting
-            start = time.time()
+            start = wait_start(args.start_file, stop, START_TIMEOUT_S)  # None: stopped
+        start = time.time() if start is None else start
         stats["start_s"] = start
         emit("publishing", subscribers=vo_pub.get_subscription_count(), start_s=start)
         late_max = 0.0
