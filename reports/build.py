@@ -369,6 +369,16 @@ def _splits(s: dict[str, Any], plots: dict[str, Plot | None]) -> Section:
         )
     for line in sp["disagreements"]:  # latency-best against error-best, learned against fixed
         sec.add(Para(f"Against the paper's claim: {line}.", "warning"))
+    if any(p.get("inversions") for p in phases):
+        sec.add(
+            Para(
+                "The drive's noise is twice the standard error of the two splits' paired "
+                f"difference in error over {sp['noise_block_s']:g}-s blocks: an inversion "
+                "within it is a tie that this drive cannot resolve, one beyond it is evidence "
+                "against the claim.",
+                "note",
+            )
+        )
     fixed = [r for r in sp["rows"] if r["policy"].startswith("fixed:")]
     if len(fixed) < 2:
         sec.add(

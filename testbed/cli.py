@@ -697,12 +697,19 @@ def split_rows(splits: dict[str, Any]) -> list[list[str]]:
     return rows
 
 
+def _monotone_note(phase: dict[str, Any]) -> str:
+    if phase["monotone"] in (True, None):
+        return ""
+    if phase.get("monotone_within_noise"):  # absent from summaries written before it
+        return "; error not monotone in latency, within the drive's noise"
+    return "; error not monotone in latency"
+
+
 def split_phase_lines(splits: dict[str, Any]) -> list[str]:
     """Per phase, the fastest and the most accurate split; then where they disagree."""
     lines = [
         f"phase {p['start_s']:g}-{p['end_s']:g} s: fastest {p['latency_best']}, most accurate "
-        f"{p['error_best']}"
-        + ("" if p["monotone"] in (True, None) else "; error not monotone in latency")
+        f"{p['error_best']}" + _monotone_note(p)
         for p in splits["phases"]
     ]
     beats = splits["learned_beats_fixed"]

@@ -15,6 +15,7 @@ from nodes.edgeloc.metrics import (
     correlation_time,
     error_autocorrelation,
     heading_errors_deg,
+    independent_answers_per_s,
     paper_comparison,
     position_errors,
     read_tum,
@@ -139,3 +140,21 @@ def test_autocorrelation_and_its_time_recover_an_ar1_process() -> None:
         correlation_time(white, frame_s)
     with pytest.raises(ValueError, match=r"need \(N, 2\) errors"):
         error_autocorrelation(np.zeros((5, 3)), 2)
+
+
+def test_independent_answers_per_s_is_what_the_mean_of_correlated_answers_is_worth() -> None:
+    """The closed form against the exact variance of the mean of n answers with covariance
+    ρ^|i−j| (the full matrix summed): n_eff = 1 / var(mean), per second n_eff / (n Δ)."""
+    n = 1500
+    lag = np.abs(np.subtract.outer(np.arange(n), np.arange(n)))
+    for interval, tau in ((0.07, 0.15), (0.22, 0.15), (0.05, 0.025), (0.1, 1.0)):
+        var_mean = float((np.exp(-interval / tau) ** lag).sum()) / n**2
+        exact = (1.0 / var_mean) / (n * interval)
+        assert independent_answers_per_s(interval, tau) == pytest.approx(exact, rel=0.01)
+    assert independent_answers_per_s(0.08, 0.0) == pytest.approx(12.5)
+    # faster always carries more, but no more than 1 / 2τ however fast
+    rates = [independent_answers_per_s(d, 0.15) for d in (0.3, 0.2, 0.1, 0.05, 0.001)]
+    assert rates == sorted(rates) and rates[-1] == pytest.approx(1 / 0.3, rel=1e-4)
+    for bad in ((0.0, 0.1), (0.1, -1.0)):
+        with pytest.raises(ValueError, match="interval > 0"):
+            independent_answers_per_s(*bad)

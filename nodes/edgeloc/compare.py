@@ -10,6 +10,12 @@ error-best split of each phase (best in hindsight: it reads ground truth, no veh
 When the configured fusion is not the paper's bare form (`robust_c`, or the EKF), the learned
 run is also replayed with the bare form, so both are reported.
 
+Error is monotone in latency in a phase when ordering the fixed splits by latency orders them
+by error too. Where it is not, each inversion (a slower split more accurate than a faster one)
+is weighed against the noise of the drive: the paired difference of the two splits' errors,
+averaged over blocks of `NOISE_BLOCK_S`, and twice its standard error. An inversion inside
+that band is a tie the drive cannot resolve, not evidence against the premise.
+
 `SplitComparison.to_dict()` is the `splits` block of a summary.json (keys on `to_dict`).
 """
 
@@ -18,7 +24,7 @@ from __future__ import annotations
 import itertools
 import math
 from collections.abc import Sequence
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -29,16 +35,54 @@ from nodes.edgeloc.model import LocNet
 from nodes.edgeloc.replay import InferenceCache, ReplayResult, run_replay
 from nodes.edgeloc.settings import ReplayConfig
 
+#: Seconds per block when weighing a difference in mean error between two splits. The fused
+#: error keeps its memory for about a second (the DNN's error memory, VO drift between
+#: answers), so single frames are far from independent; 2-s block means nearly are, and a
+#: 30-s phase still has 15 of them.
+NOISE_BLOCK_S = 2.0
+
 
 @dataclass(frozen=True)
 class PhaseFigures:
     """One policy in one phase: mean position error over its frames, mean request latency
-    (start to answer, a lost request counts its timeout), mean Δt of its answers, answers."""
+    (start to answer, a lost request counts its timeout), mean Δt of its answers, answers,
+    and the mean error of each `NOISE_BLOCK_S` block (for weighing differences)."""
 
     mean_error_m: float
     mean_latency_s: float | None
     mean_delta_s: float | None
     answers: int
+    block_errors_m: tuple[float, ...] = field(default=(), repr=False)
+
+
+@dataclass(frozen=True)
+class Inversion:
+    """In one phase, a slower split that was more accurate than a faster one: by how much, and
+    the noise band (twice the standard error of the paired block differences)."""
+
+    faster: str
+    slower: str
+    by_m: float
+    noise_m: float
+
+    @property
+    def beyond_noise(self) -> bool:
+        return self.by_m > self.noise_m
+
+    def sentence(self) -> str:
+        where = "beyond" if self.beyond_noise else "within"
+        return (
+            f"{self.slower} is {self.by_m:.2f} m more accurate than the faster {self.faster}, "
+            f"{where} the drive's noise (±{self.noise_m:.2f} m)"
+        )
+
+
+def paired_noise_m(a: Sequence[float], b: Sequence[float]) -> float:
+    """Twice the standard error of the mean of a − b over paired blocks (inf with < 3)."""
+    d = np.asarray(a, dtype=np.float64) - np.asarray(b, dtype=np.float64)
+    if len(d) < 3:
+        return math.inf
+    return float(2.0 * d.std(ddof=1) / math.sqrt(len(d)))
 
 
 @dataclass(frozen=True)
@@ -66,12 +110,16 @@ def policy_row(
         sel = (t >= a) & (t < b)
         plays = [p for p in result.plays if a <= p.sent_s < b]
         ok = [p for p in plays if not p.lost]
+        blocks = np.floor((t[sel] - a) / NOISE_BLOCK_S).astype(int)
         figures.append(
             PhaseFigures(
                 mean_error_m=float(err[sel].mean()) if sel.any() else math.nan,
                 mean_latency_s=float(np.mean([p.latency_s for p in plays])) if plays else None,
                 mean_delta_s=float(np.mean([p.delta_s for p in ok])) if ok else None,
                 answers=len(ok),
+                block_errors_m=tuple(
+                    float(err[sel][blocks == k].mean()) for k in np.unique(blocks)
+                ),
             )
         )
     return PolicyRow(policy, float(err.sum()), tuple(figures))
@@ -108,6 +156,29 @@ class SplitComparison:
         rows.sort(key=lambda f: f.mean_latency_s)  # type: ignore[arg-type, return-value]
         return all(a.mean_error_m < b.mean_error_m for a, b in itertools.pairwise(rows))
 
+    def inversions(self, j: int) -> list[Inversion]:
+        """Every pair of fixed splits in phase j where the slower one was more accurate."""
+        rows = [(k, r.phases[j]) for k, r in self.fixed.items()]
+        rows = [(k, f) for k, f in rows if f.mean_latency_s is not None]
+        rows.sort(key=lambda kf: kf[1].mean_latency_s)  # type: ignore[arg-type, return-value]
+        out = []
+        for (fast, f), (slow, g) in itertools.combinations(rows, 2):
+            if g.mean_error_m <= f.mean_error_m:
+                noise = (
+                    paired_noise_m(f.block_errors_m, g.block_errors_m)
+                    if len(f.block_errors_m) == len(g.block_errors_m)
+                    else math.inf
+                )
+                out.append(Inversion(fast, slow, f.mean_error_m - g.mean_error_m, noise))
+        return out
+
+    def monotone_within_noise(self, j: int) -> bool | None:
+        """`monotone`, or every inversion inside the drive's noise band."""
+        mono = self.monotone(j)
+        if mono is None or mono:
+            return mono
+        return not any(v.beyond_noise for v in self.inversions(j))
+
     @property
     def best_fixed(self) -> str | None:
         return min(self.fixed, key=lambda k: self.fixed[k].total_m) if self.fixed else None
@@ -128,6 +199,7 @@ class SplitComparison:
                 out.append(f"{a:g}-{b:g} s: the fastest split is {lb}, the most accurate is {eb}")
             elif self.monotone(j) is False:
                 out.append(f"{a:g}-{b:g} s: error does not fall with latency across the splits")
+            out += [f"{a:g}-{b:g} s: {v.sentence()}" for v in self.inversions(j)]
         if self.learned_beats_fixed is False:
             best = self.best_fixed
             out.append(
@@ -140,8 +212,9 @@ class SplitComparison:
         """`latency_source`; `rows`: [{policy, total_m, phases: [{mean_error_m,
         mean_latency_s, mean_delta_s, answers}]}] (learned, fixed:<split>..., oracle, and the
         paper-fusion replay when there is one); `phases`: [{start_s, end_s, latency_best,
-        error_best, agree, monotone}]; `oracle_splits`; `best_fixed`; `learned_beats_fixed`;
-        `disagreements` (sentences); `skipped` (split: why)."""
+        error_best, agree, monotone, monotone_within_noise, inversions: [{faster, slower, by_m,
+        noise_m, beyond_noise}]}]; `oracle_splits`; `noise_block_s`; `best_fixed`;
+        `learned_beats_fixed`; `disagreements` (sentences); `skipped` (split: why)."""
         rows = [self.learned, *self.fixed.values(), self.oracle, self.paper_fusion]
         return {
             "latency_source": self.latency_source,
@@ -170,10 +243,22 @@ class SplitComparison:
                     "error_best": self.error_best(j),
                     "agree": self.latency_best(j) == self.error_best(j),
                     "monotone": self.monotone(j),
+                    "monotone_within_noise": self.monotone_within_noise(j),
+                    "inversions": [
+                        {
+                            "faster": v.faster,
+                            "slower": v.slower,
+                            "by_m": v.by_m,
+                            "noise_m": v.noise_m,
+                            "beyond_noise": v.beyond_noise,
+                        }
+                        for v in self.inversions(j)
+                    ],
                 }
                 for j, (a, b) in enumerate(self.bounds)
             ],
             "oracle_splits": [self.error_best(j) for j in range(len(self.bounds))],
+            "noise_block_s": NOISE_BLOCK_S,
             "best_fixed": self.best_fixed,
             "learned_beats_fixed": self.learned_beats_fixed,
             "disagreements": self.disagreements(),
@@ -240,4 +325,13 @@ def compare_splits(
     return replace(comparison, oracle=oracle, paper_fusion=paper)
 
 
-__all__ = ["PhaseFigures", "PolicyRow", "SplitComparison", "compare_splits", "policy_row"]
+__all__ = [
+    "NOISE_BLOCK_S",
+    "Inversion",
+    "PhaseFigures",
+    "PolicyRow",
+    "SplitComparison",
+    "compare_splits",
+    "paired_noise_m",
+    "policy_row",
+]

@@ -217,6 +217,25 @@ def error_autocorrelation(errors: object, max_lag: int) -> NDArray[np.float64]:
     )
 
 
+def independent_answers_per_s(interval_s: float, correlation_s: float) -> float:
+    """What a stream of answers every `interval_s` is worth in independent answers per second
+    when their errors have the memory exp(−dt/τ), τ = `correlation_s` (0: white).
+
+    The mean of n such answers has the variance of n (1 − ρ) / (1 + ρ) independent ones (ρ =
+    exp(−Δ/τ), n large), so the rate is tanh(Δ / 2τ) / Δ. It falls with Δ, so a faster split
+    always carries more, but it saturates at 1 / 2τ: once answers come faster than the errors
+    forget, a faster split adds almost nothing.
+    """
+    if not interval_s > 0 or correlation_s < 0:
+        raise ValueError(
+            f"need an interval > 0 and a correlation time >= 0, got {interval_s!r} and "
+            f"{correlation_s!r} s"
+        )
+    if correlation_s == 0:
+        return 1.0 / interval_s
+    return math.tanh(interval_s / (2.0 * correlation_s)) / interval_s
+
+
 def correlation_time(rho: object, frame_s: float) -> float:
     """The τ (s) whose exp(−k·frame_s/τ) fits autocorrelations `rho` at lags 1, 2, ... best
     (least squares on a log grid from 1 ms to 10 s), up to the first lag where rho <= 0.05."""

@@ -92,24 +92,49 @@ class InferenceCache:
         return self._cache[key]
 
 
-class WhiteNoiseAnswers(InferenceCache):
-    """An ablation, not a DNN: ground truth plus white Gaussian noise per frame (σ per axis),
-    with the real DNN's payload per split, so latencies are the real ones.
+class NoiseAnswers(InferenceCache):
+    """An ablation, not a DNN: ground truth plus Gaussian noise (σ per axis), with the real
+    DNN's payload per split, so latencies are the real ones.
 
-    It isolates what the DNN's error structure does to the splits' comparison: the same
-    replay with white answers of the same spread shows what latency alone costs.
+    The noise is white (`correlation_s` 0) or has the memory of a first-order Gauss-Markov
+    process along the drive: consecutive frames dt apart correlate exp(−dt/τ), τ =
+    `correlation_s`, the shape `metrics.correlation_time` fits to the DNN's own errors. A
+    frame's answer is the same at every split. It isolates what the DNN's error structure
+    does to the splits' comparison: with white answers of the same spread the same replay
+    shows what latency alone costs, and a sweep over τ shows how much memory it takes to
+    undo that.
     """
 
-    def __init__(self, real: InferenceCache, sigma_m: float, sigma_yaw: float = 0.02) -> None:
-        if not (sigma_m > 0 and sigma_yaw >= 0):
-            raise ValueError(f"white-noise answers need sigma > 0, got {sigma_m!r}")
+    def __init__(
+        self,
+        real: InferenceCache,
+        sigma_m: float,
+        sigma_yaw: float = 0.02,
+        correlation_s: float = 0.0,
+        seed: int = 0,
+    ) -> None:
+        if not (sigma_m > 0 and sigma_yaw >= 0 and correlation_s >= 0):
+            raise ValueError(
+                f"noise answers need sigma > 0 and a correlation time >= 0, got sigma "
+                f"{sigma_m!r}, {sigma_yaw!r} and {correlation_s!r} s"
+            )
         super().__init__(real.model, real.dataset, real.codec)
-        self.real, self.sigma_m, self.sigma_yaw = real, float(sigma_m), float(sigma_yaw)
+        self.real = real
+        self.sigma_m, self.sigma_yaw = float(sigma_m), float(sigma_yaw)
+        self.correlation_s = float(correlation_s)
+        times = np.asarray(real.dataset.timestamps, dtype=np.float64)
+        unit = np.random.default_rng([seed, 14]).normal(size=(len(times), 3))
+        if self.correlation_s > 0:
+            # AR(1) with each step's own coefficient: stationary at unit variance for any
+            # frame spacing, so σ is the spread of every answer whatever τ is.
+            rho = np.exp(-np.diff(times) / self.correlation_s)
+            for k in range(1, len(unit)):
+                unit[k] = rho[k - 1] * unit[k - 1] + math.sqrt(1 - rho[k - 1] ** 2) * unit[k]
+        self._noise = unit * np.array([self.sigma_m, self.sigma_m, self.sigma_yaw])
 
     def answer(self, frame: int, split: str) -> Answer:
-        rng = np.random.default_rng(frame)  # the same answer for a frame at every split
-        noise = np.array([*rng.normal(0.0, self.sigma_m, 2), rng.normal(0.0, self.sigma_yaw)])
-        return Answer(self.dataset.gt_pose(frame) + noise, self.real.answer(frame, split).payload)
+        pose = self.dataset.gt_pose(frame) + self._noise[frame]
+        return Answer(pose, self.real.answer(frame, split).payload)
 
 
 @dataclass(frozen=True)

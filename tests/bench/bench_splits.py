@@ -62,12 +62,13 @@ from nodes.edgeloc.metrics import (
     PaperComparison,
     correlation_time,
     error_autocorrelation,
+    independent_answers_per_s,
     position_errors,
 )
 from nodes.edgeloc.metrics import paper_comparison as paper_figures
 from nodes.edgeloc.replay import (
     InferenceCache,
-    WhiteNoiseAnswers,
+    NoiseAnswers,
     config_dataset,
     run_replay,
 )
@@ -96,6 +97,8 @@ TITLES = {
 }
 #: The white-noise ablation's spread: a 2-D Gaussian whose median error is the DNN's.
 RAYLEIGH_MEDIAN = math.sqrt(2 * math.log(2))
+#: The error memories of the noise answers' sweep (s), beside the white answers.
+MEMORIES_S = (0.025, 0.05, 0.1, 0.15)
 METHODS = ("vo", "dnn", "kalman", "edgeloc")
 
 
@@ -187,17 +190,20 @@ def run_seed(
     model: object,
     seed: int,
     fusions: Sequence[str],
-    white: bool,
+    memories_s: Sequence[float],
 ) -> tuple[dict[str, SeedResult], DnnErrors]:
     """Every fusion's comparison on one seed's drive (one dataset and cache for all), the
-    DNN's errors there, and with `white` the scenario's fusion on white-noise answers."""
+    DNN's errors there, and the scenario's fusion on noise answers with the DNN's spread and
+    each memory in `memories_s` (0: white; key `memory:<τ>`)."""
     cfg = replace(config, seed=seed)
     ds = config_dataset(cfg)
     cache = InferenceCache(model, ds, cfg.codec)  # type: ignore[arg-type]
     dnn = dnn_errors(cache, cfg.splits[-1], seed, 1.0 / cfg.rate_hz)
-    runs = [(f, f, cache) for f in fusions]
-    if white:
-        runs.append(("white", "scenario", WhiteNoiseAnswers(cache, dnn.median_m / RAYLEIGH_MEDIAN)))
+    runs: list[tuple[str, str, InferenceCache]] = [(f, f, cache) for f in fusions]
+    sigma = dnn.median_m / RAYLEIGH_MEDIAN
+    for tau in memories_s:
+        answers = NoiseAnswers(cache, sigma, correlation_s=tau, seed=seed)
+        runs.append((memory_key(tau), "scenario", answers))
     out = {}
     for key, fusion, answers in runs:
         fcfg = fusion_config(cfg, fusion)
@@ -207,6 +213,51 @@ def run_seed(
         totals = {m: float(position_errors(learned.poses[m], learned.gt).sum()) for m in METHODS}
         out[key] = SeedResult(seed, comp, paper_figures(totals))
     return out, dnn
+
+
+def memory_key(tau_s: float) -> str:
+    return "white" if tau_s == 0 else f"memory:{tau_s:g}"
+
+
+def info_ratio(c: SplitComparison, j: int, tau_s: float) -> float | None:
+    """Closed form (`metrics.independent_answers_per_s`): the fastest fixed split's independent
+    answers per second over the slowest's in phase j, each answering once per mean latency."""
+    lat = [r.phases[j].mean_latency_s for r in c.fixed.values()]
+    known = [v for v in lat if v is not None]
+    if len(known) < 2:
+        return None
+    fast, slow = min(known), max(known)
+    return independent_answers_per_s(fast, tau_s) / independent_answers_per_s(slow, tau_s)
+
+
+def error_ratio(c: SplitComparison, j: int) -> float | None:
+    """Measured: the slowest fixed split's mean error over the fastest's in phase j."""
+    rows = [r.phases[j] for r in c.fixed.values() if r.phases[j].mean_latency_s is not None]
+    if len(rows) < 2:
+        return None
+    rows.sort(key=lambda ph: ph.mean_latency_s)  # type: ignore[arg-type, return-value]
+    return rows[-1].mean_error_m / rows[0].mean_error_m
+
+
+def memory_table(rows_in: Sequence[tuple[str, float, Sequence[SeedResult]]], frame_s: float) -> str:
+    """One row per kind of answers: its memory, the goals, and per phase (median over seeds
+    and phases) the closed form's information ratio beside the measured error ratio."""
+    headers = ["answers", "tau ms", "rho 1 frame", "monotone phases", "up to ties",
+               "learned < fixed",
+               "info fast/slow (formula)", "error slow/fast (replay)"]  # fmt: skip
+    rows = []
+    for name, tau, results in rows_in:
+        (_, mono, _), (_, beats, _), _ = goals(results)
+        phases = [(r.comparison, j) for r in results for j in range(len(r.comparison.bounds))]
+        info = [info_ratio(c, j, tau) for c, j in phases]
+        err = [error_ratio(c, j) for c, j in phases]
+        rows.append([
+            name, _f(1e3 * tau, ".0f"), _f(math.exp(-frame_s / tau) if tau else 0.0, ".2f"),
+            mono, within_noise(results), beats,
+            _f(float(np.median([x for x in info if x is not None])), ".2f"),
+            _f(float(np.median([x for x in err if x is not None])), ".2f"),
+        ])  # fmt: skip
+    return table(headers, rows)
 
 
 def dnn_table(errors: Sequence[DnnErrors], frame_s: float) -> str:
@@ -260,7 +311,7 @@ def phase_table(results: Sequence[SeedResult], latency: LatencyModel) -> str:
         for j, (a, b) in enumerate(c.bounds):
             lat = [c.fixed[k].phases[j].mean_latency_s for k in splits]
             err = [c.fixed[k].phases[j].mean_error_m for k in splits]
-            lb, eb, mono = c.latency_best(j), c.error_best(j), c.monotone(j)
+            lb, eb = c.latency_best(j), c.error_best(j)
             rows.append(
                 [
                     r.seed,
@@ -271,10 +322,29 @@ def phase_table(results: Sequence[SeedResult], latency: LatencyModel) -> str:
                     lb or "-",
                     eb or "-",
                     "yes" if lb == eb else "no",
-                    "-" if mono is None else ("yes" if mono else "no"),
+                    monotone_cell(c, j),
                 ]
             )
     return table(headers, rows)
+
+
+def monotone_cell(c: SplitComparison, j: int) -> str:
+    """yes; no, tie (every inversion within the drive's noise); or no."""
+    mono = c.monotone(j)
+    if mono is None or mono:
+        return "-" if mono is None else "yes"
+    return "no, tie" if c.monotone_within_noise(j) else "no"
+
+
+def within_noise(results: Sequence[SeedResult]) -> str:
+    """Phases monotone up to ties: no inversion beyond the drive's noise band."""
+    ok = [
+        r.comparison.monotone_within_noise(j)
+        for r in results
+        for j in range(len(r.comparison.bounds))
+        if r.comparison.monotone(j) is not None
+    ]
+    return f"{sum(ok)}/{len(ok)}"
 
 
 def paper_table(results: Sequence[SeedResult]) -> str:
@@ -336,6 +406,7 @@ def report(
     print(paper_table(results))
     print("\n4. goals (issue #14)")
     rows = [[figure, "PASS" if met else "MISS"] for figure, _, met in goals(results)]
+    rows.append([f"(not a goal) monotone up to ties within the noise: {within_noise(results)}", ""])
     print(table(["goal", "verdict"], rows))
 
 
@@ -354,13 +425,23 @@ def main() -> int:
     p.add_argument(
         "--no-white",
         action="store_true",
-        help="skip the ablation that replays the scenario's fusion on white-noise answers",
+        help="skip the ablations that replay the scenario's fusion on noise answers",
+    )
+    p.add_argument(
+        "--memory",
+        default=",".join(f"{1e3 * t:g}" for t in MEMORIES_S),
+        help="error memories (ms, comma-separated) of the noise answers' sweep (default "
+        "%(default)s; the white answers are the sweep's 0)",
     )
     a = p.parse_args()
     try:
         seeds = [int(s) for s in a.seeds.split(",")]
+        memories = [float(m) / 1e3 for m in a.memory.split(",") if m.strip()]
     except ValueError:
-        p.error(f"--seeds must be comma-separated integers, got {a.seeds!r}")
+        p.error(f"--seeds and --memory take comma-separated numbers, got {a.seeds!r}, {a.memory!r}")
+    if any(m <= 0 for m in memories):
+        p.error(f"--memory takes correlation times > 0 ms, got {a.memory!r}")
+    memories = [] if a.no_white else [0.0, *memories]
     fusions = {
         "all": ("paper", "scenario", "ekf", "ekf-corr"),
         "both": ("paper", "scenario"),
@@ -376,13 +457,13 @@ def main() -> int:
         f"{', '.join(config.splits)}, phases at {', '.join(f'{t:g}' for t in config.phases)} s, "
         f"seeds {', '.join(map(str, seeds))}; compute: {compute.source}"
     )
-    keys = (*fusions, *(() if a.no_white else ("white",)))
-    by_key: dict[str, list[SeedResult]] = {k: [] for k in keys}
+    keys = (*fusions, *(memory_key(m) for m in memories[:1]))
+    by_key: dict[str, list[SeedResult]] = {k: [] for k in (*keys, *map(memory_key, memories))}
     errors = []
     t0 = time.perf_counter()
     for seed in seeds:
         t = time.perf_counter()
-        results, dnn = run_seed(config, lm, model, seed, fusions, not a.no_white)
+        results, dnn = run_seed(config, lm, model, seed, fusions, memories)
         errors.append(dnn)
         for key, res in results.items():
             by_key[key].append(res)
@@ -419,6 +500,21 @@ def main() -> int:
                  "white": "white answers"}  # fmt: skip
         headers = ["goal", *[x for k in keys for x in (short[k], "verdict")]]
         print(table(headers, rows))
+    if len(memories) > 1:
+        tau_dnn = float(np.mean([e.correlation_s for e in errors]))
+        print(
+            "\n## error memory: the scenario's fusion on answers with the DNN's spread and a "
+            "given memory (first-order Gauss-Markov, rho = exp(-dt/tau)); the real DNN for "
+            "comparison, with its fitted tau (mean over the seeds). Info fast/slow: the fastest "
+            "fixed split's independent answers per second over the slowest's "
+            "(metrics.independent_answers_per_s, each split answering once per mean latency); "
+            "error slow/fast: the slowest fixed split's mean EdgeLoc error over the fastest's. "
+            "Both are medians over seeds and phases."
+        )
+        rows = [(memory_key(m), m, by_key[memory_key(m)]) for m in memories]
+        if "scenario" in by_key:
+            rows.append(("the DNN's", tau_dnn, by_key["scenario"]))
+        print(memory_table(rows, frame_s))
     print(f"\nreplays took {time.perf_counter() - t0:.1f} s")
     return 0
 
