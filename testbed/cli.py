@@ -717,6 +717,11 @@ def split_phase_lines(splits: dict[str, Any]) -> list[str]:
         lines.append(
             f"learned {'beats' if beats else 'does not beat'} every fixed split "
             f"(best fixed: {splits['best_fixed']}; latencies: {splits['latency_source']})"
+            + (
+                ", within the drive's noise"
+                if splits.get("learned_beats_fixed_within_noise") and not beats
+                else ""
+            )
         )
     return lines
 

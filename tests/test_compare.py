@@ -172,17 +172,18 @@ def test_noise_answers_have_the_spread_and_the_memory_they_are_given() -> None:
         NoiseAnswers(real, 1.4, correlation_s=-0.1)  # type: ignore[arg-type]
 
 
-def _comparison(phases: dict[str, tuple[float, list[float]]]) -> SplitComparison:
+def _row(policy: str, latency_s: float | None, blocks: list[float]) -> PolicyRow:
+    figures = PhaseFigures(float(np.mean(blocks)), latency_s, latency_s, 10, tuple(blocks))
+    return PolicyRow(policy, float(sum(blocks)), (figures,))
+
+
+def _comparison(
+    phases: dict[str, tuple[float, list[float]]], learned: list[float] | None = None
+) -> SplitComparison:
     """One phase: per split its mean latency and its 2-s block errors."""
-    fixed = {
-        k: PolicyRow(
-            f"fixed:{k}",
-            float(sum(b)),
-            (PhaseFigures(float(np.mean(b)), lat, lat, 10, tuple(b)),),
-        )
-        for k, (lat, b) in phases.items()
-    }
-    return SplitComparison(((0.0, 30.0),), None, fixed, None, None, "model", {})
+    fixed = {k: _row(f"fixed:{k}", lat, b) for k, (lat, b) in phases.items()}
+    mine = None if learned is None else _row("learned", None, learned)
+    return SplitComparison(((0.0, 30.0),), mine, fixed, None, None, "model", {})
 
 
 def test_an_inversion_is_weighed_against_the_drives_noise() -> None:
@@ -210,6 +211,27 @@ def test_an_inversion_is_weighed_against_the_drives_noise() -> None:
     assert ordered.monotone(0) and ordered.inversions(0) == []
     assert ordered.monotone_within_noise(0) is True
     assert paired_noise_m([1.0, 2.0], [1.0, 2.5]) == math.inf  # too few blocks to judge
+
+
+def test_a_learned_run_that_loses_is_weighed_against_the_drives_noise() -> None:
+    base = [0.5 + 0.1 * math.sin(k) for k in range(15)]
+    swing = [0.3 * (-1) ** k for k in range(14)] + [0.0]
+    fixed = {"image": (0.07, base), "conv3": (0.12, [b + 0.2 for b in base])}
+    close = _comparison(fixed, [b + 0.01 + w for b, w in zip(base, swing, strict=True)])
+    clear = _comparison(fixed, [b + 0.05 for b in base])
+    ahead = _comparison(fixed, [b - 0.05 for b in base])
+    assert close.learned_beats_fixed is False and clear.learned_beats_fixed is False
+    by, noise = close.learned_deficit()  # type: ignore[misc]
+    assert by == pytest.approx(0.01) and noise > by
+    assert close.learned_beats_fixed_within_noise is True
+    by, noise = clear.learned_deficit()  # type: ignore[misc]
+    assert by == pytest.approx(0.05) and noise == pytest.approx(0.0, abs=1e-9)
+    assert clear.learned_beats_fixed_within_noise is False
+    assert "loses to fixed image" in clear.disagreements()[-1]
+    assert "beyond the drive's noise" in clear.disagreements()[-1]
+    assert "within the drive's noise" in close.disagreements()[-1]
+    assert ahead.learned_deficit() is None and ahead.learned_beats_fixed_within_noise is True
+    assert close.to_dict()["learned_beats_fixed_within_noise"] is True
 
 
 def test_smoke_replay_puts_edgeloc_ahead_of_all_three_baselines() -> None:

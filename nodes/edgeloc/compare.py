@@ -190,6 +190,27 @@ class SplitComparison:
             return None
         return self.learned.total_m < self.fixed[best].total_m
 
+    def learned_deficit(self) -> tuple[float, float] | None:
+        """When the learned run loses to the best fixed split: by how much per frame (the mean
+        of the paired block differences, m) and the drive's noise band; None otherwise."""
+        best = self.best_fixed
+        if self.learned_beats_fixed is not False or best is None:
+            return None
+        mine = [e for f in self.learned.phases for e in f.block_errors_m]  # type: ignore[union-attr]
+        theirs = [e for f in self.fixed[best].phases for e in f.block_errors_m]
+        if len(mine) != len(theirs) or not mine:
+            return (math.nan, math.inf)
+        return float(np.mean(mine) - np.mean(theirs)), paired_noise_m(mine, theirs)
+
+    @property
+    def learned_beats_fixed_within_noise(self) -> bool | None:
+        """`learned_beats_fixed`, or a loss to the best fixed split inside the drive's noise."""
+        deficit = self.learned_deficit()
+        if deficit is None:
+            return self.learned_beats_fixed
+        by, noise = deficit
+        return bool(by <= noise)
+
     def disagreements(self) -> list[str]:
         """Plain sentences for the report where latency and error disagree."""
         out = []
@@ -202,9 +223,12 @@ class SplitComparison:
             out += [f"{a:g}-{b:g} s: {v.sentence()}" for v in self.inversions(j)]
         if self.learned_beats_fixed is False:
             best = self.best_fixed
+            by, noise = self.learned_deficit()  # type: ignore[misc]
+            where = "within" if by <= noise else "beyond"
             out.append(
                 f"the learned run ({self.learned.total_m:.1f} m) loses to fixed {best} "  # type: ignore[union-attr]
-                f"({self.fixed[best].total_m:.1f} m)"  # type: ignore[index]
+                f"({self.fixed[best].total_m:.1f} m), by {by:.3f} m per frame, {where} the "  # type: ignore[index]
+                f"drive's noise (±{noise:.3f} m)"
             )
         return out
 
@@ -214,7 +238,8 @@ class SplitComparison:
         paper-fusion replay when there is one); `phases`: [{start_s, end_s, latency_best,
         error_best, agree, monotone, monotone_within_noise, inversions: [{faster, slower, by_m,
         noise_m, beyond_noise}]}]; `oracle_splits`; `noise_block_s`; `best_fixed`;
-        `learned_beats_fixed`; `disagreements` (sentences); `skipped` (split: why)."""
+        `learned_beats_fixed`; `learned_beats_fixed_within_noise`; `disagreements` (sentences);
+        `skipped` (split: why)."""
         rows = [self.learned, *self.fixed.values(), self.oracle, self.paper_fusion]
         return {
             "latency_source": self.latency_source,
@@ -261,6 +286,7 @@ class SplitComparison:
             "noise_block_s": NOISE_BLOCK_S,
             "best_fixed": self.best_fixed,
             "learned_beats_fixed": self.learned_beats_fixed,
+            "learned_beats_fixed_within_noise": self.learned_beats_fixed_within_noise,
             "disagreements": self.disagreements(),
             "skipped": self.skipped,
         }
