@@ -242,8 +242,8 @@ def error_ratio(c: SplitComparison, j: int) -> float | None:
 def memory_table(rows_in: Sequence[tuple[str, float, Sequence[SeedResult]]], frame_s: float) -> str:
     """One row per kind of answers: its memory, the goals, and per phase (median over seeds
     and phases) the closed form's information ratio beside the measured error ratio."""
-    headers = ["answers", "tau ms", "rho 1 frame", "monotone phases", "up to ties",
-               "learned < fixed", "up to ties",
+    headers = ["answers", "tau ms", "rho 1 frame", "monotone phases", "monotone up to ties",
+               "learned < fixed", "learned up to ties",
                "info fast/slow (formula)", "error slow/fast (replay)"]  # fmt: skip
     rows = []
     for name, tau, results in rows_in:
