@@ -78,12 +78,19 @@ def two_host_cluster(logs: Path) -> Iterator[Cluster]:
     ray_cli = [sys.executable, "-m", "ray.scripts.scripts", "start", "--block", "--num-cpus", "1",
                "--resources", '{"testbed": 1}', "--disable-usage-stats"]  # fmt: skip
     procs: list[subprocess.Popen[bytes]] = []
+    # `ray start --block` drains its node for up to 30 s on SIGTERM (for Serve replicas; these
+    # nodes run none), which was 30 s of each cluster test's teardown.
+    no_drain = {"RAY_GRACEFUL_SHUTDOWN_DRAIN_TIMEOUT_S": "0"}
 
     def start(name: str, *args: str) -> subprocess.Popen[bytes]:
         with open(logs / f"ray-{name}.log", "wb") as log:
             procs.append(
                 subprocess.Popen(
-                    [*ray_cli, *args], stdout=log, stderr=subprocess.STDOUT, start_new_session=True
+                    [*ray_cli, *args],
+                    stdout=log,
+                    stderr=subprocess.STDOUT,
+                    start_new_session=True,
+                    env={**os.environ, **no_drain},
                 )
             )
         return procs[-1]
@@ -200,8 +207,8 @@ def _mean_errors(folder: Path) -> dict[int, float]:
 def test_a_worker_killed_mid_run_costs_nothing(state_dir: Path, tmp_path: Path) -> None:
     """Two short real runs, one per node; the worker node is killed (SIGKILL to its raylet and
     workers) while both run: the sweep finishes on the head, the killed run runs again there,
-    every run folder comes back, nothing of either run is left, and the figures match a local
-    sweep's of the same variants within a real run's noise."""
+    every run folder comes back, nothing of either run is left, and each row's figures are its
+    own variant's: within a real run's noise of the local replay of the same variants."""
     from netem.netns import list_netns
 
     args = [str(SMOKE), "--set", "seed=7,8", "--duration", "6s", "--real"]
@@ -247,12 +254,16 @@ def test_a_worker_killed_mid_run_costs_nothing(state_dir: Path, tmp_path: Path) 
                        or r in Path(f"/proc/{p}/cmdline").read_text(errors="replace")
                        for r in runs)]  # fmt: skip
 
-    local = _sweep(*args, "--out", str(tmp_path / "local"))
+    # Each row is its own variant's drive: against the local replay of the same variants (the
+    # model of a real run, 3 s where two more real runs took ~35 s). A real 6-s run of smoke
+    # was 0.00-0.07 m from its replay (seeds 7 and 8); the two seeds are ~0.5 m apart.
+    local = _sweep(*[a for a in args if a != "--real"], "--out", str(tmp_path / "local"))
     assert local.returncode == 0, local.stdout + local.stderr
-    on_ray, here = _mean_errors(tmp_path / "ray"), _mean_errors(tmp_path / "local")
-    print(f"EdgeLoc mean error per seed: ray {on_ray}, local {here}")
-    for seed in (7, 8):  # the same drive, a real network's timing: within a metre
-        assert abs(on_ray[seed] - here[seed]) < 1.0, (seed, on_ray, here)
+    on_ray, replayed = _mean_errors(tmp_path / "ray"), _mean_errors(tmp_path / "local")
+    print(f"EdgeLoc mean error per seed: ray {on_ray}, replayed {replayed}")
+    assert abs(replayed[7] - replayed[8]) > 0.3, replayed
+    for seed in (7, 8):
+        assert abs(on_ray[seed] - replayed[seed]) < 0.2, (seed, on_ray, replayed)
 
 
 @pytest.mark.root
