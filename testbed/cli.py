@@ -844,6 +844,14 @@ def link_test(
     quick: Annotated[
         bool, typer.Option("--quick", help="Shorter probes (what `testbed run` does).")
     ] = False,
+    links: Annotated[
+        list[str] | None,
+        typer.Option(
+            "--link",
+            help="Measure only this link (repeatable), e.g. --link av1-gnb1. Default: every link.",
+            show_default=False,
+        ),
+    ] = None,
 ) -> None:
     """Bring the scenario's network up, measure every link direction (RTT, one-way delay,
     TCP/UDP goodput, loss over 10,000 datagrams) against its profile, tear down.
@@ -856,9 +864,12 @@ def link_test(
     side by side, their Wasserstein-1 and KS distances, HARQ retransmission shares against
     the BLER (4 sigma) and what each slot carried while saturated. Its W1 tolerance is this
     host's (its timer floor, measured and printed) plus what the number of probes allows by
-    chance. Example: testbed link-test scenarios/smoke.yaml --quick
+    chance. Examples: testbed link-test scenarios/smoke.yaml --quick; testbed link-test
+    scenarios/nr_cell.yaml --link av1-gnb1 (the air link alone; a run does the same with
+    `report: {link_test: [av1-gnb1]}`)
     """
     from testbed.capacity import check_scenario
+    from testbed.linktest import check_links
     from testbed.linktest import link_test as measure
     from testbed.scenario import ScenarioError, load
 
@@ -868,8 +879,9 @@ def link_test(
         raise _fail(err) from None
     progress = None if json_out else con.plain
     try:
+        check_links(scenario, links)
         capacity = check_scenario(scenario, progress=progress)
-        report = measure(scenario, quick=quick, progress=progress, capacity=capacity)
+        report = measure(scenario, quick=quick, progress=progress, capacity=capacity, links=links)
     except KNOWN_ERRORS as err:
         raise _fail(err) from None
     if json_out:

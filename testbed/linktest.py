@@ -35,6 +35,7 @@ import socket
 import statistics
 import struct
 import time
+from collections.abc import Sequence
 from dataclasses import asdict, dataclass, field
 from typing import TYPE_CHECKING, Any, Protocol
 
@@ -44,7 +45,7 @@ from netem.netns import netns_path
 from netem.profile import LinkProfile
 from nodes.recording import linktable
 from testbed.connectivity import echo_rtts
-from testbed.errors import TestbedError
+from testbed.errors import BadInput, TestbedError
 from testbed.hostload import CpuLoad, CpuSample, TimerFloor, cpu_load_between, timer_floor
 from testbed.links import DIRECTIONS, Direction, LinkController, neutral
 from testbed.namespaces import inside
@@ -410,12 +411,26 @@ def _profile_summary(p: LinkProfile) -> dict[str, Any]:
 
 
 class LinkTest:
-    """Measures every link of `net` (built with emulated links) against its profile."""
+    """Measures every link of `net` (built with emulated links), or the `links` named, against
+    its profile."""
 
-    def __init__(self, net: Net, quick: bool = False, progress: Any = None) -> None:
+    def __init__(
+        self,
+        net: Net,
+        quick: bool = False,
+        progress: Any = None,
+        links: Sequence[str] | None = None,
+    ) -> None:
         if net.control is None:
             raise TestbedError("the link self-test needs a network built with emulated links")
+        unknown = [n for n in links or () if n not in net.links]
+        if unknown:
+            raise TestbedError(
+                f"no link {', '.join(map(repr, unknown))} in this network; its links: "
+                f"{', '.join(net.links)}"
+            )
         self.net = net
+        self.links = [net.links[n] for n in net.links if links is None or n in links]
         self.control: LinkController = net.control
         self.quick = quick
         self.progress = progress or (lambda _line: None)
@@ -442,7 +457,7 @@ class LinkTest:
         t0 = time.monotonic()
         cpu0 = _cpu_sample()
         results = []
-        for link in self.net.links.values():
+        for link in self.links:
             self.progress(f"link test: {link.name}")
             results.append(self.link(link))
             self._check_alive()
@@ -804,11 +819,27 @@ class CapacityNote(Protocol):
     def to_dict(self) -> dict[str, Any]: ...
 
 
+def check_links(scenario: Any, links: Sequence[str] | None) -> None:
+    """Raise BadInput naming each of `links` the scenario has no link of, and those it has."""
+    unknown = [n for n in links or () if n not in scenario.links.names()]
+    if unknown:
+        raise BadInput(
+            f"no link {', '.join(map(repr, unknown))} in scenario {scenario.name!r}; its "
+            f"links: {', '.join(scenario.links.names())}"
+        )
+
+
 def link_test(
-    scenario: Any, quick: bool = False, progress: Any = None, capacity: CapacityNote | None = None
+    scenario: Any,
+    quick: bool = False,
+    progress: Any = None,
+    capacity: CapacityNote | None = None,
+    links: Sequence[str] | None = None,
 ) -> LinkTestReport:
     """`testbed link-test`: print `capacity` (which link rates this host's data plane cannot
-    carry; kept in the report), build the scenario's network, measure every link, tear down."""
+    carry; kept in the report), build the scenario's network, measure every link (or the
+    `links` named: checked before anything is built), tear down."""
+    check_links(scenario, links)
     from testbed.topology import build
 
     if capacity is not None and progress is not None:
@@ -818,6 +849,6 @@ def link_test(
         assert net.control is not None
         if hasattr(net.control, "watch"):
             net.control.watch()
-        report = LinkTest(net, quick=quick, progress=progress).run()
+        report = LinkTest(net, quick=quick, progress=progress, links=links).run()
     report.capacity = None if capacity is None else capacity.to_dict()
     return report

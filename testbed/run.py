@@ -3,14 +3,14 @@
 Steps: (with `capacity_check`, as `testbed run` does) say which link rates this host's
 userspace data plane cannot carry (`testbed.capacity`), build the topology with its emulated
 links (the backend `auto` picks, profiles applied), a short link self-test (`linktest.json`,
-when the scenario's `report.link_test` is on), prove with real packets that every vehicle
-reaches its core/edge server through its gNB, play the timeline for the scenario's `duration`
-(`events.jsonl`, a progress line every few seconds) while the EdgeLoc nodes run
-(`testbed.supervisor`: started after the connectivity check, stopped before teardown, their
-stats and the links' byte counters go into run.json), tear everything down and write `run.json`
-(backend, link-test verdict, timeline lateness). Teardown happens whatever a step does (Ctrl-C
-included). A link relay or node process that dies, or a timeline event that fails, fails the
-run within a second.
+of every link when the scenario's `report.link_test` is true, of those it names when it is a
+list), prove with real packets that every vehicle reaches its core/edge server through its
+gNB, play the timeline for the scenario's `duration` (`events.jsonl`, a progress line every
+few seconds) while the EdgeLoc nodes run (`testbed.supervisor`: started after the
+connectivity check, stopped before teardown, their stats and the links' byte counters go
+into run.json), tear everything down and write `run.json` (backend, link-test verdict,
+timeline lateness). Teardown happens whatever a step does (Ctrl-C included). A link relay or
+node process that dies, or a timeline event that fails, fails the run within a second.
 
 Recording (`testbed.recording`, when the scenario's `record.enabled`): the nodes record what
 they publish into `parts/`, this process records the link counters every 0.5 s
@@ -635,8 +635,9 @@ class _Run:
         scenario, progress = self.scenario, self.progress
         if net.control is not None:
             net.control.watch()  # a relay that dies sets the failure `_check` raises in POLL_S
-        if scenario.report.link_test:
-            report = LinkTest(net, quick=True, progress=progress).run()
+        tested = scenario.report.link_test_links(list(net.links))
+        if tested:
+            report = LinkTest(net, quick=True, progress=progress, links=tested).run()
             if result.capacity is not None:
                 report.capacity = result.capacity.to_dict()
             result.linktest = report

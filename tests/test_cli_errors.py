@@ -105,3 +105,18 @@ def test_report_of_a_folder_without_a_recording_exits_2(tmp_path: Path) -> None:
     out = CliRunner().invoke(app, ["report", str(tmp_path)])
     assert out.exit_code == 2
     assert "run.mcap" in out.output
+
+
+def test_link_test_of_a_link_the_scenario_lacks_exits_2_before_building_anything() -> None:
+    from netem.netns import list_netns
+
+    before = set(list_netns())
+    out = CliRunner().invoke(
+        app, ["link-test", str(REPO / "scenarios" / "smoke.yaml"), "--link", "av1-gnb9"]
+    )
+    assert out.exit_code == 2, out.output
+    assert (
+        "no link 'av1-gnb9' in scenario 'smoke'; its links: av1-gnb1, gnb1-upf1, upf1-edge1"
+        in " ".join(out.output.split())
+    ), out.output
+    assert set(list_netns()) == before

@@ -296,3 +296,16 @@ def test_loading_never_constructs_arbitrary_tags(tmp_path: Path) -> None:
     with pytest.raises(ScenarioError, match="a value tagged"):
         loads(BASE + f'seed: !!python/object/apply:os.system ["touch {marker}"]\n')
     assert not marker.exists()
+
+
+def test_report_link_test_names_the_links_a_run_measures(tmp_path: Path) -> None:
+    text = (SCENARIOS / "smoke.yaml").read_text()
+    assert "link_test: false" in text
+    names = ["av1-gnb1", "gnb1-upf1", "upf1-edge1"]
+    for value, tested in (("[upf1-edge1, av1-gnb1]", ["av1-gnb1", "upf1-edge1"]),
+                          ("true", names), ("false", [])):  # fmt: skip
+        file = tmp_path / f"{len(tested)}.yaml"
+        file.write_text(text.replace("link_test: false", f"link_test: {value}"))
+        scenario = load(file)
+        assert scenario.links.names() == names
+        assert scenario.report.link_test_links(scenario.links.names()) == tested

@@ -317,16 +317,17 @@ class _Builder:
         channel.check_timeline(self.ctx, self.root, self.link_kinds)
         channel.check_handover(self.ctx, self.root)
         channel_spec = channel.spec(self.ctx, self.root, self.base_dir, self.display_dir)
-        record = self.root.get("record")
+        record, report = self.root.get("record"), self.root.get("report")
         if record is not None:
-            self._check_pcap(record)
+            self._check_links_named(record, "pcap")
+        if report is not None:
+            self._check_links_named(report, "link_test")
         programs = Programs(self.ctx, self.base_dir, self.duration, self._check_node)
         apps = programs.apps(self.root.get("apps"))
         traffic = programs.traffic(self.root.get("traffic"))
         topics = programs.topics(record.get("topics") if record is not None else None)
         if self.ctx.issues or topology is None or links is None:
             return None
-        report = self.root.get("report")
         built_record = record.obj.build(record) if record else model.Record()
         scenario = model.Scenario(
             name=self.root["name"],
@@ -696,9 +697,9 @@ class _Builder:
             )
         return dataclasses.replace(built, scheduler=radio["scheduler"])
 
-    def _check_pcap(self, record: Section) -> None:
-        """Each link `record.pcap` names is a link of the topology."""
-        names = record.get("pcap")
+    def _check_links_named(self, section: Section, key: str) -> None:
+        """Each link a list at `section[key]` names is a link of the topology."""
+        names = section.get(key)
         if not isinstance(names, Items) or not self.topology_ok:
             return
         for i, name, node in names.good():

@@ -471,7 +471,14 @@ class Report:
     enabled: bool = True
     formats: tuple[Literal["html", "md", "json"], ...] = ("html", "md", "json")
     plots: bool = True
-    link_test: bool = True  # short link self-test before the workload
+    # Short link self-test before the workload: every link, none, or the links named.
+    link_test: bool | tuple[str, ...] = True
+
+    def link_test_links(self, links: Sequence[str]) -> list[str]:
+        """The links of a run with `links` that its self-test measures, in the run's order."""
+        if self.link_test is True or self.link_test is False:
+            return list(links) if self.link_test else []
+        return [n for n in links if n in self.link_test]
 
 
 # ---- apps and traffic: workloads that are not ours ------------------------------------------

@@ -924,7 +924,13 @@ REPORT = Obj(
             "Report formats.",
         ),
         Field("plots", Bool(), "Draw plots."),
-        Field("link_test", Bool(), "Measure each link briefly before the workload."),
+        Field(
+            "link_test",
+            Either(Bool(), ListOf(LINK_NAME, min_items=1, unique=True)),
+            "Measure each link briefly before the workload (true), no link (false), or only"
+            " the links listed, e.g. [av1-gnb1] for the air link alone (each wired link costs"
+            " ~8 s, each radio link ~20 s).",
+        ),
     ],
     model=model.Report,
 )
