@@ -24,7 +24,7 @@ from __future__ import annotations
 import itertools
 import math
 from collections.abc import Sequence
-from dataclasses import dataclass, field, replace
+from dataclasses import asdict, dataclass, field, replace
 
 import numpy as np
 
@@ -138,31 +138,32 @@ class SplitComparison:
     skipped: dict[str, str]  # split -> why it has no row
 
     def latency_best(self, j: int) -> str | None:
-        lat = {k: r.phases[j].mean_latency_s for k, r in self.fixed.items()}
-        known = {k: v for k, v in lat.items() if v is not None}
-        return min(known, key=known.__getitem__) if known else None
+        rows = self.by_latency(j)
+        return rows[0][0] if rows else None
 
     def error_best(self, j: int) -> str | None:
         err = {k: r.phases[j].mean_error_m for k, r in self.fixed.items()}
         known = {k: v for k, v in err.items() if math.isfinite(v)}
         return min(known, key=known.__getitem__) if known else None
 
+    def by_latency(self, j: int) -> list[tuple[str, PhaseFigures]]:
+        """The fixed splits timed in phase j, fastest first."""
+        rows = [(k, r.phases[j]) for k, r in self.fixed.items()]
+        rows = [(k, f) for k, f in rows if f.mean_latency_s is not None]
+        return sorted(rows, key=lambda kf: kf[1].mean_latency_s)  # type: ignore[arg-type, return-value]
+
     def monotone(self, j: int) -> bool | None:
         """Whether ordering the fixed splits by latency in phase j orders them by error too
         (strictly); None with fewer than two splits."""
-        rows = [r.phases[j] for r in self.fixed.values() if r.phases[j].mean_latency_s is not None]
+        rows = [f for _, f in self.by_latency(j)]
         if len(rows) < 2:
             return None
-        rows.sort(key=lambda f: f.mean_latency_s)  # type: ignore[arg-type, return-value]
         return all(a.mean_error_m < b.mean_error_m for a, b in itertools.pairwise(rows))
 
     def inversions(self, j: int) -> list[Inversion]:
         """Every pair of fixed splits in phase j where the slower one was more accurate."""
-        rows = [(k, r.phases[j]) for k, r in self.fixed.items()]
-        rows = [(k, f) for k, f in rows if f.mean_latency_s is not None]
-        rows.sort(key=lambda kf: kf[1].mean_latency_s)  # type: ignore[arg-type, return-value]
         out = []
-        for (fast, f), (slow, g) in itertools.combinations(rows, 2):
+        for (fast, f), (slow, g) in itertools.combinations(self.by_latency(j), 2):
             if g.mean_error_m <= f.mean_error_m:
                 noise = (
                     paired_noise_m(f.block_errors_m, g.block_errors_m)
@@ -270,14 +271,7 @@ class SplitComparison:
                     "monotone": self.monotone(j),
                     "monotone_within_noise": self.monotone_within_noise(j),
                     "inversions": [
-                        {
-                            "faster": v.faster,
-                            "slower": v.slower,
-                            "by_m": v.by_m,
-                            "noise_m": v.noise_m,
-                            "beyond_noise": v.beyond_noise,
-                        }
-                        for v in self.inversions(j)
+                        {**asdict(v), "beyond_noise": v.beyond_noise} for v in self.inversions(j)
                     ],
                 }
                 for j, (a, b) in enumerate(self.bounds)

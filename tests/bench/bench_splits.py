@@ -222,21 +222,19 @@ def memory_key(tau_s: float) -> str:
 def info_ratio(c: SplitComparison, j: int, tau_s: float) -> float | None:
     """Closed form (`metrics.independent_answers_per_s`): the fastest fixed split's independent
     answers per second over the slowest's in phase j, each answering once per mean latency."""
-    lat = [r.phases[j].mean_latency_s for r in c.fixed.values()]
-    known = [v for v in lat if v is not None]
-    if len(known) < 2:
+    rows = c.by_latency(j)
+    if len(rows) < 2:
         return None
-    fast, slow = min(known), max(known)
-    return independent_answers_per_s(fast, tau_s) / independent_answers_per_s(slow, tau_s)
+    fast, slow = rows[0][1].mean_latency_s, rows[-1][1].mean_latency_s
+    return independent_answers_per_s(fast, tau_s) / independent_answers_per_s(slow, tau_s)  # type: ignore[arg-type]
 
 
 def error_ratio(c: SplitComparison, j: int) -> float | None:
     """Measured: the slowest fixed split's mean error over the fastest's in phase j."""
-    rows = [r.phases[j] for r in c.fixed.values() if r.phases[j].mean_latency_s is not None]
+    rows = c.by_latency(j)
     if len(rows) < 2:
         return None
-    rows.sort(key=lambda ph: ph.mean_latency_s)  # type: ignore[arg-type, return-value]
-    return rows[-1].mean_error_m / rows[0].mean_error_m
+    return rows[-1][1].mean_error_m / rows[0][1].mean_error_m
 
 
 def memory_table(rows_in: Sequence[tuple[str, float, Sequence[SeedResult]]], frame_s: float) -> str:
