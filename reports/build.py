@@ -372,10 +372,10 @@ def _splits(s: dict[str, Any], plots: dict[str, Plot | None]) -> Section:
     if any(p.get("inversions") for p in phases):
         sec.add(
             Para(
-                "The drive's noise is twice the standard error of the two splits' paired "
-                f"difference in error over {sp['noise_block_s']:g}-s blocks: an inversion "
-                "within it is a tie that this drive cannot resolve, one beyond it is evidence "
-                "against the claim.",
+                "The drive's noise is Student's 95% interval for the mean difference in error "
+                "between the two splits, from that difference's means over blocks of about "
+                f"{sp['noise_block_s']:g} s: an inversion within it is a tie that this drive "
+                "cannot resolve, one beyond it is evidence against the claim.",
                 "note",
             )
         )
