@@ -44,7 +44,7 @@ from nodes.edgeloc.settings import ReplayConfig
 #: Blocks must be longer than that memory for their means to be nearly independent. On
 #: zero-mean AR(1) differences over a 30-s phase, 10-s blocks with Student's t called a
 #: difference real in 4-9% of draws for memories of 0-4 s (12% at 8 s); 2-s blocks with a
-#: band of two standard errors did in 15% at 1 s and 36% at 4 s
+#: band of two standard errors did in 15% at 1 s and 42% at 4 s
 #: (`tests/test_compare.py::test_the_noise_band_holds_its_level_on_differences_with_memory`).
 NOISE_BLOCK_S = 10.0
 
