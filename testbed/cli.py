@@ -869,7 +869,7 @@ def link_test(
     `report: {link_test: [av1-gnb1]}`)
     """
     from testbed.capacity import check_scenario
-    from testbed.linktest import check_links
+    from testbed.linktest import check_link_names
     from testbed.linktest import link_test as measure
     from testbed.scenario import ScenarioError, load
 
@@ -879,7 +879,7 @@ def link_test(
         raise _fail(err) from None
     progress = None if json_out else con.plain
     try:
-        check_links(scenario, links)
+        check_link_names(scenario.links.names(), links, f"scenario {scenario.name!r}")
         capacity = check_scenario(scenario, progress=progress)
         report = measure(scenario, quick=quick, progress=progress, capacity=capacity, links=links)
     except KNOWN_ERRORS as err:

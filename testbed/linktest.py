@@ -410,6 +410,16 @@ def _profile_summary(p: LinkProfile) -> dict[str, Any]:
 # ---- the test --------------------------------------------------------------------------------
 
 
+def check_link_names(known: Sequence[str], links: Sequence[str] | None, where: str) -> None:
+    """Raise BadInput naming each of `links` that is not one of `known` (the links of
+    `where`), and those it has."""
+    unknown = [n for n in links or () if n not in known]
+    if unknown:
+        raise BadInput(
+            f"no link {', '.join(map(repr, unknown))} in {where}; its links: {', '.join(known)}"
+        )
+
+
 class LinkTest:
     """Measures every link of `net` (built with emulated links), or the `links` named, against
     its profile."""
@@ -423,12 +433,7 @@ class LinkTest:
     ) -> None:
         if net.control is None:
             raise TestbedError("the link self-test needs a network built with emulated links")
-        unknown = [n for n in links or () if n not in net.links]
-        if unknown:
-            raise TestbedError(
-                f"no link {', '.join(map(repr, unknown))} in this network; its links: "
-                f"{', '.join(net.links)}"
-            )
+        check_link_names(list(net.links), links, "this network")
         self.net = net
         self.links = [net.links[n] for n in net.links if links is None or n in links]
         self.control: LinkController = net.control
@@ -819,16 +824,6 @@ class CapacityNote(Protocol):
     def to_dict(self) -> dict[str, Any]: ...
 
 
-def check_links(scenario: Any, links: Sequence[str] | None) -> None:
-    """Raise BadInput naming each of `links` the scenario has no link of, and those it has."""
-    unknown = [n for n in links or () if n not in scenario.links.names()]
-    if unknown:
-        raise BadInput(
-            f"no link {', '.join(map(repr, unknown))} in scenario {scenario.name!r}; its "
-            f"links: {', '.join(scenario.links.names())}"
-        )
-
-
 def link_test(
     scenario: Any,
     quick: bool = False,
@@ -838,8 +833,7 @@ def link_test(
 ) -> LinkTestReport:
     """`testbed link-test`: print `capacity` (which link rates this host's data plane cannot
     carry; kept in the report), build the scenario's network, measure every link (or the
-    `links` named: checked before anything is built), tear down."""
-    check_links(scenario, links)
+    `links` named), tear down."""
     from testbed.topology import build
 
     if capacity is not None and progress is not None:

@@ -476,7 +476,7 @@ class Report:
 
     def link_test_links(self, links: Sequence[str]) -> list[str]:
         """The links of a run with `links` that its self-test measures, in the run's order."""
-        if self.link_test is True or self.link_test is False:
+        if isinstance(self.link_test, bool):
             return list(links) if self.link_test else []
         return [n for n in links if n in self.link_test]
 

@@ -345,6 +345,21 @@ def within_noise(results: Sequence[SeedResult]) -> str:
     return f"{sum(ok)}/{len(ok)}"
 
 
+def noise_bands(results: Sequence[SeedResult]) -> str:
+    """The inversions' noise bands (m): median and range, what one phase can resolve."""
+    bands = [
+        v.noise_m
+        for r in results
+        for j in range(len(r.comparison.bounds))
+        for v in r.comparison.inversions(j)
+        if math.isfinite(v.noise_m)
+    ]
+    if not bands:
+        return "no inversions"
+    spread = f"{min(bands):.2f}-{max(bands):.2f}"
+    return f"median ±{np.median(bands):.2f} m ({spread}), {len(bands)} inversions"
+
+
 def beats_within_noise(results: Sequence[SeedResult]) -> str:
     """Seeds where the learned run beats every fixed split or loses within the drive's noise."""
     ok = sum(bool(r.comparison.learned_beats_fixed_within_noise) for r in results)
@@ -414,6 +429,7 @@ def report(
     rows.append(
         [f"(not a goal) learned < every fixed split up to ties: {beats_within_noise(results)}", ""]
     )
+    rows.append([f"(not a goal) the inversions' noise bands: {noise_bands(results)}", ""])
     print(table(["goal", "verdict"], rows))
 
 
