@@ -18,6 +18,7 @@ from testbed.sweep import (
     load_tree,
     parse_set,
     read_tree,
+    rescale,
     set_path,
     shorten,
     split_values,
@@ -145,6 +146,19 @@ def test_shorten_scales_the_timeline_with_the_duration() -> None:
     outages = [e for e in short["timeline"] if "outage" in e]
     assert [(e["at"], e["for"]) for e in outages] == [("3s", "0.6s"), ("6s", "0.1s")]
     assert load_tree(short, REPO / "scenarios" / "handover_outage.yaml", "test").duration_s == 8
+
+
+def test_rescale_stretches_each_phase_and_shorten_never_does() -> None:
+    file = REPO / "scenarios" / "default.yaml"
+    base = read_tree(file)
+    long = rescale(base, 360.0)
+    assert long["duration"] == "360s"
+    assert [e["at"] for e in long["timeline"]] == [0, "120s", "240s"]
+    assert load_tree(long, file, "test").duration_s == 360
+    same = shorten(base, 360.0)  # a longer duration leaves the scenario as it was
+    assert same["duration"] == "90s"
+    assert [e["at"] for e in same["timeline"]] == [0, "30s", "60s"]
+    assert base["duration"] == "90s"  # and neither changes the tree it is given
 
 
 # ---- the verb --------------------------------------------------------------------------------

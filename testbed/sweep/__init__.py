@@ -22,11 +22,11 @@ scenario, DNN outputs shared between variants that drive the same frames) or, wi
 as a real run (`testbed run`: namespaces, links, ROS 2 nodes). The report is `sweep.json`,
 `sweep.md` (one table) and `sweep.png` (errors and latency across the variants).
 
-The package: `grid` (axes, `--set` parsing, overrides on the YAML tree, `shorten`), `jobs`
-(one run of a variant with one seed: the replay engine, the real-run rows), `engines`
-(`run_sweep`: the jobs one by one here), `rayengine` (the jobs as Ray tasks on a cluster,
-`--engine ray`), `stats` (`--seeds`: derived seeds, mean and 95% interval), `output` (the
-rows, the report and its three files).
+The package: `grid` (axes, `--set` parsing, overrides on the YAML tree, `shorten`,
+`rescale`), `jobs` (one run of a variant with one seed: the replay engine, the real-run rows),
+`engines` (`run_sweep`: the jobs one by one here), `rayengine` (the jobs as Ray tasks on a
+cluster, `--engine ray`), `stats` (`--seeds`: derived seeds, mean and 95% interval), `output`
+(the rows, the report and its three files).
 """
 
 from testbed.sweep.engines import run_sweep
@@ -40,6 +40,7 @@ from testbed.sweep.grid import (
     parse_value,
     path_segments,
     read_tree,
+    rescale,
     set_path,
     shorten,
     split_values,
@@ -64,6 +65,7 @@ __all__ = [
     "path_segments",
     "plot",
     "read_tree",
+    "rescale",
     "run_sweep",
     "set_path",
     "shorten",

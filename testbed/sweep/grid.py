@@ -269,12 +269,22 @@ def shorten(data: dict[str, Any], duration_s: float) -> dict[str, Any]:
     """A copy of a scenario tree cut to `duration_s`, its timeline scaled with it (event times
     and outage lengths, and the start and stop of apps and traffic flows), so every phase of a
     long scenario is still played, briefly. Traces play at their own pace: a shortened
-    trace-driven run sees the start of its trace."""
+    trace-driven run sees the start of its trace. A `duration_s` longer than the scenario's
+    leaves it as it is (`rescale` stretches)."""
+    from testbed import units
+
+    full = units.parse_duration(str(data["duration"]))
+    return rescale(data, min(duration_s, full))
+
+
+def rescale(data: dict[str, Any], duration_s: float) -> dict[str, Any]:
+    """A copy of a scenario tree played over `duration_s`, shorter or longer: its timeline is
+    scaled by the same factor as its duration (see `shorten`), so each phase keeps its share
+    of the run."""
     from testbed import units
 
     out = copy.deepcopy(data)
-    full = units.parse_duration(str(data["duration"]))
-    factor = min(1.0, duration_s / full)
+    factor = duration_s / units.parse_duration(str(data["duration"]))
     out["duration"] = f"{duration_s:g}s"
     timed = [(e, ("at", "for")) for e in out.get("timeline") or []]
     timed += [

@@ -35,7 +35,8 @@ A benchmark reports: a missed goal is printed as MISS and the script still exits
 The compute profile is the reference committed with the weights, so the figures are the same
 on every machine. ~30 replays per seed with the four fusions and the ablation, ~2.5 s each.
 Usage: python tests/bench/bench_splits.py [--seeds 1,2,3,4,7] [--no-white]
-       [--fusion all|both|scenario|paper|ekf|ekf-corr]
+       [--fusion all|both|scenario|paper|ekf|ekf-corr] [--memory 25,50,100,150]
+       [--weights FILE] [--stretch K]
 """
 
 from __future__ import annotations
@@ -70,12 +71,14 @@ from nodes.edgeloc.replay import (
     InferenceCache,
     NoiseAnswers,
     config_dataset,
+    model_provenance,
     run_replay,
 )
 from nodes.edgeloc.settings import ReplayConfig
 from nodes.edgeloc.train import load_model
 from testbed.replay import compute_profile, latency_model, replay_config
 from testbed.scenario import load
+from testbed.sweep import load_tree, read_tree, rescale
 
 ROOT = Path(__file__).resolve().parents[2]
 SEEDS = (1, 2, 3, 4, 7)
@@ -456,7 +459,22 @@ def main() -> int:
         help="error memories (ms, comma-separated) of the noise answers' sweep (default "
         "%(default)s; the white answers are the sweep's 0)",
     )
+    p.add_argument(
+        "--weights",
+        default=None,
+        help="a LocNet weights file (`python -m nodes.edgeloc.train --out DIR`) in place of the "
+        "committed one: how the figures move with another DNN",
+    )
+    p.add_argument(
+        "--stretch",
+        type=float,
+        default=1.0,
+        help="play the scenario over this many times its 90 s, each phase stretched alike "
+        "(`testbed.sweep.rescale`): whether longer phases resolve what 30-s ones call ties",
+    )
     a = p.parse_args()
+    if not (a.stretch > 0 and math.isfinite(a.stretch)):
+        p.error(f"--stretch takes a factor > 0, got {a.stretch!r}")
     try:
         seeds = [int(s) for s in a.seeds.split(",")]
         memories = [float(m) / 1e3 for m in a.memory.split(",") if m.strip()]
@@ -470,16 +488,28 @@ def main() -> int:
         "both": ("paper", "scenario"),
     }.get(a.fusion, (a.fusion,))
     torch.set_num_threads(1)
-    sc = load(ROOT / "scenarios" / "default.yaml")
+    file = ROOT / "scenarios" / "default.yaml"
+    sc = load(file)
+    if a.stretch != 1.0:
+        tree = rescale(read_tree(file), a.stretch * sc.duration_s)
+        sc = load_tree(tree, file, f"--stretch {a.stretch:g}")
     compute = compute_profile(sc.workload.codec, None)
     lm = latency_model(sc, compute)
     config = replay_config(sc)
-    model = load_model()
+    model = load_model(a.weights)
     print(
         f"{sc.name}: {sc.duration_s:g} s at {config.rate_hz:g} Hz, splits "
         f"{', '.join(config.splits)}, phases at {', '.join(f'{t:g}' for t in config.phases)} s, "
         f"seeds {', '.join(map(str, seeds))}; compute: {compute.source}"
     )
+    if a.weights:
+        info = model_provenance(a.weights)
+        held = info.get("held_out") or {}
+        median = held.get("median_translation_m") if isinstance(held, dict) else None
+        print(
+            f"weights: {a.weights} (sha256 {str(info['sha256'])[:12]}; held-out median "
+            f"{'?' if median is None else f'{median:.2f}'} m)"
+        )
     keys = (*fusions, *(memory_key(m) for m in memories[:1]))
     by_key: dict[str, list[SeedResult]] = {k: [] for k in (*keys, *map(memory_key, memories))}
     errors = []
