@@ -56,8 +56,16 @@ scenario:
 smoke: setup
 	$(BIN)/testbed run scenarios/smoke.yaml
 
+# Two passes. First, one at a time, the tests that need the machine to themselves: those with
+# namespaces (root), ROS (one DDS domain), whole scenarios (e2e), rate measurements, the VM and
+# the slow ones, in conftest's order (measurements first, onto a fresh machine). Then the unit
+# tests on every core (pytest-xdist). Both passes always run; a failure in either fails.
+SERIAL_TESTS := root or ros or e2e or measure or netem_vm or slow
 test: setup sysdeps chromium tshark iperf3 ray
-	$(BIN)/python -m pytest -q
+	@rc=0; \
+	$(BIN)/python -m pytest -q -m "$(SERIAL_TESTS)" || rc=$$?; \
+	$(BIN)/python -m pytest -q -n auto -m "not ($(SERIAL_TESTS))" || rc=$$?; \
+	exit $$rc
 
 # Installs $(VM_DEBS) when this kernel lacks sch_netem and they are missing (root only).
 sysdeps: setup

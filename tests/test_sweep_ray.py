@@ -128,6 +128,7 @@ def _totals(folder: Path) -> list[tuple[int, int, float]]:
     return [(v["index"], v["seed"], v["methods"]["edgeloc"]["total_m"]) for v in data["variants"]]
 
 
+@pytest.mark.slow  # a Ray cluster of its own: one at a time (make test runs slow tests alone)
 def test_a_replay_sweep_on_a_two_host_cluster_gives_the_rows_of_a_local_one(
     tmp_path: Path,
 ) -> None:
