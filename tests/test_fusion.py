@@ -14,6 +14,7 @@ from nodes.edgeloc.fusion import (
     EdgeLocFuser,
     VoHistory,
     latency_weight,
+    per_second_weight,
     time_zone_revision,
 )
 
@@ -80,6 +81,50 @@ def test_dnn_answer_pulls_the_fused_pose_by_u_after_revision() -> None:
     err_before = np.hypot(*(before[:2] - gt[19][:2]))
     err_after = np.hypot(*(fused[:2] - gt[19][:2]))
     assert err_after == pytest.approx((1 - u) * err_before, rel=1e-9)
+
+
+def test_a_per_second_weight_pulls_as_hard_per_second_whatever_the_gap() -> None:
+    """Its closed form: two blends g apart leave what one blend for 2g leaves, a gap of P gives
+    u back, no gap pulls nothing."""
+    for u in (0.0, 0.047, 0.5, 1.0):
+        for g in (0.0, 0.03, 0.1, 0.37):
+            once = per_second_weight(u, 2 * g, 0.1)
+            twice = per_second_weight(u, g, 0.1)
+            assert (1 - twice) ** 2 == pytest.approx(1 - once, abs=1e-12)
+        assert per_second_weight(u, 0.1, 0.1) == pytest.approx(u)
+        assert per_second_weight(u, 0.0, 0.1) == 0.0
+    for bad in ((1.2, 0.1, 0.1), (0.5, -0.1, 0.1), (0.5, 0.1, 0.0)):
+        with pytest.raises(ValueError, match="need 0 <= u <= 1"):
+            per_second_weight(*bad)
+
+
+@pytest.mark.parametrize("every_s", [0.05, 0.1, 0.2])
+def test_with_pull_every_s_answers_twice_as_often_pull_no_harder_per_second(
+    every_s: float,
+) -> None:
+    """A standing car whose fused pose is 2 m off, and n answers of the truth, `every_s` apart
+    with 100 ms of latency. With P = 0.1 s the first answer pulls by u (it has no gap before
+    it) and each later one as u does once every P, so the error kept is
+    (1 − u)^(1 + (n − 1)·every_s/P): the time the answers span, not their number. The paper's
+    per-answer u keeps (1 − u)^n."""
+    k, dt0, latency, pull = 2.0, -1.4, 0.1, 0.1
+    u = latency_weight(latency, k, dt0)
+    truth = geometry.pose(0.0, 0.0, 0.0)
+    n = round(1.0 / every_s)
+    kept = {}
+    for p in (pull, None):
+        fuser = EdgeLocFuser(k, dt0, initial=geometry.pose(2.0, 0.0, 0.0), pull_every_s=p)
+        fuser.on_vo(truth, -1.0)
+        for i in range(1, n + 1):
+            fuser.on_vo(truth, i * every_s)
+            assert fuser.on_dnn(truth, i * every_s - latency, i * every_s) is not None
+        pose = fuser.pose
+        assert pose is not None
+        kept[p] = float(np.hypot(*pose[:2])) / 2.0
+    assert kept[pull] == pytest.approx((1 - u) ** (1 + (n - 1) * every_s / pull), rel=1e-9)
+    assert kept[None] == pytest.approx((1 - u) ** n, rel=1e-9)
+    with pytest.raises(ValueError, match="pull_every_s must be > 0"):
+        EdgeLocFuser(k, dt0, pull_every_s=0.0)
 
 
 def test_revision_interpolates_vo_between_stamps() -> None:
@@ -171,3 +216,15 @@ def test_dnn_hold_holds_the_latest_answer_or_revises_it() -> None:
     extra = geometry.compose(gt[9], geometry.pose(1.0, 0.0, 0.1))
     np.testing.assert_allclose(held.on_vo(extra, 1.0), gt[2])
     np.testing.assert_allclose(revised.on_vo(extra, 1.0), extra, atol=1e-9)
+
+
+def test_the_rate_free_pull_is_named_an_ablation_and_is_for_the_papers_weight_only() -> None:
+    from nodes.edgeloc.settings import ReplayConfig
+
+    cfg = ReplayConfig(pull_every_s=0.1)
+    assert "AN ABLATION" in cfg.describe_fusion()
+    fuser = cfg.build_fuser()
+    assert isinstance(fuser, EdgeLocFuser) and fuser.pull_every_s == 0.1
+    assert ReplayConfig().build_fuser().pull_every_s is None  # type: ignore[union-attr]
+    with pytest.raises(ValueError, match="not for the EKF"):
+        ReplayConfig(fusion_method="ekf", pull_every_s=0.1)

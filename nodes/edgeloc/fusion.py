@@ -15,6 +15,12 @@ r (its distance from L_r, after revision), where s is the median innovation of t
 of its weight, one ten times as far keeps ~c²/100. It reads nothing the vehicle does not have.
 `robust_c = None` is the paper's bare form.
 
+AN ABLATION, NOT A FUSION TO USE (`pull_every_s`): the paper's u is per answer, so a split that
+answers twice as often pulls the fused pose twice as hard per second. With `pull_every_s = P`
+each answer's u becomes `per_second_weight(u, gap, P)`, the weight that pulls as hard over the
+gap since the previous answer as u does once every P seconds. It separates what an answer's
+age costs from what the answer rate buys (`tests/bench/bench_splits.py --fusion per-second`).
+
 Every pose is an SE(2) numpy array [x, y, yaw] (see `geometry`). All times are seconds on the
 vehicle's clock.
 """
@@ -58,6 +64,20 @@ def latency_weight(dt: float, k_s: float, dt0: float) -> float:
         return 1.0 / (1.0 + math.exp(-z))
     e = math.exp(z)
     return e / (1.0 + e)
+
+
+def per_second_weight(u: float, gap_s: float, pull_every_s: float) -> float:
+    """u' = 1 − (1 − u)^(gap / P): the blend weight that leaves as much of the old pose after
+    `gap_s` as u once every P = `pull_every_s` seconds, whatever the answer rate.
+
+    Two blends `gap_s` apart with u' leave what one with u' for 2·`gap_s` does (the pull per
+    second is the answer rate's no longer); `gap_s` = P gives u back.
+    """
+    if not (0.0 <= u <= 1.0 and gap_s >= 0.0 and pull_every_s > 0.0):
+        raise ValueError(
+            f"need 0 <= u <= 1, gap >= 0 s and P > 0 s, got {u!r}, {gap_s!r}, {pull_every_s!r}"
+        )
+    return 1.0 - (1.0 - u) ** (gap_s / pull_every_s)
 
 
 class VoHistory:
@@ -152,7 +172,8 @@ class EdgeLocFuser:
     taken as the world frame). A DNN answer is dropped (None) when no VO pose is known at its
     capture time t0 (before the first VO frame or older than `history_s`). Both entry points
     take a lock: the ROS node calls them from its real-time and its inference threads.
-    `robust_c` (beyond the paper, see the module doc) scales u by the answer's Cauchy weight.
+    `robust_c` (beyond the paper, see the module doc) scales u by the answer's Cauchy weight;
+    `pull_every_s` (an ablation, see the module doc) makes the pull per second rate-free.
     """
 
     def __init__(
@@ -162,6 +183,7 @@ class EdgeLocFuser:
         history_s: float = 10.0,
         initial: Pose | None = None,
         robust_c: float | None = None,
+        pull_every_s: float | None = None,
     ) -> None:
         if not (math.isfinite(k_s) and k_s > 0):
             raise ValueError(f"fusion k_s must be a positive number (1/s), got {k_s!r}")
@@ -172,6 +194,10 @@ class EdgeLocFuser:
         self.k_s = float(k_s)
         self.dt0_s = float(dt0_s)
         self.robust_c = None if robust_c is None else float(robust_c)
+        if pull_every_s is not None and not (math.isfinite(pull_every_s) and pull_every_s > 0):
+            raise ValueError(f"fusion pull_every_s must be > 0 s, got {pull_every_s!r}")
+        self.pull_every_s = None if pull_every_s is None else float(pull_every_s)
+        self._last_answer_s: float | None = None
         self._scale = InnovationScale()
         self._vo = VoHistory(history_s)
         self._pose: Pose | None = None if initial is None else as_pose(initial, "initial pose")
@@ -208,6 +234,11 @@ class EdgeLocFuser:
                 return None
             revised = time_zone_revision(l_alpha_t0, l_beta_t0, latest[1])
             u = latency_weight(t_now - t0, self.k_s, self.dt0_s)
+            if self.pull_every_s is not None:
+                # The first answer has no gap: it pulls as the paper's does.
+                last, self._last_answer_s = self._last_answer_s, t_now
+                gap = self.pull_every_s if last is None else max(t_now - last, 0.0)
+                u = per_second_weight(u, gap, self.pull_every_s)
             if self.robust_c is not None:
                 r = float(np.hypot(*(revised[:2] - self._pose[:2])))
                 u *= self._scale.weight(r, self.robust_c)

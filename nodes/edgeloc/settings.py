@@ -107,6 +107,9 @@ class ReplayConfig:
     k_s: float = 2.0
     dt0_s: float = -1.4
     robust_c: float | None = 2.0  # beyond the paper; None: the paper's bare u (see fusion)
+    # An ablation for tests/bench/bench_splits.py, not in the scenario schema: each answer's u
+    # rescaled to the gap since the previous one (fusion.per_second_weight). None: the paper's.
+    pull_every_s: float | None = None
     fusion_method: str = "paper"  # or "ekf" (beyond the paper: nodes.edgeloc.ekf)
     # The EKF's DNN error correlation time (s): None takes every answer as independent.
     dnn_correlation_s: float | None = None
@@ -132,6 +135,8 @@ class ReplayConfig:
             raise ValueError(
                 f"unknown fusion method {self.fusion_method!r}; known: {', '.join(FUSION_METHODS)}"
             )
+        if self.pull_every_s is not None and self.fusion_method != "paper":
+            raise ValueError("pull_every_s rescales the paper's latency weight: not for the EKF")
 
     def describe_fusion(self) -> str:
         """EdgeLoc's fusion in words for reports, what goes beyond the paper named as such."""
@@ -148,7 +153,16 @@ class ReplayConfig:
                 f"PAPER), DNN noise R = {kc.r_pos:g} m^2, {kc.r_yaw:g} rad^2" + robust + corr
             )
         bare = " (the paper's bare form)" if self.robust_c is None else ""
-        return f"the paper's latency weight, k_s {self.k_s:g}/s, dt0 {self.dt0_s:g} s{bare}{robust}"
+        pull = ""
+        if self.pull_every_s is not None:
+            pull = (
+                f", its pull per second rate-free, as one answer every "
+                f"{1e3 * self.pull_every_s:g} ms (AN ABLATION)"
+            )
+        return (
+            f"the paper's latency weight, k_s {self.k_s:g}/s, dt0 {self.dt0_s:g} s"
+            f"{bare}{robust}{pull}"
+        )
 
     def build_fuser(self) -> EdgeLocFuser | DelayedEkf:
         """EdgeLoc's fuser these settings describe (the replay and the ROS node both use this):
@@ -157,7 +171,9 @@ class ReplayConfig:
         if self.fusion_method == "ekf":
             noise = EkfNoise(r_pos=self.kalman.r_pos, r_yaw=self.kalman.r_yaw)
             return DelayedEkf(noise, robust_c=self.robust_c, correlation_s=self.dnn_correlation_s)
-        return EdgeLocFuser(self.k_s, self.dt0_s, robust_c=self.robust_c)
+        return EdgeLocFuser(
+            self.k_s, self.dt0_s, robust_c=self.robust_c, pull_every_s=self.pull_every_s
+        )
 
 
 def config_to_dict(config: ReplayConfig) -> dict[str, Any]:

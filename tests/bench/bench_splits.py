@@ -92,11 +92,15 @@ EKF_FUSION = {"fusion_method": "ekf"}
 DNN_CORRELATION_S = 0.15
 #: The EKF told that the DNN's answers are correlated over DNN_CORRELATION_S.
 EKF_CORR_FUSION = {"fusion_method": "ekf", "dnn_correlation_s": DNN_CORRELATION_S}
+#: An ablation: the scenario's fusion with a pull per second that does not grow with the answer
+#: rate, as one answer every 100 ms (the interval its u(100 ms) = 0.047 was tuned for).
+PER_SECOND_FUSION = {"pull_every_s": 0.1}
 TITLES = {
     "paper": "before: the paper's bare fusion",
     "scenario": "after: the scenario's fusion",
     "ekf": "beyond the paper: the delayed-measurement EKF",
     "ekf-corr": "beyond the paper: the EKF with the DNN's error correlation",
+    "per-second": "ablation: the scenario's fusion, its pull per second rate-free",
 }
 #: The white-noise ablation's spread: a 2-D Gaussian whose median error is the DNN's.
 RAYLEIGH_MEDIAN = math.sqrt(2 * math.log(2))
@@ -151,6 +155,8 @@ def fusion_config(config: ReplayConfig, fusion: str) -> ReplayConfig:
         return replace(config, **EKF_FUSION)  # type: ignore[arg-type]
     if fusion == "ekf-corr":
         return replace(config, **EKF_CORR_FUSION)  # type: ignore[arg-type]
+    if fusion == "per-second":
+        return replace(config, **PER_SECOND_FUSION)  # type: ignore[arg-type]
     return config
 
 
@@ -194,10 +200,11 @@ def run_seed(
     seed: int,
     fusions: Sequence[str],
     memories_s: Sequence[float],
+    noise_fusion: str = "scenario",
 ) -> tuple[dict[str, SeedResult], DnnErrors]:
     """Every fusion's comparison on one seed's drive (one dataset and cache for all), the
-    DNN's errors there, and the scenario's fusion on noise answers with the DNN's spread and
-    each memory in `memories_s` (0: white; key `memory:<τ>`)."""
+    DNN's errors there, and `noise_fusion` on noise answers with the DNN's spread and each
+    memory in `memories_s` (0: white; key `memory:<τ>`)."""
     cfg = replace(config, seed=seed)
     ds = config_dataset(cfg)
     cache = InferenceCache(model, ds, cfg.codec)  # type: ignore[arg-type]
@@ -206,7 +213,7 @@ def run_seed(
     sigma = dnn.median_m / RAYLEIGH_MEDIAN
     for tau in memories_s:
         answers = NoiseAnswers(cache, sigma, correlation_s=tau, seed=seed)
-        runs.append((memory_key(tau), "scenario", answers))
+        runs.append((memory_key(tau), noise_fusion, answers))
     out = {}
     for key, fusion, answers in runs:
         fcfg = fusion_config(cfg, fusion)
@@ -441,12 +448,14 @@ def main() -> int:
     p.add_argument("--seeds", default=",".join(map(str, SEEDS)), help="comma-separated seeds")
     p.add_argument(
         "--fusion",
-        choices=("all", "both", "scenario", "paper", "ekf", "ekf-corr"),
+        choices=("all", "both", "scenario", "paper", "ekf", "ekf-corr", "per-second"),
         default="all",
         help="scenario: the scenario's fusion (after); paper: the paper's bare fusion at the "
         "old defaults k_s 20/s, dt0 0.25 s (before); ekf: the delayed-measurement EKF (beyond "
-        "the paper); ekf-corr: the EKF told the DNN's error correlation time; both: before, "
-        "then after; all (default): before, after, both EKFs",
+        "the paper); ekf-corr: the EKF told the DNN's error correlation time; per-second: an "
+        "ablation, the scenario's fusion with a pull per second that does not grow with the "
+        "answer rate (the noise answers then use it too); both: before, then after; all "
+        "(default): before, after, both EKFs",
     )
     p.add_argument(
         "--no-white",
@@ -487,6 +496,7 @@ def main() -> int:
         "all": ("paper", "scenario", "ekf", "ekf-corr"),
         "both": ("paper", "scenario"),
     }.get(a.fusion, (a.fusion,))
+    noise_fusion = "per-second" if fusions == ("per-second",) else "scenario"
     torch.set_num_threads(1)
     file = ROOT / "scenarios" / "default.yaml"
     sc = load(file)
@@ -516,7 +526,7 @@ def main() -> int:
     t0 = time.perf_counter()
     for seed in seeds:
         t = time.perf_counter()
-        results, dnn = run_seed(config, lm, model, seed, fusions, memories)
+        results, dnn = run_seed(config, lm, model, seed, fusions, memories, noise_fusion)
         errors.append(dnn)
         for key, res in results.items():
             by_key[key].append(res)
@@ -535,8 +545,9 @@ def main() -> int:
         sigma = np.mean([e.median_m for e in errors]) / RAYLEIGH_MEDIAN
         report(
             "ablation: white-noise answers (ground truth + N(0, sigma) per frame, sigma "
-            f"~{sigma:.2f} m per axis so the median error is the DNN's), the scenario's fusion",
-            config,
+            f"~{sigma:.2f} m per axis so the median error is the DNN's), "
+            + TITLES[noise_fusion].split(": ", 1)[-1],
+            fusion_config(config, noise_fusion),
             by_key["white"],
             lm,
         )
@@ -550,13 +561,14 @@ def main() -> int:
             for i, name in enumerate(names)
         ]
         short = {"paper": "before", "scenario": "after", "ekf": "ekf", "ekf-corr": "ekf-corr",
-                 "white": "white answers"}  # fmt: skip
+                 "per-second": "per-second", "white": "white answers"}  # fmt: skip
         headers = ["goal", *[x for k in keys for x in (short[k], "verdict")]]
         print(table(headers, rows))
     if len(memories) > 1:
         tau_dnn = float(np.mean([e.correlation_s for e in errors]))
         print(
-            "\n## error memory: the scenario's fusion on answers with the DNN's spread and a "
+            f"\n## error memory: {TITLES[noise_fusion].split(': ', 1)[-1]} on answers with the "
+            "DNN's spread and a "
             "given memory (first-order Gauss-Markov, rho = exp(-dt/tau)); the real DNN for "
             "comparison, with its fitted tau (mean over the seeds). Info fast/slow: the fastest "
             "fixed split's independent answers per second over the slowest's "
@@ -565,8 +577,8 @@ def main() -> int:
             "Both are medians over seeds and phases."
         )
         rows = [(memory_key(m), m, by_key[memory_key(m)]) for m in memories]
-        if "scenario" in by_key:
-            rows.append(("the DNN's", tau_dnn, by_key["scenario"]))
+        if noise_fusion in by_key:
+            rows.append(("the DNN's", tau_dnn, by_key[noise_fusion]))
         print(memory_table(rows, frame_s))
     print(f"\nreplays took {time.perf_counter() - t0:.1f} s")
     return 0
