@@ -148,16 +148,16 @@ def test_shorten_scales_the_timeline_with_the_duration() -> None:
     assert load_tree(short, REPO / "scenarios" / "handover_outage.yaml", "test").duration_s == 8
 
 
-def test_rescale_stretches_each_phase_and_shorten_never_does() -> None:
+def test_rescale_stretches_each_phase_and_shorten_only_the_last() -> None:
     file = REPO / "scenarios" / "default.yaml"
     base = read_tree(file)
     long = rescale(base, 360.0)
     assert long["duration"] == "360s"
     assert [e["at"] for e in long["timeline"]] == [0, "120s", "240s"]
     assert load_tree(long, file, "test").duration_s == 360
-    same = shorten(base, 360.0)  # a longer duration leaves the scenario as it was
-    assert same["duration"] == "90s"
-    assert [e["at"] for e in same["timeline"]] == [0, "30s", "60s"]
+    longer = shorten(base, 360.0)  # a longer run, its last phase lengthened, no event moved
+    assert longer["duration"] == "360s"
+    assert [e["at"] for e in longer["timeline"]] == [0, "30s", "60s"]
     assert base["duration"] == "90s"  # and neither changes the tree it is given
 
 

@@ -270,11 +270,13 @@ def shorten(data: dict[str, Any], duration_s: float) -> dict[str, Any]:
     and outage lengths, and the start and stop of apps and traffic flows), so every phase of a
     long scenario is still played, briefly. Traces play at their own pace: a shortened
     trace-driven run sees the start of its trace. A `duration_s` longer than the scenario's
-    leaves it as it is (`rescale` stretches)."""
+    lengthens its last phase and moves no event (`rescale` stretches every phase)."""
     from testbed import units
 
     full = units.parse_duration(str(data["duration"]))
-    return rescale(data, min(duration_s, full))
+    out = rescale(data, min(duration_s, full))
+    out["duration"] = f"{duration_s:g}s"
+    return out
 
 
 def rescale(data: dict[str, Any], duration_s: float) -> dict[str, Any]:
