@@ -26,10 +26,15 @@ The fusion settings: `scenario` is the scenario's (k_s 2/s, Δt0 -1.4 s, robust_
 "after"); `paper` is the paper's bare fusion at the schema's old defaults (k_s 20/s, Δt0
 0.25 s, robust_c None: the "before"); `ekf` is BEYOND THE PAPER, the delayed-measurement EKF
 (`fusion.method: ekf`, robust_c 2, the Kalman baseline's R); `ekf-corr` is that EKF told the
-DNN's error correlation time (`fusion.correlation`). `--fusion all` (the default) prints the
-four, before first. Last, unless `--no-white`, an ablation: the scenario's fusion on white-noise
-answers (ground truth plus Gaussian noise with the DNN's median error, the real payloads and
-so the real latencies), which shows what latency alone does to the error.
+DNN's error correlation time (`fusion.correlation`); `per-second` is an ablation, the
+scenario's fusion with each answer's u rescaled to the gap since the previous one
+(`fusion.per_second_weight`), so that a split that answers more often pulls no harder per
+second. `--fusion all` (the default) prints the first four, before first. Last, unless
+`--no-white`, an ablation: the scenario's fusion (or `per-second`, when it is the one asked
+for) on white-noise answers (ground truth plus Gaussian noise with the DNN's median error, the
+real payloads and so the real latencies), which shows what latency alone does to the error.
+`--weights FILE` replays with another DNN; `--stretch K` plays the scenario K times as long,
+every phase stretched alike (`testbed.sweep.rescale`).
 A benchmark reports: a missed goal is printed as MISS and the script still exits 0.
 
 The compute profile is the reference committed with the weights, so the figures are the same
@@ -75,7 +80,7 @@ from nodes.edgeloc.replay import (
     run_replay,
 )
 from nodes.edgeloc.settings import ReplayConfig
-from nodes.edgeloc.train import load_model
+from nodes.edgeloc.train import WeightsMissing, load_model
 from testbed.replay import compute_profile, latency_model, replay_config
 from testbed.scenario import load
 from testbed.sweep import load_tree, read_tree, rescale
@@ -506,7 +511,10 @@ def main() -> int:
     compute = compute_profile(sc.workload.codec, None)
     lm = latency_model(sc, compute)
     config = replay_config(sc)
-    model = load_model(a.weights)
+    try:
+        model = load_model(a.weights)
+    except WeightsMissing as err:
+        p.error(str(err))
     print(
         f"{sc.name}: {sc.duration_s:g} s at {config.rate_hz:g} Hz, splits "
         f"{', '.join(config.splits)}, phases at {', '.join(f'{t:g}' for t in config.phases)} s, "
