@@ -153,16 +153,17 @@ def dnn_errors(
     )
 
 
+#: What each fusion setting changes in the scenario's replay config ("scenario": nothing).
+FUSION_CHANGES: dict[str, dict[str, object]] = {
+    "paper": PAPER_FUSION,
+    "ekf": EKF_FUSION,
+    "ekf-corr": EKF_CORR_FUSION,
+    "per-second": PER_SECOND_FUSION,
+}
+
+
 def fusion_config(config: ReplayConfig, fusion: str) -> ReplayConfig:
-    if fusion == "paper":
-        return replace(config, **PAPER_FUSION)  # type: ignore[arg-type]
-    if fusion == "ekf":
-        return replace(config, **EKF_FUSION)  # type: ignore[arg-type]
-    if fusion == "ekf-corr":
-        return replace(config, **EKF_CORR_FUSION)  # type: ignore[arg-type]
-    if fusion == "per-second":
-        return replace(config, **PER_SECOND_FUSION)  # type: ignore[arg-type]
-    return config
+    return replace(config, **FUSION_CHANGES.get(fusion, {}))  # type: ignore[arg-type]
 
 
 def table(headers: Sequence[str], rows: Sequence[Sequence[object]], indent: str = "  ") -> str:
