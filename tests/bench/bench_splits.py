@@ -5,7 +5,9 @@ DNN pass and inference cache per seed, shared by every policy and every fusion) 
 
 0. the DNN's position errors on every frame of each drive: median, mean, their autocorrelation
    one, two, four and ten frames apart, and the correlation time that fits it
-   (`metrics.correlation_time`): why a split that answers more often is not more accurate;
+   (`metrics.correlation_time`): why a split that answers more often is not more accurate; and
+   the drive's VO scale error (`premise.path_scale_error`): a drive whose VO barely drifts
+   leaves the DNN's answers little to correct (`bench_premise.py`);
 
 then per fusion setting, as plain tables:
 
@@ -72,6 +74,7 @@ from nodes.edgeloc.metrics import (
     position_errors,
 )
 from nodes.edgeloc.metrics import paper_comparison as paper_figures
+from nodes.edgeloc.premise import path_scale_error
 from nodes.edgeloc.replay import (
     InferenceCache,
     NoiseAnswers,
@@ -132,6 +135,7 @@ class DnnErrors:
     mean_m: float
     rho: tuple[float, ...]  # autocorrelation at lags 1, 2, ... frames
     correlation_s: float
+    vo_scale_error: float  # the drive's VO against ground truth (`premise.path_scale_error`)
 
 
 def dnn_errors(
@@ -150,6 +154,7 @@ def dnn_errors(
         float(norm.mean()),
         tuple(float(r) for r in rho),
         correlation_time(rho, frame_s),
+        path_scale_error(ds.gt_poses, ds.vo_poses),
     )
 
 
@@ -277,10 +282,11 @@ def memory_table(rows_in: Sequence[tuple[str, float, Sequence[SeedResult]]], fra
 def dnn_table(errors: Sequence[DnnErrors], frame_s: float) -> str:
     lags = (1, 2, 4, 10)
     headers = ["seed", "median m", "mean m", *[f"rho {1e3 * k * frame_s:g} ms" for k in lags]]
-    headers.append("fitted tau ms")
+    headers += ["fitted tau ms", "VO scale error"]
     rows = [
         [e.seed, _f(e.median_m, ".2f"), _f(e.mean_m, ".2f"),
-         *[_f(e.rho[k - 1], ".2f") for k in lags], _f(1e3 * e.correlation_s, ".0f")]
+         *[_f(e.rho[k - 1], ".2f") for k in lags], _f(1e3 * e.correlation_s, ".0f"),
+         f"{100 * e.vo_scale_error:+.1f}%"]
         for e in errors
     ]  # fmt: skip
     return table(headers, rows)
@@ -541,7 +547,7 @@ def main() -> int:
             by_key[key].append(res)
         print(f"  seed {seed}: replayed in {time.perf_counter() - t:.1f} s", flush=True)
     frame_s = 1.0 / config.rate_hz
-    print("\n## 0. the DNN's position errors on every frame of each drive, and their memory")
+    print("\n## 0. the DNN's errors on every frame of each drive, their memory, and the VO")
     print(dnn_table(errors, frame_s))
     print(
         f"  ekf-corr uses tau = {1e3 * DNN_CORRELATION_S:g} ms (fitted on seeds 10-13). A white "
