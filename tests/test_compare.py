@@ -32,6 +32,7 @@ from nodes.edgeloc.fusion import EdgeLocFuser, latency_weight
 from nodes.edgeloc.latency import LatencyModel, MeasuredLatency, MeasuredRequest
 from nodes.edgeloc.metrics import error_autocorrelation
 from nodes.edgeloc.model import LocNet
+from nodes.edgeloc.premise import path_scale_error
 from nodes.edgeloc.replay import (
     Answer,
     InferenceCache,
@@ -101,7 +102,9 @@ def test_learned_beats_every_fixed_split_on_the_default_scenario(
     reason="issue #14 open: phase 0-30 s is not monotone, by less than the drive's noise (the "
     "up-to-ties test below). The DNN's errors are correlated over ~150 ms "
     "(tests/bench/bench_splits.py, sections 0 and 'error memory'), so a faster split's extra "
-    "answers repeat what the fusion already heard; with white answers it is monotone here",
+    "answers repeat what the fusion already heard; with white answers it is monotone here. "
+    "Seed 7's VO is off by only 1.1%, so answers have little drift to correct "
+    "(tests/bench/bench_premise.py; the drifting drive's test below)",
 )
 def test_error_is_monotone_in_latency_in_every_phase(default_comparison: SplitComparison) -> None:
     assert all(default_comparison.monotone(j) for j in range(len(default_comparison.bounds)))
@@ -118,6 +121,22 @@ def test_error_is_monotone_in_latency_up_to_ties_in_every_phase(
     ties = [v for j in phases for v in c.inversions(j)]
     print([(v.faster, v.slower, round(v.by_m, 3), round(v.noise_m, 3)) for v in ties])
     assert ties and all(0 <= v.by_m <= v.noise_m for v in ties)
+
+
+def test_on_a_drive_whose_vo_drifts_the_premise_holds_strictly_and_learning_pays() -> None:
+    """What the xfail above misses on seed 7 holds where the paper's mechanism has something to
+    correct: a DNN answer is worth what the VO drifted since the last one. Seed 9's VO has a
+    scale error of 2.3%; over seeds 1-48 every drive whose VO is off by >= 2% (15 of 48) was
+    strictly monotone in every phase with the learned run ahead of every fixed split, and no
+    drive off by < 1% (17) was monotone in every phase (`tests/bench/bench_premise.py`)."""
+    scenario = load(SCENARIOS / "default.yaml")
+    cfg = replace(replay_config(scenario), seed=9)
+    ds = config_dataset(cfg)
+    assert path_scale_error(ds.gt_poses, ds.vo_poses) >= 0.02
+    c = compare_splits(cfg, latency_model(scenario), ds, load_model(cfg.weights))
+    print({k: [round(p.mean_error_m, 2) for p in r.phases] for k, r in c.fixed.items()})
+    assert all(c.monotone(j) for j in range(len(c.bounds)))
+    assert c.learned_beats_fixed is True
 
 
 def test_with_white_noise_answers_the_fastest_split_is_the_most_accurate(
