@@ -49,13 +49,13 @@ def test_pairs_follow_the_pooled_latency_order_and_the_mean_matches_scipys_t_tes
         (1, "conv3", "vehicle"), (1, "vehicle", "image"),
     ]  # fmt: skip
     for e in effects:
-        ci = scipy.stats.ttest_1samp(e.diffs_m, 0.0).confidence_interval(0.95)
-        assert e.mean_m == pytest.approx((ci.low + ci.high) / 2)
-        assert e.ci_m == pytest.approx((ci.high - ci.low) / 2)
-        assert e.verdict == "holds" and e.in_order == 8
+        ci = scipy.stats.ttest_1samp(e.per_drive, 0.0).confidence_interval(0.95)
+        assert e.mean == pytest.approx((ci.low + ci.high) / 2)
+        assert e.ci == pytest.approx((ci.high - ci.low) / 2)
+        assert e.verdict == "holds" and e.ahead == 8
     reversed_ = pair_effects([_drive({"a": [(0.1, [2.0, 2.0])] * 2, "b": [(0.2, [1.0, 1.0])] * 2})
                               for _ in range(3)])  # fmt: skip
-    assert reversed_[0].verdict == "reversed" and reversed_[0].in_order == 0
+    assert reversed_[0].verdict == "reversed" and reversed_[0].ahead == 0
     with pytest.raises(ValueError, match="share their phases"):
         pair_effects([drives[0], _drive({"image": [(0.1, [1.0])] * 2})])
 
@@ -66,8 +66,8 @@ def test_learned_against_each_fixed_split_is_the_relative_gain() -> None:
         for t in (1.0, 2.0, 3.0)
     ]
     by = {e.split: e for e in learned_effects(drives)}
-    assert by["a"].gains == pytest.approx([1 / 0.9 - 1] * 3)
-    assert by["b"].gains == pytest.approx([3.0 / 1.8 - 1, 5.0 / 3.6 - 1, 7.0 / 5.4 - 1])
+    assert by["a"].per_drive == pytest.approx([1 / 0.9 - 1] * 3)
+    assert by["b"].per_drive == pytest.approx([3.0 / 1.8 - 1, 5.0 / 3.6 - 1, 7.0 / 5.4 - 1])
     assert by["a"].verdict == "holds" and by["b"].verdict == "undecided"  # 3 drives, wide
     worse = [_drive({"a": [(0.1, [t])] * 2}, learned_total=2.2 * t) for t in (1.0, 2.0, 3.0)]
     assert learned_effects(worse)[0].verdict == "reversed"

@@ -9,7 +9,8 @@ error) − (the faster's), > 0 being the premise's order; the mean of d over the
 Student's 95% interval, says whether the premise holds on average (`PairEffect.verdict`: the
 interval above 0), is reversed (below 0) or cannot be told from these drives (across 0). The
 learned run against each fixed split the same way (`LearnedEffect`): per drive, the fixed
-split's total error over the learned run's, minus one (> 0: learning paid).
+split's total error over the learned run's, minus one (> 0: learning paid). Both are
+`OverDrives`: one figure per drive and what they say together.
 
 What makes drives differ is measurable on each drive: `path_scale_error`, the VO's path length
 over ground truth's, minus one. A DNN answer is worth what the VO drifted since the last one;
@@ -32,55 +33,52 @@ from numpy.typing import NDArray
 from nodes.edgeloc.compare import SplitComparison
 
 
-def _mean_ci(values: Sequence[float]) -> tuple[float, float]:
-    """Mean and the half-width of Student's 95% interval (inf with fewer than 2 values)."""
-    x = np.asarray(values, dtype=np.float64)
-    if len(x) < 2:
-        return (float(x.mean()) if len(x) else math.nan), math.inf
-    half = scipy.stats.t.ppf(0.975, len(x) - 1) * x.std(ddof=1) / math.sqrt(len(x))
-    return float(x.mean()), float(half)
-
-
-def _verdict(mean: float, half: float) -> str:
-    if mean - half > 0:
-        return "holds"
-    if mean + half < 0:
-        return "reversed"
-    return "undecided"
-
-
 @dataclass(frozen=True)
-class PairEffect:
-    """Phase j, two splits adjacent in latency: per drive the slower one's mean error minus the
-    faster one's (m)."""
+class OverDrives:
+    """One figure per drive (`per_drive`, > 0 meaning the premise's side) and what they say
+    together: the mean, Student's 95% interval and the verdict."""
 
-    phase: int
-    faster: str
-    slower: str
-    diffs_m: tuple[float, ...]
+    per_drive: tuple[float, ...]
 
     @property
     def drives(self) -> int:
-        return len(self.diffs_m)
+        return len(self.per_drive)
 
     @property
-    def mean_m(self) -> float:
-        return _mean_ci(self.diffs_m)[0]
+    def mean(self) -> float:
+        return float(np.mean(self.per_drive)) if self.per_drive else math.nan
 
     @property
-    def ci_m(self) -> float:
-        """Half-width of Student's 95% interval for the mean over drives."""
-        return _mean_ci(self.diffs_m)[1]
+    def ci(self) -> float:
+        """Half-width of Student's 95% interval for the mean (inf with fewer than 2 drives)."""
+        x = np.asarray(self.per_drive, dtype=np.float64)
+        if len(x) < 2:
+            return math.inf
+        return float(scipy.stats.t.ppf(0.975, len(x) - 1) * x.std(ddof=1) / math.sqrt(len(x)))
 
     @property
     def verdict(self) -> str:
-        """`holds` (interval above 0), `reversed` (below 0) or `undecided`."""
-        return _verdict(self.mean_m, self.ci_m)
+        """`holds` (the interval above 0), `reversed` (below 0) or `undecided`."""
+        if self.mean - self.ci > 0:
+            return "holds"
+        if self.mean + self.ci < 0:
+            return "reversed"
+        return "undecided"
 
     @property
-    def in_order(self) -> int:
-        """Drives on which the slower split was strictly less accurate."""
-        return sum(d > 0 for d in self.diffs_m)
+    def ahead(self) -> int:
+        """Drives on the premise's side (> 0)."""
+        return sum(d > 0 for d in self.per_drive)
+
+
+@dataclass(frozen=True)
+class PairEffect(OverDrives):
+    """Phase `phase`, two splits adjacent in latency: per drive (`per_drive`) the slower one's
+    mean error minus the faster one's (m)."""
+
+    phase: int = 0
+    faster: str = ""
+    slower: str = ""
 
 
 def pair_effects(comparisons: Sequence[SplitComparison]) -> list[PairEffect]:
@@ -105,7 +103,7 @@ def pair_effects(comparisons: Sequence[SplitComparison]) -> list[PairEffect]:
                 if not (math.isfinite(f.mean_error_m) and math.isfinite(g.mean_error_m)):
                     continue
                 diffs.append(g.mean_error_m - f.mean_error_m)
-            out.append(PairEffect(j, fast, slow, tuple(diffs)))
+            out.append(PairEffect(tuple(diffs), j, fast, slow))
     return out
 
 
@@ -122,24 +120,11 @@ def path_scale_error(gt: NDArray[np.float64], vo: NDArray[np.float64]) -> float:
 
 
 @dataclass(frozen=True)
-class LearnedEffect:
-    """The learned run against one fixed split: per drive, fixed total / learned total − 1."""
+class LearnedEffect(OverDrives):
+    """The learned run against fixed split `split`: per drive (`per_drive`), the fixed split's
+    total error over the learned run's, minus one."""
 
-    split: str
-    gains: tuple[float, ...]
-
-    @property
-    def mean(self) -> float:
-        return _mean_ci(self.gains)[0]
-
-    @property
-    def ci(self) -> float:
-        return _mean_ci(self.gains)[1]
-
-    @property
-    def verdict(self) -> str:
-        """`holds` (learning pays on average), `reversed` or `undecided`."""
-        return _verdict(self.mean, self.ci)
+    split: str = ""
 
 
 def learned_effects(comparisons: Sequence[SplitComparison]) -> list[LearnedEffect]:
@@ -153,12 +138,13 @@ def learned_effects(comparisons: Sequence[SplitComparison]) -> list[LearnedEffec
             for c in comparisons
             if c.learned is not None and k in c.fixed and c.learned.total_m > 0
         ]
-        out.append(LearnedEffect(k, tuple(gains)))
+        out.append(LearnedEffect(tuple(gains), k))
     return out
 
 
 __all__ = [
     "LearnedEffect",
+    "OverDrives",
     "PairEffect",
     "learned_effects",
     "pair_effects",

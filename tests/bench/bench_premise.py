@@ -117,7 +117,7 @@ def pair_table(effects: Sequence[PairEffect], comps: Sequence[SplitComparison]) 
         ]
         rows.append([
             f"{a:g}-{b:g}", f"{e.faster} -> {e.slower}", f"{1e3 * lat[0]:.0f}/{1e3 * lat[1]:.0f}",
-            f"{e.in_order}/{e.drives}", f"{e.mean_m:+.3f}", f"{e.ci_m:.3f}", e.verdict,
+            f"{e.ahead}/{e.drives}", f"{e.mean:+.3f}", f"{e.ci:.3f}", e.verdict,
         ])  # fmt: skip
     return table(headers, rows)
 
@@ -215,7 +215,7 @@ def main() -> int:
     print("\n3. the learned run against each fixed split: fixed total / learned total - 1")
     rows = [
         [f"fixed:{e.split}", f"{100 * e.mean:+.1f}%", f"{100 * e.ci:.1f}%", e.verdict,
-         f"{sum(g > 0 for g in e.gains)}/{len(e.gains)}"]
+         f"{e.ahead}/{e.drives}"]
         for e in learned_effects(ordered)
     ]  # fmt: skip
     print(table(["against", "mean", "95% +-", "verdict", "drives learned ahead"], rows))
