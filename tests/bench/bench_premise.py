@@ -179,7 +179,8 @@ def vo_table(drives: Sequence[Drive]) -> str:
         rows.append([
             band, ",".join(str(seeds[i]) for i in at), f"{sum(d > 0 for d in pairs)}/{len(pairs)}",
             f"{mono}/{len(at)}", f"{beats}/{len(at)}", f"{100 * np.median(learned):+.1f}%",
-            f"{reach}/{len(at)}", f"{100 * np.median(bare):+.1f}%",
+            f"{reach}/{len(at)}",
+            "-" if comps[at[0]].paper_fusion is None else f"{100 * np.median(bare):+.1f}%",
         ])  # fmt: skip
     out = table(["|VO scale error|", "seeds", "pairs in order", "monotone every phase",
                  "learned < every fixed", "below Kalman (median)", f">= paper's {KALMAN_PCT}%",
