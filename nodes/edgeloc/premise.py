@@ -27,10 +27,9 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
-import scipy.stats
 from numpy.typing import NDArray
 
-from nodes.edgeloc.compare import SplitComparison
+from nodes.edgeloc.compare import SplitComparison, paired_noise_m
 
 
 @dataclass(frozen=True)
@@ -51,10 +50,7 @@ class OverDrives:
     @property
     def ci(self) -> float:
         """Half-width of Student's 95% interval for the mean (inf with fewer than 2 drives)."""
-        x = np.asarray(self.per_drive, dtype=np.float64)
-        if len(x) < 2:
-            return math.inf
-        return float(scipy.stats.t.ppf(0.975, len(x) - 1) * x.std(ddof=1) / math.sqrt(len(x)))
+        return paired_noise_m(self.per_drive, [0.0] * self.drives)
 
     @property
     def verdict(self) -> str:

@@ -40,7 +40,14 @@ if __package__ in (None, ""):  # run as a script: make the repo importable
 import numpy as np
 import scipy.stats
 import torch
-from bench_splits import FUSION_CHANGES, RAYLEIGH_MEDIAN, fusion_config, table
+from bench_splits import (
+    FUSION_CHANGES,
+    RAYLEIGH_MEDIAN,
+    default_scenario,
+    dnn_errors,
+    fusion_config,
+    table,
+)
 
 from nodes.edgeloc.compare import SplitComparison, compare_splits
 from nodes.edgeloc.metrics import PAPER_REDUCTIONS_PCT, position_errors
@@ -53,20 +60,8 @@ from nodes.edgeloc.premise import (
 from nodes.edgeloc.replay import InferenceCache, NoiseAnswers, config_dataset, run_replay
 from nodes.edgeloc.train import load_model
 from testbed.replay import compute_profile, latency_model, replay_config
-from testbed.scenario import load
-from testbed.scenario.model import Scenario
-from testbed.sweep import load_tree, read_tree, rescale
 
-ROOT = Path(__file__).resolve().parents[2]
-SCENARIO = ROOT / "scenarios" / "default.yaml"
 FUSIONS = ("scenario", *FUSION_CHANGES)  # as in bench_splits.py
-
-
-def scenario(stretch: float) -> Scenario:
-    sc = load(SCENARIO)
-    if stretch == 1.0:
-        return sc
-    return load_tree(rescale(read_tree(SCENARIO), stretch * sc.duration_s), SCENARIO, "stretch")
 
 
 @dataclass(frozen=True)
@@ -89,7 +84,7 @@ def replay_seed(job: tuple[int, float, str, str]) -> Drive:
     """One drive: every fixed split, the learned run and the oracle (one process per call)."""
     seed, stretch, fusion, answers = job
     torch.set_num_threads(1)
-    sc = scenario(stretch)
+    sc = default_scenario(stretch)
     lm = latency_model(sc, compute_profile(sc.workload.codec, None))
     cfg = fusion_config(replace(replay_config(sc), seed=seed), fusion)
     t0 = time.perf_counter()
@@ -97,11 +92,8 @@ def replay_seed(job: tuple[int, float, str, str]) -> Drive:
     model = load_model(cfg.weights)
     cache = InferenceCache(model, ds, cfg.codec)
     if answers == "white":
-        errs = [
-            np.hypot(*(cache.answer(i, cfg.splits[-1]).pose[:2] - ds.gt_pose(i)[:2]))
-            for i in range(len(ds.timestamps))
-        ]
-        cache = NoiseAnswers(cache, float(np.median(errs)) / RAYLEIGH_MEDIAN, seed=seed)
+        median = dnn_errors(cache, cfg.splits[-1], seed, 1.0 / cfg.rate_hz).median_m
+        cache = NoiseAnswers(cache, median / RAYLEIGH_MEDIAN, seed=seed)
     free = replace(cfg, learner=replace(cfg.learner, fixed_split=None))
     learned = run_replay(free, lm, ds, model, cache)
     comp = compare_splits(cfg, lm, ds, model, cache, learned=learned)
@@ -212,7 +204,7 @@ def main() -> int:
         p.error(f"--stretch takes a factor > 0, got {a.stretch!r}")
     if len(seeds) < 3:
         p.error("the spread over drives needs at least 3 seeds")
-    sc = scenario(a.stretch)
+    sc = default_scenario(a.stretch)
     print(
         f"{sc.name}: {sc.duration_s:g} s (stretch x{a.stretch:g}), fusion {a.fusion}, "
         f"{a.answers} answers, {len(seeds)} drives (seeds {a.seeds}), {a.jobs} processes"

@@ -86,6 +86,7 @@ from nodes.edgeloc.settings import ReplayConfig
 from nodes.edgeloc.train import WeightsMissing, load_model
 from testbed.replay import compute_profile, latency_model, replay_config
 from testbed.scenario import load
+from testbed.scenario.model import Scenario
 from testbed.sweep import load_tree, read_tree, rescale
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -455,6 +456,15 @@ def report(
     print(table(["goal", "verdict"], rows))
 
 
+def default_scenario(stretch: float = 1.0) -> Scenario:
+    """scenarios/default.yaml, played over `stretch` times its length, each phase alike."""
+    file = ROOT / "scenarios" / "default.yaml"
+    sc = load(file)
+    if stretch == 1.0:
+        return sc
+    return load_tree(rescale(read_tree(file), stretch * sc.duration_s), file, f"x{stretch:g}")
+
+
 def main() -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--seeds", default=",".join(map(str, SEEDS)), help="comma-separated seeds")
@@ -510,11 +520,7 @@ def main() -> int:
     }.get(a.fusion, (a.fusion,))
     noise_fusion = "per-second" if fusions == ("per-second",) else "scenario"
     torch.set_num_threads(1)
-    file = ROOT / "scenarios" / "default.yaml"
-    sc = load(file)
-    if a.stretch != 1.0:
-        tree = rescale(read_tree(file), a.stretch * sc.duration_s)
-        sc = load_tree(tree, file, f"--stretch {a.stretch:g}")
+    sc = default_scenario(a.stretch)
     compute = compute_profile(sc.workload.codec, None)
     lm = latency_model(sc, compute)
     config = replay_config(sc)
