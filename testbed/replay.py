@@ -139,6 +139,7 @@ def replay_config(scenario: Scenario, gate: GateSettings | None = DEFAULT_GATE) 
         k_s=w.fusion.k_s,
         dt0_s=w.fusion.dt0_s,
         robust_c=w.fusion.robust_c,
+        robust_centre_s=w.fusion.robust_centre_s,
         fusion_method=w.fusion.method,
         dnn_correlation_s=w.fusion.correlation_s,
         kalman=KalmanSettings(w.kalman.q_pos, w.kalman.q_yaw, w.kalman.r_pos, w.kalman.r_yaw),

@@ -13,6 +13,7 @@ from nodes.edgeloc.fusion import (
     DnnHold,
     EdgeLocFuser,
     VoHistory,
+    innovation_in_frame,
     latency_weight,
     per_second_weight,
     time_zone_revision,
@@ -228,3 +229,91 @@ def test_the_rate_free_pull_is_named_an_ablation_and_is_for_the_papers_weight_on
     assert ReplayConfig().build_fuser().pull_every_s is None  # type: ignore[union-attr]
     with pytest.raises(ValueError, match="not for the EKF"):
         ReplayConfig(fusion_method="ekf", pull_every_s=0.1)
+
+
+def _lagging_drive(
+    fuser: EdgeLocFuser, seconds: float, noise_m: float = 0.0, seed: int = 0
+) -> tuple[float, float]:
+    """A straight drive at 10 m/s on heading 0.7 rad, VO 20 Hz with its scale 3% long, and an
+    answer every other frame: ground truth (plus white noise of `noise_m` per axis) at zero
+    latency. Returns the along-track error just after the last answer, and the time."""
+    rng = np.random.default_rng(seed)
+    heading, v, dt, scale = 0.7, 10.0, 0.05, 1.03
+    along = np.array([math.cos(heading), math.sin(heading)])
+    err = 0.0
+    t = 0.0
+    for i in range(int(seconds / dt)):
+        t = i * dt
+        vo = np.array([*(scale * v * t * along), heading])
+        fused = fuser.on_vo(vo, t)
+        if i % 2 == 0:
+            gt = np.array([*(v * t * along), heading])
+            answer = gt + np.array([*rng.normal(0.0, noise_m, 2), 0.0])
+            fused = fuser.on_dnn(answer, t, t)
+            err = float((fused[:2] - gt[:2]) @ along)
+    return err, t
+
+
+def test_a_centred_robust_weight_corrects_a_drift_lag_as_the_bare_weight_does() -> None:
+    """The oracle: with a VO that runs long by d = 3% x 10 m/s x 0.1 s per answer and exact
+    answers, the lag just after each blend settles at e* = (1 - w u) d / (w u), w the answer's
+    robust weight. Every answer is off by the same e* + d, so the uncentred Cauchy weight is
+    1 / (1 + 1/c^2) = 0.8 (it shrinks the correction the drift needs). Centred on the recent
+    mean innovation, each answer is measured by how far the lag still changes, which shrinks
+    geometrically, and so does s, the median of the last 50 such: w settles above 0.9, not at
+    1, and the lag near the bare form's."""
+    k, dt0, c = 2.0, -1.4, 2.0
+    u, d = latency_weight(0.0, k, dt0), 0.03 * 10.0 * 0.1
+
+    def lag(w: float) -> float:
+        return (1 - w * u) * d / (w * u)
+
+    start = geometry.pose(0.0, 0.0, 0.7)
+    bare, _ = _lagging_drive(EdgeLocFuser(k, dt0, initial=start), 60.0)
+    plain, _ = _lagging_drive(EdgeLocFuser(k, dt0, initial=start, robust_c=c), 60.0)
+    centred, _ = _lagging_drive(
+        EdgeLocFuser(k, dt0, initial=start, robust_c=c, robust_centre_s=2.0), 60.0
+    )
+    assert bare == pytest.approx(lag(1.0), rel=1e-3)
+    assert plain == pytest.approx(lag(1 / (1 + 1 / c**2)), rel=1e-3)
+    w_centred = d / ((centred + d) * u)  # e* solved for w
+    assert 0.9 < w_centred <= 1.0
+    assert plain > 1.15 * centred
+
+
+def test_a_centred_robust_weight_still_shrinks_an_answer_unlike_the_recent_ones() -> None:
+    """After 30 s of the drift above with 1-m answers, one answer 40 m off cross-track: the
+    bare weight moves the fused pose by u x 40 m across; centred on the (along-track) lag, the
+    Cauchy weight still cuts that by more than 20 times."""
+    k, dt0, c = 2.0, -1.4, 2.0
+    moved = {}
+    for name, kw in (("bare", {}), ("centred", {"robust_c": c, "robust_centre_s": 2.0})):
+        fuser = EdgeLocFuser(k, dt0, initial=geometry.pose(0.0, 0.0, 0.7), **kw)  # type: ignore[arg-type]
+        _, t = _lagging_drive(fuser, 30.0, noise_m=1.0)
+        before = fuser.pose
+        assert before is not None
+        outlier = geometry.compose(before, geometry.pose(0.0, 40.0, 0.0))
+        after = fuser.on_dnn(outlier, t, t)
+        assert after is not None
+        moved[name] = innovation_in_frame(before, after)[1]
+    assert moved["bare"] == pytest.approx(latency_weight(0.0, k, dt0) * 40.0, rel=1e-6)
+    assert moved["centred"] < moved["bare"] / 20
+
+
+def test_innovation_in_frame_is_along_and_across_the_heading() -> None:
+    pose = geometry.pose(1.0, 2.0, math.pi / 2)  # facing +y
+    np.testing.assert_allclose(innovation_in_frame(pose, geometry.pose(1.0, 5.0, 0.0)), [3, 0],
+                               atol=1e-12)  # fmt: skip
+    np.testing.assert_allclose(innovation_in_frame(pose, geometry.pose(-1.0, 2.0, 0.0)), [0, 2],
+                               atol=1e-12)  # fmt: skip
+
+
+def test_a_centred_robust_weight_needs_a_robust_weight_and_a_window() -> None:
+    with pytest.raises(ValueError, match="needs robust_c"):
+        EdgeLocFuser(2.0, -1.4, robust_centre_s=2.0)
+    with pytest.raises(ValueError, match="window must be > 0 s"):
+        EdgeLocFuser(2.0, -1.4, robust_c=2.0, robust_centre_s=0.0)
+    from nodes.edgeloc.settings import ReplayConfig
+
+    with pytest.raises(ValueError, match="needs robust_c and fusion_method 'paper'"):
+        ReplayConfig(fusion_method="ekf", robust_centre_s=2.0)

@@ -288,6 +288,17 @@ def test_the_ekf_fusion_is_chosen_by_method_and_reaches_the_replay() -> None:
     assert type(cfg.build_fuser()).__name__ == "DelayedEkf"
 
 
+def test_the_centred_robust_weight_reaches_the_fuser_and_the_report() -> None:
+    from testbed.replay import replay_config
+
+    s = loads(BASE + "workload:\n  fusion: {robust_centre: 1500ms}\n")
+    assert s.workload.fusion == m.Fusion(robust_centre_s=1.5)  # robust keeps its default 2
+    cfg = replay_config(s)
+    assert (cfg.robust_c, cfg.robust_centre_s) == (2.0, 1.5)
+    assert cfg.build_fuser()._recent.window_s == 1.5  # type: ignore[union-attr]
+    assert "from the last 1.5 s' mean innovation (BEYOND THE PAPER)" in cfg.describe_fusion()
+
+
 def test_loading_never_constructs_arbitrary_tags(tmp_path: Path) -> None:
     marker = tmp_path / "ran"
     text = BASE + f'x-evil: !!python/object/apply:os.system ["touch {marker}"]\n'

@@ -15,6 +15,14 @@ r (its distance from L_r, after revision), where s is the median innovation of t
 of its weight, one ten times as far keeps ~c²/100. It reads nothing the vehicle does not have.
 `robust_c = None` is the paper's bare form.
 
+BEYOND THE PAPER, with `robust_c` (`robust_centre_s = W`): r is measured from the answers' mean
+innovation over the last W seconds, in the fused pose's frame, instead of from the fused pose.
+Where the VO drifts, the fused pose lags the truth between answers and every answer lands off
+in the same direction; measured from L_r, those answers look like outliers and the Cauchy
+weight shrinks the very corrections the drift needs. Measured from the recent mean, an answer is
+an outlier only when it is unlike the recent answers. The pull itself is unchanged (u still
+depends on latency only), so a faster split still corrects the lag sooner.
+
 AN ABLATION, NOT A FUSION TO USE (`pull_every_s`): the paper's u is per answer, so a split that
 answers twice as often pulls the fused pose twice as hard per second. With `pull_every_s = P`
 each answer's u becomes `per_second_weight(u, gap, P)`, the weight that pulls as hard over the
@@ -165,6 +173,32 @@ class InnovationScale:
         return 1.0 / (1.0 + (innovation / (c * s)) ** 2)
 
 
+class RecentInnovation:
+    """The exponentially weighted mean of the innovations of the last `window_s` seconds, each a
+    2-vector in the fused pose's frame (along-track, cross-track): the lag that the VO's drift
+    has built up, which `robust_centre_s` measures each answer from."""
+
+    def __init__(self, window_s: float) -> None:
+        if not (math.isfinite(window_s) and window_s > 0):
+            raise ValueError(f"fusion robust centre window must be > 0 s, got {window_s!r}")
+        self.window_s = float(window_s)
+        self.mean = np.zeros(2)
+        self._last_s: float | None = None
+
+    def add(self, innovation: np.ndarray, t: float) -> None:
+        # The first answer is the whole mean; later ones count by the time since the last.
+        last, self._last_s = self._last_s, t
+        a = 1.0 if last is None else 1.0 - math.exp(-max(t - last, 0.0) / self.window_s)
+        self.mean = (1.0 - a) * self.mean + a * innovation
+
+
+def innovation_in_frame(pose: Pose, target: Pose) -> np.ndarray:
+    """`target`'s position minus `pose`'s, in `pose`'s frame: [along-track, cross-track] (m)."""
+    c, s = math.cos(pose[2]), math.sin(pose[2])
+    dx, dy = target[0] - pose[0], target[1] - pose[1]
+    return np.array([c * dx + s * dy, -s * dx + c * dy])
+
+
 class EdgeLocFuser:
     """Holds the fused pose L_r; VO frames dead-reckon it, DNN answers pull it back (§4.2).
 
@@ -173,7 +207,9 @@ class EdgeLocFuser:
     capture time t0 (before the first VO frame or older than `history_s`). Both entry points
     take a lock: the ROS node calls them from its real-time and its inference threads.
     `robust_c` (beyond the paper, see the module doc) scales u by the answer's Cauchy weight;
-    `pull_every_s` (an ablation, see the module doc) makes the pull per second rate-free.
+    `robust_centre_s` (beyond the paper, needs `robust_c`) measures the Cauchy weight's r from
+    the recent answers' mean innovation; `pull_every_s` (an ablation, see the module doc) makes
+    the pull per second rate-free.
     """
 
     def __init__(
@@ -184,6 +220,7 @@ class EdgeLocFuser:
         initial: Pose | None = None,
         robust_c: float | None = None,
         pull_every_s: float | None = None,
+        robust_centre_s: float | None = None,
     ) -> None:
         if not (math.isfinite(k_s) and k_s > 0):
             raise ValueError(f"fusion k_s must be a positive number (1/s), got {k_s!r}")
@@ -199,6 +236,9 @@ class EdgeLocFuser:
         self.pull_every_s = None if pull_every_s is None else float(pull_every_s)
         self._last_answer_s: float | None = None
         self._scale = InnovationScale()
+        if robust_centre_s is not None and robust_c is None:
+            raise ValueError("fusion robust_centre_s centres the robust weight: it needs robust_c")
+        self._recent = None if robust_centre_s is None else RecentInnovation(robust_centre_s)
         self._vo = VoHistory(history_s)
         self._pose: Pose | None = None if initial is None else as_pose(initial, "initial pose")
         self._lock = threading.Lock()
@@ -240,7 +280,12 @@ class EdgeLocFuser:
                 gap = self.pull_every_s if last is None else max(t_now - last, 0.0)
                 u = per_second_weight(u, gap, self.pull_every_s)
             if self.robust_c is not None:
-                r = float(np.hypot(*(revised[:2] - self._pose[:2])))
+                innovation = innovation_in_frame(self._pose, revised)
+                centre = np.zeros(2)
+                if self._recent is not None:
+                    centre = self._recent.mean
+                    self._recent.add(innovation, t_now)
+                r = float(np.hypot(*(innovation - centre)))
                 u *= self._scale.weight(r, self.robust_c)
             # L_r = u·L_alpha' + (1 − u)·L_r, yaw on the circle.
             self._pose = geometry.interpolate(self._pose, revised, u)

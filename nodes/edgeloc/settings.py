@@ -107,6 +107,9 @@ class ReplayConfig:
     k_s: float = 2.0
     dt0_s: float = -1.4
     robust_c: float | None = 2.0  # beyond the paper; None: the paper's bare u (see fusion)
+    # Beyond the paper, with robust_c: its r measured from the mean innovation of this many
+    # seconds (fusion.RecentInnovation); None: from the fused pose.
+    robust_centre_s: float | None = None
     # An ablation for tests/bench/bench_splits.py, not in the scenario schema: each answer's u
     # rescaled to the gap since the previous one (fusion.per_second_weight). None: the paper's.
     pull_every_s: float | None = None
@@ -137,12 +140,22 @@ class ReplayConfig:
             )
         if self.pull_every_s is not None and self.fusion_method != "paper":
             raise ValueError("pull_every_s rescales the paper's latency weight: not for the EKF")
+        if self.robust_centre_s is not None and (
+            self.robust_c is None or self.fusion_method != "paper"
+        ):
+            raise ValueError(
+                "robust_centre_s centres the paper fusion's robust weight: it needs "
+                "robust_c and fusion_method 'paper'"
+            )
 
     def describe_fusion(self) -> str:
         """EdgeLoc's fusion in words for reports, what goes beyond the paper named as such."""
         robust = ""
         if self.robust_c is not None:
-            robust = f", robust Cauchy weight c = {self.robust_c:g} (BEYOND THE PAPER)"
+            centre = ""
+            if self.robust_centre_s is not None:
+                centre = f" from the last {self.robust_centre_s:g} s' mean innovation"
+            robust = f", robust Cauchy weight c = {self.robust_c:g}{centre} (BEYOND THE PAPER)"
         if self.fusion_method == "ekf":
             kc = self.kalman
             corr = ""
@@ -172,7 +185,11 @@ class ReplayConfig:
             noise = EkfNoise(r_pos=self.kalman.r_pos, r_yaw=self.kalman.r_yaw)
             return DelayedEkf(noise, robust_c=self.robust_c, correlation_s=self.dnn_correlation_s)
         return EdgeLocFuser(
-            self.k_s, self.dt0_s, robust_c=self.robust_c, pull_every_s=self.pull_every_s
+            self.k_s,
+            self.dt0_s,
+            robust_c=self.robust_c,
+            pull_every_s=self.pull_every_s,
+            robust_centre_s=self.robust_centre_s,
         )
 
 

@@ -1198,6 +1198,18 @@ class _Builder:
                 "method: ekf, or no correlation",
                 f"correlation with method {fusion.get('method', 'paper')!r}",
             )
+        if isinstance(fusion, Section) and fusion.get("robust_centre") is not None:
+            # robust defaults to 2 (model.Fusion): only a written null switches it off.
+            no_robust = fusion.written("robust") and fusion.get("robust") is None
+            method = fusion.get("method", "paper")
+            if no_robust or method != "paper":
+                self.ctx.add(
+                    fusion.at("robust_centre"),
+                    fusion.path_of("robust_centre"),
+                    "robust_centre only with the paper's fusion and a robust weight (it centres"
+                    " that weight): method: paper and robust set, or no robust_centre",
+                    "robust: null" if no_robust else f"robust_centre with method {method!r}",
+                )
         if not workload.clean or self.ctx.issues:
             return model.Workload()
         built: model.Workload = schema_v1.WORKLOAD.build(workload)

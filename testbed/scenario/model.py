@@ -406,6 +406,11 @@ class Fusion:
     k_s: float = 2.0  # 1/s
     dt0_s: float = -1.4
     robust_c: float | None = 2.0
+    # BEYOND THE PAPER, with robust_c and method paper: r measured from the answers' mean
+    # innovation over this many seconds (`nodes.edgeloc.fusion.RecentInnovation`), so the lag a
+    # drifting VO builds up is corrected rather than shrunk as an outlier; None: from the fused
+    # pose.
+    robust_centre_s: float | None = None
     # "paper": the weight above; "ekf" (BEYOND THE PAPER, `nodes.edgeloc.ekf`): a
     # delayed-measurement EKF that also estimates the VO's scale and yaw-rate bias, with the
     # Kalman baseline's R as the DNN's noise and robust_c as above; k_s and Δt0 unused.

@@ -798,6 +798,15 @@ FUSION = Obj(
             attr="robust_c",
         ),
         Field(
+            "robust_centre",
+            Nullable(Duration(60.0, lo_open=True, noun="a window")),
+            "BEYOND THE PAPER, with robust and method paper: measure r from the answers' mean"
+            " innovation over this window (in the vehicle's frame) instead of from the fused"
+            " pose, so the lag a drifting VO builds up is corrected rather than shrunk as an"
+            " outlier; null: from the fused pose.",
+            attr="robust_centre_s",
+        ),
+        Field(
             "method",
             Enum(("paper", "ekf")),
             "paper: the latency weight above; ekf (BEYOND THE PAPER): a delayed-measurement EKF"

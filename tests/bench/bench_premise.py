@@ -17,7 +17,7 @@ replays ground truth plus white noise of the DNN's median error instead of the D
 contrast: answers whose errors do not repeat). A benchmark: it prints, it does not assert.
 
 Usage: python tests/bench/bench_premise.py [--seeds 1-48] [--stretch K] [--answers dnn|white]
-       [--fusion scenario|paper|ekf|ekf-corr|per-second] [--jobs N] [--json FILE]
+       [--fusion scenario|paper|ekf|ekf-corr|per-second|centred] [--jobs N] [--json FILE]
 """
 
 from __future__ import annotations
