@@ -13,7 +13,6 @@ from nodes.edgeloc.fusion import (
     DnnHold,
     EdgeLocFuser,
     VoHistory,
-    innovation_in_frame,
     latency_weight,
     per_second_weight,
     time_zone_revision,
@@ -295,16 +294,16 @@ def test_a_centred_robust_weight_still_shrinks_an_answer_unlike_the_recent_ones(
         outlier = geometry.compose(before, geometry.pose(0.0, 40.0, 0.0))
         after = fuser.on_dnn(outlier, t, t)
         assert after is not None
-        moved[name] = innovation_in_frame(before, after)[1]
+        moved[name] = geometry.between(before, after)[1]
     assert moved["bare"] == pytest.approx(latency_weight(0.0, k, dt0) * 40.0, rel=1e-6)
     assert moved["centred"] < moved["bare"] / 20
 
 
-def test_innovation_in_frame_is_along_and_across_the_heading() -> None:
+def test_the_innovation_the_centred_weight_averages_is_along_and_across_the_heading() -> None:
     pose = geometry.pose(1.0, 2.0, math.pi / 2)  # facing +y
-    np.testing.assert_allclose(innovation_in_frame(pose, geometry.pose(1.0, 5.0, 0.0)), [3, 0],
+    np.testing.assert_allclose(geometry.between(pose, geometry.pose(1.0, 5.0, 0.0))[:2], [3, 0],
                                atol=1e-12)  # fmt: skip
-    np.testing.assert_allclose(innovation_in_frame(pose, geometry.pose(-1.0, 2.0, 0.0)), [0, 2],
+    np.testing.assert_allclose(geometry.between(pose, geometry.pose(-1.0, 2.0, 0.0))[:2], [0, 2],
                                atol=1e-12)  # fmt: skip
 
 

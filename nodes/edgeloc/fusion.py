@@ -192,13 +192,6 @@ class RecentInnovation:
         self.mean = (1.0 - a) * self.mean + a * innovation
 
 
-def innovation_in_frame(pose: Pose, target: Pose) -> np.ndarray:
-    """`target`'s position minus `pose`'s, in `pose`'s frame: [along-track, cross-track] (m)."""
-    c, s = math.cos(pose[2]), math.sin(pose[2])
-    dx, dy = target[0] - pose[0], target[1] - pose[1]
-    return np.array([c * dx + s * dy, -s * dx + c * dy])
-
-
 class EdgeLocFuser:
     """Holds the fused pose L_r; VO frames dead-reckon it, DNN answers pull it back (§4.2).
 
@@ -280,7 +273,8 @@ class EdgeLocFuser:
                 gap = self.pull_every_s if last is None else max(t_now - last, 0.0)
                 u = per_second_weight(u, gap, self.pull_every_s)
             if self.robust_c is not None:
-                innovation = innovation_in_frame(self._pose, revised)
+                # In the fused pose's frame: [along-track, cross-track].
+                innovation = geometry.between(self._pose, revised)[:2]
                 centre = np.zeros(2)
                 if self._recent is not None:
                     centre = self._recent.mean

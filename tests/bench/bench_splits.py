@@ -478,7 +478,7 @@ def main() -> int:
     p.add_argument("--seeds", default=",".join(map(str, SEEDS)), help="comma-separated seeds")
     p.add_argument(
         "--fusion",
-        choices=("all", "both", "scenario", "paper", "ekf", "ekf-corr", "per-second", "centred"),
+        choices=("all", "both", "scenario", *FUSION_CHANGES),
         default="all",
         help="scenario: the scenario's fusion (after); paper: the paper's bare fusion at the "
         "old defaults k_s 20/s, dt0 0.25 s (before); ekf: the delayed-measurement EKF (beyond "
