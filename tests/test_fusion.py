@@ -10,9 +10,11 @@ import pytest
 
 from nodes.edgeloc import geometry
 from nodes.edgeloc.fusion import (
+    ConfidenceWeight,
     DnnHold,
     EdgeLocFuser,
     VoHistory,
+    confidence_weight,
     latency_weight,
     per_second_weight,
     time_zone_revision,
@@ -316,3 +318,43 @@ def test_a_centred_robust_weight_needs_a_robust_weight_and_a_window() -> None:
 
     with pytest.raises(ValueError, match="needs robust_c and fusion_method 'paper'"):
         ReplayConfig(fusion_method="ekf", robust_centre_s=2.0)
+
+
+def test_the_confidence_weight_scales_u_by_the_error_variance_of_a_less_sure_answer() -> None:
+    """Against the closed form: an answer H nats less sure than the reference keeps
+    exp(−per_nat·(H − H_ref)) of its u; one at least as sure keeps all of it; without an
+    entropy (answers that are not the DNN's) or without the weight, nothing changes."""
+    weight = ConfidenceWeight(per_nat=1.9, reference_nats=1.0)
+    assert confidence_weight(0.4, weight) == 1.0
+    assert confidence_weight(1.0, weight) == pytest.approx(1.0)
+    assert confidence_weight(2.5, weight) == pytest.approx(math.exp(-1.9 * 1.5))
+    gt = _drive(20, seed=4)
+    t0, t_now = 0.05 * 12, 0.05 * 19
+    u = latency_weight(t_now - t0, 2.0, -1.4)
+    for fuser, entropy, expected in (
+        (EdgeLocFuser(2.0, -1.4, confidence=weight), 2.5, u * math.exp(-1.9 * 1.5)),
+        (EdgeLocFuser(2.0, -1.4, confidence=weight), 0.4, u),
+        (EdgeLocFuser(2.0, -1.4, confidence=weight), None, u),
+        (EdgeLocFuser(2.0, -1.4), 2.5, u),
+    ):
+        for i in range(20):
+            fuser.on_vo(gt[i] + np.array([0.3, 0.0, 0.0]), 0.05 * i)
+        fuser.on_dnn(gt[12], t0, t_now, entropy_nats=entropy)
+        assert fuser.last_update is not None
+        assert fuser.last_update.weight == pytest.approx(expected, rel=1e-12)
+    with pytest.raises(ValueError, match=">= 0 nats"):
+        confidence_weight(-0.1, weight)
+    with pytest.raises(ValueError, match="per_nat"):
+        ConfidenceWeight(per_nat=math.nan, reference_nats=1.0)
+
+
+def test_the_confidence_weight_is_named_an_ablation_and_is_for_the_papers_weight_only() -> None:
+    from nodes.edgeloc.settings import ReplayConfig, config_from_dict, config_to_dict
+
+    weight = ConfidenceWeight(1.9, 0.98)
+    cfg = ReplayConfig(confidence=weight)
+    assert "entropy" in cfg.describe_fusion() and "AN ABLATION" in cfg.describe_fusion()
+    assert cfg.build_fuser().confidence == weight  # type: ignore[union-attr]
+    assert config_from_dict(config_to_dict(cfg)) == cfg
+    with pytest.raises(ValueError, match="not for the EKF"):
+        ReplayConfig(fusion_method="ekf", confidence=weight)

@@ -7,6 +7,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import scipy.stats
 import torch
 
 from nodes.edgeloc import codec
@@ -17,8 +18,11 @@ from nodes.edgeloc.train import (
     METRICS_FILE,
     WEIGHTS_DIR,
     WEIGHTS_FILE,
+    TrainConfig,
     WeightsMissing,
+    entropy_calibration,
     evaluate,
+    held_out_frames,
     load_model,
 )
 
@@ -189,3 +193,47 @@ def test_camera_frame_travels_stored_activations_compressed(frames: np.ndarray) 
     assert torch.equal(codec.decode(blob), torch.from_numpy(frames[:1]))
     a = torch.zeros((1, 48, 6, 8))
     assert len(codec.encode(a, "fp16-zlib")) < a.numel() * 2 / 10
+
+
+@pytest.mark.parametrize("split", SPLITS[:-1])
+def test_the_tail_reads_the_place_classifiers_entropy_beside_the_pose(
+    net: LocNet, frames: np.ndarray, split: str
+) -> None:
+    """The same output as `tail`, and the entropy torch's own Categorical gives the logits."""
+    x = torch.from_numpy(frames)
+    with torch.no_grad():
+        a = net.head(split, x)
+        out, entropy = net.tail_with_entropy(split, a)
+        feats = net.head(SPLITS[-2], x)
+        logits = net.pose_layer.parts(feats)[0]
+    assert torch.equal(out, net.tail(split, a))
+    oracle = torch.distributions.Categorical(logits=logits).entropy()
+    torch.testing.assert_close(entropy, oracle, rtol=1e-5, atol=1e-5)
+    assert bool((entropy >= 0).all()) and bool((entropy <= np.log(logits.shape[1])).all())
+
+
+def test_the_vehicle_split_has_no_logits_left_for_the_edge(net: LocNet, frames: np.ndarray) -> None:
+    with torch.no_grad(), pytest.raises(ValueError, match="no logits"):
+        net.tail_with_entropy("vehicle", net(torch.from_numpy(frames)))
+
+
+def test_the_committed_dnns_entropy_tells_its_error_on_held_out_drives() -> None:
+    """Calibrated on frames training never saw: the less sure the DNN is of the place, the
+    larger its error, by band medians and in rank over every frame; the fitted weight says so."""
+    model = load_model()
+    images, gt = held_out_frames(TrainConfig(eval_stride=6))
+    weight, bands = entropy_calibration(model, images, gt, bands=5)
+    print(weight, [(round(b.hi_nats, 2), round(b.median_error_m, 2)) for b in bands])
+    assert sum(b.frames for b in bands) == len(images)
+    assert bands[-1].median_error_m > 2.5 * bands[0].median_error_m
+    assert bands[-1].outlier_share > max(b.outlier_share for b in bands[:-1])
+    assert weight.per_nat > 0.5
+    lo, hi = bands[0].lo_nats, bands[-1].hi_nats
+    assert lo < weight.reference_nats < hi
+    with torch.no_grad():
+        out = model(torch.from_numpy(images))
+        _, entropy = model.tail_with_entropy(
+            SPLITS[-2], model.head(SPLITS[-2], torch.from_numpy(images))
+        )
+    err = np.hypot(*(out[:, :2].numpy() - gt[:, :2]).T)
+    assert scipy.stats.spearmanr(entropy.numpy(), err).statistic > 0.25

@@ -399,3 +399,34 @@ def test_vehicle_picks_the_path_the_replay_models(tmp_path: Path, monkeypatch) -
          "--runs-dir", str(tmp_path)],
     )  # fmt: skip
     assert out.exit_code == 2 and "av9" in out.output, out.output
+
+
+@pytest.mark.parametrize("split", ["conv3", "vehicle"])
+def test_the_confidence_ablation_weights_each_answer_by_the_dnns_own_entropy(split: str) -> None:
+    """The replay hands the fuser each answer's place entropy, computed where the last stage
+    ran (the edge from the decoded activation, the vehicle from its own `fc`): every fused
+    answer's weight is the plain run's times `confidence_weight` of that entropy."""
+    from nodes.edgeloc.dataset import open_dataset
+    from nodes.edgeloc.fusion import ConfidenceWeight, confidence_weight
+    from nodes.edgeloc.replay import InferenceCache
+    from nodes.edgeloc.train import load_model
+
+    plain = _short_config(robust_c=None, learner=replace(ReplayConfig().learner, fixed_split=split))
+    weight = ConfidenceWeight(per_nat=1.9, reference_nats=0.98)
+    ds = open_dataset("synthetic", seed=7, duration_s=12.0)
+    model = load_model()
+    cache = InferenceCache(model, ds, plain.codec)
+    path = PathSchedule.constant(PathState(rate_bps=20e6, delay_s=0.02))
+    lm = LatencyModel(
+        COMPUTE, path, PathSchedule.constant(PathState(rate_bps=200e6)), timeout_s=3.0
+    )
+    runs = [run_replay(c, lm, ds, model, cache) for c in (plain, replace(plain, confidence=weight))]
+    pairs = [(a, b) for a, b in zip(*(r.plays for r in runs), strict=True) if a.weight and b.weight]
+    assert len(pairs) > 50
+    factors = []
+    for a, b in pairs:
+        entropy = cache.answer(a.frame, split).entropy_nats
+        assert entropy is not None and entropy >= 0
+        factors.append(confidence_weight(entropy, weight))
+        assert b.weight == pytest.approx(a.weight * factors[-1], rel=1e-9)
+    assert min(factors) < 0.5 < max(factors) == 1.0  # some answers are doubted, most are not

@@ -358,7 +358,9 @@ def compare_splits(
         oracle = policy_row("oracle", res, bounds)
     paper = None
     if config.robust_c is not None or config.fusion_method != "paper":
-        bare = replace(free, robust_c=None, robust_centre_s=None, fusion_method="paper")
+        bare = replace(
+            free, robust_c=None, robust_centre_s=None, confidence=None, fusion_method="paper"
+        )
         paper = policy_row(
             "learned, paper fusion", run_replay(bare, latency, dataset, model, cache), bounds
         )

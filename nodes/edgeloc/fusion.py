@@ -29,6 +29,15 @@ each answer's u becomes `per_second_weight(u, gap, P)`, the weight that pulls as
 gap since the previous answer as u does once every P seconds. It separates what an answer's
 age costs from what the answer rate buys (`tests/bench/bench_splits.py --fusion per-second`).
 
+AN ABLATION, NOT IN THE SCENARIO SCHEMA (`confidence`): an uncertainty term from the DNN itself.
+Its place classifier's entropy H (`model.place_entropy`) rises with its error: on held-out
+drives the median error grows ~exp(b·H) (`train.entropy_calibration`). With
+`confidence = ConfidenceWeight(per_nat, reference_nats)` each answer's u is multiplied by
+`confidence_weight`, min(1, exp(−per_nat·(H − H_ref))): an answer less sure than the typical
+one pulls as much less as its error variance is larger. The replay has H; a real run's answers
+do not carry it yet, so the ROS nodes cannot use it (`tests/bench/bench_splits.py --fusion
+confidence`).
+
 Every pose is an SE(2) numpy array [x, y, yaw] (see `geometry`). All times are seconds on the
 vehicle's clock.
 """
@@ -86,6 +95,30 @@ def per_second_weight(u: float, gap_s: float, pull_every_s: float) -> float:
             f"need 0 <= u <= 1, gap >= 0 s and P > 0 s, got {u!r}, {gap_s!r}, {pull_every_s!r}"
         )
     return 1.0 - (1.0 - u) ** (gap_s / pull_every_s)
+
+
+@dataclass(frozen=True)
+class ConfidenceWeight:
+    """How the DNN's entropy scales an answer's weight: exp(−`per_nat`·(H − `reference_nats`)),
+    capped at 1. Fitted by `train.entropy_calibration` (per_nat = 2·b: a variance ratio)."""
+
+    per_nat: float
+    reference_nats: float
+
+    def __post_init__(self) -> None:
+        if not (math.isfinite(self.per_nat) and self.per_nat >= 0):
+            raise ValueError(f"confidence per_nat must be a number >= 0, got {self.per_nat!r}")
+        if not (math.isfinite(self.reference_nats) and self.reference_nats >= 0):
+            raise ValueError(
+                f"confidence reference entropy must be >= 0 nats, got {self.reference_nats!r}"
+            )
+
+
+def confidence_weight(entropy_nats: float, weight: ConfidenceWeight) -> float:
+    """min(1, exp(−per_nat·(H − H_ref))): 1 for an answer at least as sure as the reference."""
+    if not (math.isfinite(entropy_nats) and entropy_nats >= 0):
+        raise ValueError(f"an answer's entropy must be >= 0 nats, got {entropy_nats!r}")
+    return min(1.0, math.exp(-weight.per_nat * (entropy_nats - weight.reference_nats)))
 
 
 class VoHistory:
@@ -202,7 +235,7 @@ class EdgeLocFuser:
     `robust_c` (beyond the paper, see the module doc) scales u by the answer's Cauchy weight;
     `robust_centre_s` (beyond the paper, needs `robust_c`) measures the Cauchy weight's r from
     the recent answers' mean innovation; `pull_every_s` (an ablation, see the module doc) makes
-    the pull per second rate-free.
+    the pull per second rate-free; `confidence` (an ablation) scales u by the answer's entropy.
     """
 
     def __init__(
@@ -214,6 +247,7 @@ class EdgeLocFuser:
         robust_c: float | None = None,
         pull_every_s: float | None = None,
         robust_centre_s: float | None = None,
+        confidence: ConfidenceWeight | None = None,
     ) -> None:
         if not (math.isfinite(k_s) and k_s > 0):
             raise ValueError(f"fusion k_s must be a positive number (1/s), got {k_s!r}")
@@ -232,6 +266,7 @@ class EdgeLocFuser:
         if robust_centre_s is not None and robust_c is None:
             raise ValueError("fusion robust_centre_s centres the robust weight: it needs robust_c")
         self._recent = None if robust_centre_s is None else RecentInnovation(robust_centre_s)
+        self.confidence = confidence
         self._vo = VoHistory(history_s)
         self._pose: Pose | None = None if initial is None else as_pose(initial, "initial pose")
         self._lock = threading.Lock()
@@ -255,8 +290,11 @@ class EdgeLocFuser:
                 self._pose = geometry.compose(self._pose, geometry.between(prev[1], l_beta_t))
             return self._pose.copy()
 
-    def on_dnn(self, l_alpha_t0: Pose, t0: float, t_now: float) -> Pose | None:
-        """Thread 2: revise L_alpha(t0) to the latest VO frame and fuse with u(t_now − t0)."""
+    def on_dnn(
+        self, l_alpha_t0: Pose, t0: float, t_now: float, entropy_nats: float | None = None
+    ) -> Pose | None:
+        """Thread 2: revise L_alpha(t0) to the latest VO frame and fuse with u(t_now − t0).
+        `entropy_nats`, the DNN's doubt about this answer, counts only with `confidence`."""
         l_alpha_t0 = as_pose(l_alpha_t0, "DNN pose")
         t0, t_now = check_times(t0, t_now)
         with self._lock:
@@ -281,6 +319,8 @@ class EdgeLocFuser:
                     self._recent.add(innovation, t_now)
                 r = float(np.hypot(*(innovation - centre)))
                 u *= self._scale.weight(r, self.robust_c)
+            if self.confidence is not None and entropy_nats is not None:
+                u *= confidence_weight(entropy_nats, self.confidence)
             # L_r = u·L_alpha' + (1 − u)·L_r, yaw on the circle.
             self._pose = geometry.interpolate(self._pose, revised, u)
             self.last_update = FusionUpdate(revised, u, t_now - t0, self._pose.copy())

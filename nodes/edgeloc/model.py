@@ -26,6 +26,8 @@ frame weighs, so the cost ordering of splits flips within the 8-40 Mbit/s of a l
 `forward(x)`. The input is the camera image as uint8 (N, H, W, 3), so the `image` split sends
 what the camera gave. The output is (N, 4): x and y in metres and yaw as a unit (cos, sin).
 Position comes from place recognition over street anchors plus a regressed offset (`_PoseOut`).
+`tail_with_entropy` also returns the entropy of that place classifier (`place_entropy`): the
+DNN's own doubt, which rises with its error (`train.entropy_calibration`).
 """
 
 from __future__ import annotations
@@ -190,6 +192,22 @@ class LocNet(nn.Module):
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         return self.tail(0, x)
 
+    def tail_with_entropy(
+        self, split: int | str, a: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """`tail(split, a)` and, per row, the entropy (nats) of the place classifier's softmax
+        over all anchors: the DNN's own doubt about where it is. Not for the `vehicle` split,
+        whose activation is the output itself: there the vehicle takes it from `fc`."""
+        k = split_index(split)
+        if k == len(self.stages):
+            raise ValueError("the vehicle split's activation is the pose: no logits left to read")
+        if k == 0:
+            self._check_input(a)
+        for stage in self.stages[k:-1]:
+            a = stage(a)
+        logits, xy, cs = self.pose_layer.parts(a)
+        return torch.cat([xy, cs], dim=1), place_entropy(logits)
+
     @property
     def pose_layer(self) -> _PoseOut:
         return self.stages[-1]
@@ -207,3 +225,9 @@ class LocNet(nn.Module):
 def to_pose(out: torch.Tensor) -> torch.Tensor:
     """(N, 4) network output -> (N, 3) [x, y, yaw] poses."""
     return torch.stack([out[:, 0], out[:, 1], torch.atan2(out[:, 3], out[:, 2])], dim=1)
+
+
+def place_entropy(logits: torch.Tensor) -> torch.Tensor:
+    """(N, A) anchor logits -> (N,) entropy of their softmax in nats (0: one place, certain)."""
+    logp = torch.log_softmax(logits, dim=1)
+    return -(logp.exp() * logp).sum(dim=1)

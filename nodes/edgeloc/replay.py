@@ -60,17 +60,19 @@ from nodes.edgeloc.metrics import (
     write_tum,
 )
 from nodes.edgeloc.model import LocNet, to_pose
-from nodes.edgeloc.settings import KalmanSettings, LearnerSettings, ReplayConfig
+from nodes.edgeloc.settings import SPLITS, KalmanSettings, LearnerSettings, ReplayConfig
 
 SUMMARY_VERSION = 1
 
 
 @dataclass(frozen=True)
 class Answer:
-    """What the edge computed for one frame at one split: the pose and the bytes sent."""
+    """What the edge computed for one frame at one split: the pose and the bytes sent, and
+    the DNN's place entropy in nats (None where the answers are not the DNN's)."""
 
     pose: np.ndarray
     payload: int
+    entropy_nats: float | None = None
 
 
 class InferenceCache:
@@ -86,9 +88,15 @@ class InferenceCache:
         if key not in self._cache:
             x = torch.from_numpy(np.ascontiguousarray(self.dataset.image(frame)[None]))
             blob = encode(self.model.head(split, x), self.codec)
-            out = self.model.tail(split, decode(blob))
+            if split == SPLITS[-1]:  # the vehicle ran the last stage and read its logits
+                _, entropy = self.model.tail_with_entropy(
+                    SPLITS[-2], self.model.head(SPLITS[-2], x)
+                )
+                out = decode(blob)
+            else:
+                out, entropy = self.model.tail_with_entropy(split, decode(blob))
             pose = to_pose(out)[0].numpy().astype(np.float64)
-            self._cache[key] = Answer(pose, len(blob))
+            self._cache[key] = Answer(pose, len(blob), float(entropy[0]))
         return self._cache[key]
 
 
@@ -492,7 +500,7 @@ class Replay:
             return j, float(self.t[j])
         return j, free_at
 
-    def _send(self, frame: int, start: float) -> tuple[Play, np.ndarray | None]:
+    def _send(self, frame: int, start: float) -> tuple[Play, Answer | None]:
         self._last_sent = frame
         split = self._split_at(start)
         ans = self.infer.answer(frame, split)
@@ -520,7 +528,7 @@ class Replay:
             gated_edgeloc=False,
             gated_kalman=False,
         )
-        return play, None if timing.lost else ans.pose
+        return play, None if timing.lost else ans
 
     def _split_at(self, start: float) -> str:
         """The schedule's split at `start`, else the fixed split, else the learner's choice."""
@@ -549,15 +557,18 @@ class Replay:
         i = len(self._recorded) - 1
         return gate.admit(candidate, estimate, latest[1], float(self.odometer[max(i, 0)]))
 
-    def _apply(self, play: Play, pose: np.ndarray | None) -> Play:
+    def _apply(self, play: Play, answer: Answer | None) -> Play:
         """The answer arrives: fuse, update the Kalman filter and the DNN hold, teach the
         learner. Returns the play with what the estimators did."""
         weight, gated_e, gated_k = None, False, False
-        if pose is not None:
-            t_now = play.answer_s
+        if answer is not None:
+            pose, t_now = answer.pose, play.answer_s
+            doubt = {}
+            if self.cfg.confidence is not None:
+                doubt = {"entropy_nats": answer.entropy_nats}
             self.hold.on_dnn(pose, play.t0_s, t_now)
             if self._admit("edgeloc", pose, play.t0_s, self.fuser.pose):
-                if self.fuser.on_dnn(pose, play.t0_s, t_now) is not None:
+                if self.fuser.on_dnn(pose, play.t0_s, t_now, **doubt) is not None:
                     weight = self.fuser.last_update.weight  # type: ignore[union-attr]
             else:
                 gated_e = True

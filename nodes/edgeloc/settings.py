@@ -13,7 +13,7 @@ from typing import Any, Literal
 
 from nodes.edgeloc.bandit import AdaptiveSplitLearner
 from nodes.edgeloc.ekf import DelayedEkf, EkfNoise
-from nodes.edgeloc.fusion import EdgeLocFuser
+from nodes.edgeloc.fusion import ConfidenceWeight, EdgeLocFuser
 from nodes.edgeloc.gate import GateSettings
 
 #: EdgeLoc's fusions: the paper's latency weight (`fusion`), or the delayed-measurement EKF
@@ -113,6 +113,9 @@ class ReplayConfig:
     # An ablation for tests/bench/bench_splits.py, not in the scenario schema: each answer's u
     # rescaled to the gap since the previous one (fusion.per_second_weight). None: the paper's.
     pull_every_s: float | None = None
+    # An ablation for the benches, not in the scenario schema: each answer's u scaled by the
+    # DNN's entropy (fusion.confidence_weight). Only the replay has the entropy.
+    confidence: ConfidenceWeight | None = None
     fusion_method: str = "paper"  # or "ekf" (beyond the paper: nodes.edgeloc.ekf)
     # The EKF's DNN error correlation time (s): None takes every answer as independent.
     dnn_correlation_s: float | None = None
@@ -140,6 +143,8 @@ class ReplayConfig:
             )
         if self.pull_every_s is not None and self.fusion_method != "paper":
             raise ValueError("pull_every_s rescales the paper's latency weight: not for the EKF")
+        if self.confidence is not None and self.fusion_method != "paper":
+            raise ValueError("confidence scales the paper's latency weight: not for the EKF")
         if self.robust_centre_s is not None and (
             self.robust_c is None or self.fusion_method != "paper"
         ):
@@ -172,6 +177,11 @@ class ReplayConfig:
                 f", its pull per second rate-free, as one answer every "
                 f"{1e3 * self.pull_every_s:g} ms (AN ABLATION)"
             )
+        if self.confidence is not None:
+            pull += (
+                f", scaled by the DNN's entropy H as exp(-{self.confidence.per_nat:.3g}/nat "
+                f"(H - {self.confidence.reference_nats:.3g} nats)) up to 1 (AN ABLATION)"
+            )
         return (
             f"the paper's latency weight, k_s {self.k_s:g}/s, dt0 {self.dt0_s:g} s"
             f"{bare}{robust}{pull}"
@@ -190,6 +200,7 @@ class ReplayConfig:
             robust_c=self.robust_c,
             pull_every_s=self.pull_every_s,
             robust_centre_s=self.robust_centre_s,
+            confidence=self.confidence,
         )
 
 
@@ -212,6 +223,8 @@ def config_from_dict(data: dict[str, Any]) -> ReplayConfig:
     d["phases"] = tuple(d.get("phases", (0.0,)))
     d["learner"] = LearnerSettings(**d.get("learner", {}))
     d["kalman"] = KalmanSettings(**d.get("kalman", {}))
+    confidence = d.get("confidence")
+    d["confidence"] = None if confidence is None else ConfidenceWeight(**confidence)
     gate = d.get("gate")
     d["gate"] = None if gate is None else GateSettings(**gate)
     return ReplayConfig(**d)

@@ -34,6 +34,7 @@ from nodes.edgeloc import geometry as se2
 from nodes.edgeloc.codec import CODECS, split_table
 from nodes.edgeloc.dataset import SyntheticDataset
 from nodes.edgeloc.errors import EdgeLocError
+from nodes.edgeloc.fusion import ConfidenceWeight
 from nodes.edgeloc.latency import ComputeProfile
 from nodes.edgeloc.model import IMAGE_SHAPE, SPLITS, LocNet, street_anchors, to_pose
 from nodes.edgeloc.world import DEFAULT_TOWN_SEED, Camera, Lighting, Obstacle, Town
@@ -175,6 +176,57 @@ def evaluate(model: LocNet, images: NDArray[np.uint8], gt: NDArray[np.float64]) 
     t = np.hypot(est[:, 0] - gt[:, 0], est[:, 1] - gt[:, 1])
     r = np.degrees(np.abs(np.asarray(se2.wrap(est[:, 2] - gt[:, 2]))))
     return Errors(t, r)
+
+
+@dataclass(frozen=True)
+class EntropyBand:
+    """Held-out frames whose place entropy lies in [lo_nats, hi_nats], and the DNN's error there."""
+
+    lo_nats: float
+    hi_nats: float
+    frames: int
+    median_error_m: float
+    outlier_share: float  # answers more than OUTLIER_M off
+
+
+def entropy_calibration(
+    model: LocNet, images: NDArray[np.uint8], gt: NDArray[np.float64], bands: int = 10
+) -> tuple[ConfidenceWeight, tuple[EntropyBand, ...]]:
+    """How well the DNN's place entropy tells its error, on held-out frames: the median error
+    and the outlier share per entropy band (equal counts), and the fusion's confidence weight.
+
+    The weight scales an answer by its error variance against the median answer's:
+    log(median error) ≈ a + b·H over the bands' medians (medians, so the outliers that the
+    robust term handles do not set it), per_nat = 2b, reference = the median entropy.
+    """
+    model.eval()
+    fc = SPLITS[-2]
+    pos, ent = [], []
+    with torch.no_grad():
+        for i in range(0, len(images), 256):
+            x = torch.from_numpy(np.ascontiguousarray(images[i : i + 256]))
+            out, h = model.tail_with_entropy(fc, model.head(fc, x))
+            pos.append(out[:, :2].numpy())
+            ent.append(h.numpy())
+    h = np.concatenate(ent).astype(np.float64)
+    err = np.hypot(*(np.concatenate(pos) - gt[:, :2]).T)
+    edges = np.quantile(h, np.linspace(0.0, 1.0, bands + 1))
+    which = np.clip(np.searchsorted(edges, h, side="right") - 1, 0, bands - 1)
+    table, mids = [], []
+    for j in range(bands):
+        e = err[which == j]
+        if not len(e):
+            continue
+        mids.append(float(np.median(h[which == j])))
+        table.append(
+            EntropyBand(
+                float(edges[j]), float(edges[j + 1]), len(e), float(np.median(e)),
+                float(np.mean(e > OUTLIER_M)),
+            )
+        )  # fmt: skip
+    slope, _ = np.polyfit(mids, np.log([b.median_error_m for b in table]), 1)
+    weight = ConfidenceWeight(max(2.0 * float(slope), 0.0), float(np.median(h)))
+    return weight, tuple(table)
 
 
 # ---- training --------------------------------------------------------------------------------

@@ -17,7 +17,7 @@ replays ground truth plus white noise of the DNN's median error instead of the D
 contrast: answers whose errors do not repeat). A benchmark: it prints, it does not assert.
 
 Usage: python tests/bench/bench_premise.py [--seeds 1-48] [--stretch K] [--answers dnn|white]
-       [--fusion scenario|paper|ekf|ekf-corr|per-second|centred] [--jobs N] [--json FILE]
+       [--fusion scenario|paper|ekf|ekf-corr|per-second|centred|confidence] [--jobs N] [--json FILE]
 """
 
 from __future__ import annotations
@@ -212,6 +212,7 @@ def main() -> int:
     t0 = time.perf_counter()
     comps: dict[int, SplitComparison] = {}
     jobs = [(s, a.stretch, a.fusion, a.answers) for s in seeds]
+    fusion_config(replay_config(sc), a.fusion)  # a fitted weight is fitted once, before the fork
     with ProcessPoolExecutor(max_workers=max(1, a.jobs)) as pool:
         drives: dict[int, Drive] = {}
         for d in pool.map(replay_seed, jobs):

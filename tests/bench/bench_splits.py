@@ -33,7 +33,10 @@ scenario's fusion with each answer's u rescaled to the gap since the previous on
 (`fusion.per_second_weight`), so that a split that answers more often pulls no harder per
 second; `centred` is BEYOND THE PAPER, the scenario's fusion with its robust weight measured
 from the last 2 s' mean innovation (`fusion.robust_centre`), so a lag the VO's drift builds up
-is not shrunk as an outlier. `--fusion all` (the default) prints the first four, before first.
+is not shrunk as an outlier; `confidence` is an ablation, the scenario's fusion with each
+answer's u scaled by the DNN's place entropy (`fusion.confidence_weight`, fitted on the held-out
+drives by `train.entropy_calibration`; the replay alone has the entropy, a real run does not).
+`--fusion all` (the default) prints the first four, before first.
 Last, unless `--no-white`, an ablation: the scenario's fusion (or `per-second`, when it is the
 one asked for) on white-noise answers (ground truth plus Gaussian noise with the DNN's median
 error, the real payloads and so the real latencies), which shows what latency alone does to the
@@ -45,13 +48,14 @@ A benchmark reports: a missed goal is printed as MISS and the script still exits
 The compute profile is the reference committed with the weights, so the figures are the same
 on every machine. ~30 replays per seed with the four fusions and the ablation, ~2.5 s each.
 Usage: python tests/bench/bench_splits.py [--seeds 1,2,3,4,7] [--no-white]
-       [--fusion all|both|scenario|paper|ekf|ekf-corr|per-second|centred] [--memory 25,50,100,150]
-       [--weights FILE] [--stretch K]
+       [--fusion all|both|scenario|paper|ekf|ekf-corr|per-second|centred|confidence]
+       [--memory 25,50,100,150] [--weights FILE] [--stretch K]
 """
 
 from __future__ import annotations
 
 import argparse
+import functools
 import math
 import sys
 import time
@@ -66,6 +70,7 @@ import numpy as np
 import torch
 
 from nodes.edgeloc.compare import SplitComparison, compare_splits
+from nodes.edgeloc.fusion import ConfidenceWeight, confidence_weight
 from nodes.edgeloc.latency import LatencyModel
 from nodes.edgeloc.metrics import (
     PAPER_REDUCTIONS_PCT,
@@ -86,7 +91,14 @@ from nodes.edgeloc.replay import (
     run_replay,
 )
 from nodes.edgeloc.settings import ReplayConfig
-from nodes.edgeloc.train import WeightsMissing, load_model
+from nodes.edgeloc.train import (
+    EntropyBand,
+    TrainConfig,
+    WeightsMissing,
+    entropy_calibration,
+    held_out_frames,
+    load_model,
+)
 from testbed.replay import compute_profile, latency_model, replay_config
 from testbed.scenario import load
 from testbed.scenario.model import Scenario
@@ -110,6 +122,9 @@ PER_SECOND_FUSION = {"pull_every_s": 0.1}
 #: Beyond the paper: the scenario's fusion with its robust weight centred on the mean innovation
 #: over 2 s, the latency weight's time constant at ~10 answers/s (see testbed.scenario.model).
 CENTRED_FUSION = {"robust_centre_s": 2.0}
+#: An ablation: the scenario's fusion with each answer's u scaled by the DNN's own doubt, its
+#: place entropy; the weight is fitted on the held-out drives when asked for (`fusion_config`).
+CONFIDENCE_FUSION: dict[str, object] = {}
 TITLES = {
     "paper": "before: the paper's bare fusion",
     "scenario": "after: the scenario's fusion",
@@ -117,6 +132,7 @@ TITLES = {
     "ekf-corr": "beyond the paper: the EKF with the DNN's error correlation",
     "per-second": "ablation: the scenario's fusion, its pull per second rate-free",
     "centred": "beyond the paper: the scenario's fusion, its robust weight centred on the lag",
+    "confidence": "ablation: the scenario's fusion, each answer weighted by the DNN's entropy",
 }
 #: The white-noise ablation's spread: a 2-D Gaussian whose median error is the DNN's.
 RAYLEIGH_MEDIAN = math.sqrt(2 * math.log(2))
@@ -173,11 +189,39 @@ FUSION_CHANGES: dict[str, dict[str, object]] = {
     "ekf-corr": EKF_CORR_FUSION,
     "per-second": PER_SECOND_FUSION,
     "centred": CENTRED_FUSION,
+    "confidence": CONFIDENCE_FUSION,
 }
 
 
 def fusion_config(config: ReplayConfig, fusion: str) -> ReplayConfig:
-    return replace(config, **FUSION_CHANGES.get(fusion, {}))  # type: ignore[arg-type]
+    changes = dict(FUSION_CHANGES.get(fusion, {}))
+    if fusion == "confidence":
+        changes["confidence"] = calibrated_confidence(config.weights)[0]
+    return replace(config, **changes)  # type: ignore[arg-type]
+
+
+@functools.cache
+def calibrated_confidence(weights: str | None) -> tuple[ConfidenceWeight, tuple[EntropyBand, ...]]:
+    """The confidence weight of this DNN and its entropy bands, fitted on the held-out drives
+    that training never saw (`train.entropy_calibration`), never on the drives scored here."""
+    images, gt = held_out_frames(TrainConfig())
+    return entropy_calibration(load_model(weights), images, gt)
+
+
+def doubt_table(weights: str | None) -> str:
+    """The DNN's error per band of its place entropy on the held-out drives, and the weight."""
+    weight, bands = calibrated_confidence(weights)
+    rows = [
+        [f"{b.lo_nats:.2f}-{b.hi_nats:.2f}", b.frames, f"{b.median_error_m:.2f}",
+         f"{100 * b.outlier_share:.1f}%", f"{confidence_weight(b.hi_nats, weight):.3f}"]
+        for b in bands
+    ]  # fmt: skip
+    head = ["entropy nats", "frames", "median error m", "> 10 m", "weight at the band's top"]
+    return (
+        table(head, rows)
+        + f"\n  weight = min(1, exp(-{weight.per_nat:.3g}/nat (H - {weight.reference_nats:.3g}"
+        " nats))): the error variance of the median answer over this one's"
+    )
 
 
 def table(headers: Sequence[str], rows: Sequence[Sequence[object]], indent: str = "  ") -> str:
@@ -486,7 +530,8 @@ def main() -> int:
         "ablation, the scenario's fusion with a pull per second that does not grow with the "
         "answer rate (the noise answers then use it too); centred: the scenario's fusion with "
         "its robust weight measured from the last 2 s' mean innovation (beyond the paper); "
-        "both: before, then after; all (default): before, after, both EKFs",
+        "confidence: an ablation, the scenario's fusion with each answer weighted by the DNN's "
+        "place entropy; both: before, then after; all (default): before, after, both EKFs",
     )
     p.add_argument(
         "--no-white",
@@ -532,7 +577,7 @@ def main() -> int:
     sc = default_scenario(a.stretch)
     compute = compute_profile(sc.workload.codec, None)
     lm = latency_model(sc, compute)
-    config = replay_config(sc)
+    config = replace(replay_config(sc), weights=a.weights)  # the confidence fit reads it
     try:
         model = load_model(a.weights)
     except WeightsMissing as err:
@@ -569,6 +614,9 @@ def main() -> int:
         "DNN would have rho ~0: a split that answers twice as often hears nearly the same "
         "error twice."
     )
+    if "confidence" in fusions:
+        print("\n## 0b. the DNN's doubt: its place entropy against its error on held-out drives")
+        print(doubt_table(config.weights))
     for fusion in fusions:
         report(TITLES[fusion], fusion_config(config, fusion), by_key[fusion], lm)
     if not a.no_white:
