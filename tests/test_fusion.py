@@ -356,5 +356,6 @@ def test_the_confidence_weight_is_named_an_ablation_and_is_for_the_papers_weight
     assert "entropy" in cfg.describe_fusion() and "AN ABLATION" in cfg.describe_fusion()
     assert cfg.build_fuser().confidence == weight  # type: ignore[union-attr]
     assert config_from_dict(config_to_dict(cfg)) == cfg
+    assert "bare form" not in ReplayConfig(robust_c=None, confidence=weight).describe_fusion()
     with pytest.raises(ValueError, match="not for the EKF"):
         ReplayConfig(fusion_method="ekf", confidence=weight)

@@ -87,13 +87,13 @@ class InferenceCache:
         key = (frame, split)
         if key not in self._cache:
             x = torch.from_numpy(np.ascontiguousarray(self.dataset.image(frame)[None]))
-            blob = encode(self.model.head(split, x), self.codec)
-            if split == SPLITS[-1]:  # the vehicle ran the last stage and read its logits
-                _, entropy = self.model.tail_with_entropy(
-                    SPLITS[-2], self.model.head(SPLITS[-2], x)
-                )
+            if split == SPLITS[-1]:  # the vehicle runs the last stage and reads its logits
+                fc = SPLITS[-2]
+                pose_out, entropy = self.model.tail_with_entropy(fc, self.model.head(fc, x))
+                blob = encode(pose_out, self.codec)
                 out = decode(blob)
             else:
+                blob = encode(self.model.head(split, x), self.codec)
                 out, entropy = self.model.tail_with_entropy(split, decode(blob))
             pose = to_pose(out)[0].numpy().astype(np.float64)
             self._cache[key] = Answer(pose, len(blob), float(entropy[0]))
@@ -563,7 +563,7 @@ class Replay:
         weight, gated_e, gated_k = None, False, False
         if answer is not None:
             pose, t_now = answer.pose, play.answer_s
-            doubt = {}
+            doubt: dict[str, float | None] = {}
             if self.cfg.confidence is not None:
                 doubt = {"entropy_nats": answer.entropy_nats}
             self.hold.on_dnn(pose, play.t0_s, t_now)

@@ -170,7 +170,9 @@ class ReplayConfig:
                 "delayed-measurement EKF over pose, VO scale and yaw-rate bias (BEYOND THE "
                 f"PAPER), DNN noise R = {kc.r_pos:g} m^2, {kc.r_yaw:g} rad^2" + robust + corr
             )
-        bare = " (the paper's bare form)" if self.robust_c is None else ""
+        bare = ""
+        if self.robust_c is None and self.confidence is None:
+            bare = " (the paper's bare form)"
         pull = ""
         if self.pull_every_s is not None:
             pull = (
