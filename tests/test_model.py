@@ -230,10 +230,8 @@ def test_the_committed_dnns_entropy_tells_its_error_on_held_out_drives() -> None
     assert weight.per_nat > 0.5
     lo, hi = bands[0].lo_nats, bands[-1].hi_nats
     assert lo < weight.reference_nats < hi
-    with torch.no_grad():
-        out = model(torch.from_numpy(images))
-        _, entropy = model.tail_with_entropy(
-            SPLITS[-2], model.head(SPLITS[-2], torch.from_numpy(images))
-        )
+    with torch.no_grad():  # one pass gives the pose and the entropy
+        fc = SPLITS[-2]
+        out, entropy = model.tail_with_entropy(fc, model.head(fc, torch.from_numpy(images)))
     err = np.hypot(*(out[:, :2].numpy() - gt[:, :2]).T)
     assert scipy.stats.spearmanr(entropy.numpy(), err).statistic > 0.25
