@@ -12,7 +12,9 @@ import torch
 
 from nodes.edgeloc import codec
 from nodes.edgeloc.dataset import SyntheticDataset
+from nodes.edgeloc.fusion import ConfidenceMissing, ConfidenceWeight
 from nodes.edgeloc.model import IMAGE_SHAPE, INPUT_POOL, SPLITS, LocNet, split_index, to_pose
+from nodes.edgeloc.settings import confidence_file
 from nodes.edgeloc.train import (
     HELD_OUT_SEEDS,
     METRICS_FILE,
@@ -24,6 +26,7 @@ from nodes.edgeloc.train import (
     evaluate,
     held_out_frames,
     load_model,
+    write_confidence,
 )
 
 
@@ -235,3 +238,26 @@ def test_the_committed_dnns_entropy_tells_its_error_on_held_out_drives() -> None
         out, entropy = model.tail_with_entropy(fc, model.head(fc, torch.from_numpy(images)))
     err = np.hypot(*(out[:, :2].numpy() - gt[:, :2]).T)
     assert scipy.stats.spearmanr(entropy.numpy(), err).statistic > 0.25
+
+
+def test_the_committed_confidence_calibration_is_the_fit_of_the_committed_weights(
+    tmp_path: Path,
+) -> None:
+    """weights/confidence.json (what a scenario's `fusion.confidence` reads) is what fitting
+    the committed weights on every held-out frame gives now; `--calibrate` writes one that reads
+    back the same, and a missing or foreign file is refused with the command that makes it."""
+    committed = ConfidenceWeight.read(confidence_file(None))
+    model = load_model()
+    images, gt = held_out_frames(TrainConfig())
+    path, fitted = write_confidence(model, images, gt, tmp_path)
+    assert path == confidence_file(tmp_path / WEIGHTS_FILE)
+    assert ConfidenceWeight.read(path) == fitted
+    assert fitted.per_nat == pytest.approx(committed.per_nat, rel=1e-3)
+    assert fitted.reference_nats == pytest.approx(committed.reference_nats, rel=1e-3)
+    bands = json.loads(path.read_text())["bands"]
+    assert sum(b["frames"] for b in bands) == len(images) and len(bands) == 10
+    with pytest.raises(ConfidenceMissing, match="--calibrate --out"):
+        ConfidenceWeight.read(tmp_path / "nothing" / "confidence.json")
+    path.write_text('{"per_nat": -1, "reference_nats": 1}')
+    with pytest.raises(ConfidenceMissing, match="not a confidence calibration"):
+        ConfidenceWeight.read(path)

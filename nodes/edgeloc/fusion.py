@@ -45,13 +45,16 @@ vehicle's clock.
 from __future__ import annotations
 
 import bisect
+import json
 import math
 import threading
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 
 from nodes.edgeloc import geometry
+from nodes.edgeloc.errors import EdgeLocError
 from nodes.edgeloc.geometry import Pose
 
 
@@ -112,6 +115,28 @@ class ConfidenceWeight:
             raise ValueError(
                 f"confidence reference entropy must be >= 0 nats, got {self.reference_nats!r}"
             )
+
+    @classmethod
+    def read(cls, path: Path) -> ConfidenceWeight:
+        """The weight in a calibration file beside the DNN's weights (`CONFIDENCE_FILE`, which
+        `python -m nodes.edgeloc.train --calibrate` writes)."""
+        try:
+            data = json.loads(path.read_text())
+            return cls(float(data["per_nat"]), float(data["reference_nats"]))
+        except FileNotFoundError:
+            raise ConfidenceMissing(
+                f"no confidence calibration at {path}: run `python -m nodes.edgeloc.train "
+                f"--calibrate --out {path.parent}` for those weights"
+            ) from None
+        except (OSError, ValueError, KeyError, TypeError) as e:
+            raise ConfidenceMissing(
+                f"{path} is not a confidence calibration ({e}): run `python -m "
+                f"nodes.edgeloc.train --calibrate --out {path.parent}`"
+            ) from e
+
+
+class ConfidenceMissing(EdgeLocError, ValueError):
+    """The DNN's weights have no (readable) confidence calibration beside them."""
 
 
 def confidence_weight(entropy_nats: float, weight: ConfidenceWeight) -> float:

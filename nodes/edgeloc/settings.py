@@ -9,6 +9,7 @@ two nodes that run the DNN (inference request, edge inference) should pay for im
 from __future__ import annotations
 
 from dataclasses import asdict, dataclass, field, fields
+from pathlib import Path
 from typing import Any, Literal
 
 from nodes.edgeloc.bandit import AdaptiveSplitLearner
@@ -26,6 +27,16 @@ SPLITS: tuple[str, ...] = ("image", "conv1", "conv2", "conv3", "conv4", "fc", "v
 #: How long thread 2 waits for an answer before it gives up on a request (a lost request is
 #: charged this): the inference node's `--timeout`, the replay's `LatencyModel.timeout_s`.
 REQUEST_TIMEOUT_S = 1.0
+#: The committed DNN weights and what was measured of them live here.
+WEIGHTS_DIR = Path(__file__).resolve().parent / "weights"
+#: The confidence calibration of a DNN (`train.write_confidence`), beside its weights file.
+CONFIDENCE_FILE = "confidence.json"
+
+
+def confidence_file(weights: str | Path | None) -> Path:
+    """Where the confidence calibration of the weights file `weights` is (None: the committed
+    weights')."""
+    return (WEIGHTS_DIR if weights is None else Path(weights).parent) / CONFIDENCE_FILE
 
 
 @dataclass(frozen=True)

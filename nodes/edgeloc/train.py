@@ -37,9 +37,9 @@ from nodes.edgeloc.errors import EdgeLocError
 from nodes.edgeloc.fusion import ConfidenceWeight
 from nodes.edgeloc.latency import ComputeProfile
 from nodes.edgeloc.model import IMAGE_SHAPE, SPLITS, LocNet, street_anchors, to_pose
+from nodes.edgeloc.settings import CONFIDENCE_FILE, WEIGHTS_DIR
 from nodes.edgeloc.world import DEFAULT_TOWN_SEED, Camera, Lighting, Obstacle, Town
 
-WEIGHTS_DIR = Path(__file__).resolve().parent / "weights"
 WEIGHTS_FILE = "locnet.pt"
 METRICS_FILE = "metrics.json"
 COMPUTE_FILE = "compute.json"  # the reference compute profile (see latency.ComputeProfile)
@@ -229,6 +229,29 @@ def entropy_calibration(
     return weight, tuple(table)
 
 
+def write_confidence(
+    model: LocNet, images: NDArray[np.uint8], gt: NDArray[np.float64], weights_dir: Path
+) -> tuple[Path, ConfidenceWeight]:
+    """Fit the confidence weight of `model` on held-out frames (`entropy_calibration`) and
+    write it beside its weights (`CONFIDENCE_FILE`, read by `ConfidenceWeight.read`), with the
+    entropy bands it was fitted on."""
+    weight, bands = entropy_calibration(model, images, gt)
+    path = weights_dir / CONFIDENCE_FILE
+    record = {
+        "per_nat": weight.per_nat,
+        "reference_nats": weight.reference_nats,
+        "fitted": (
+            "train.entropy_calibration: log(median error) ~ a + b*H over ten equal-count "
+            "entropy bands of the held-out drives; per_nat = 2b, reference = the median H"
+        ),
+        "held_out_seeds": list(HELD_OUT_SEEDS),
+        "bands": [b.__dict__ for b in bands],
+        "torch": torch.__version__,
+    }
+    path.write_text(json.dumps(record, indent=2) + "\n")
+    return path, weight
+
+
 # ---- training --------------------------------------------------------------------------------
 
 
@@ -356,10 +379,12 @@ def reevaluate(weights_dir: Path = WEIGHTS_DIR, log=print) -> dict:
         metrics["held_out_before"] = {"image_shape": old.get("image_shape"), **old["held_out"]}
     metrics_path.write_text(json.dumps(metrics, indent=2) + "\n")
     write_compute_profile(model, images[:30], weights_dir)
+    write_confidence(model, images, gt, weights_dir)
     h = metrics["held_out"]
     log(
         f"held-out: median {h['median_translation_m']:.2f} m, outliers "
-        f"{100 * h['outlier_rate']:.1f}%; wrote {metrics_path} and {COMPUTE_FILE}"
+        f"{100 * h['outlier_rate']:.1f}%; wrote {metrics_path}, {COMPUTE_FILE} and "
+        f"{CONFIDENCE_FILE}"
     )
     return metrics
 
@@ -419,7 +444,23 @@ def main(argv: list[str] | None = None) -> int:
         action="store_true",
         help="do not train: measure the compute profile of the weights in --out again",
     )
+    p.add_argument(
+        "--calibrate",
+        action="store_true",
+        help="do not train: fit the confidence weight of the weights in --out on the held-out"
+        f" drives again and write {CONFIDENCE_FILE}",
+    )
     a = p.parse_args(argv)
+    if a.calibrate:
+        torch.set_num_threads(TrainConfig.threads)
+        cfg = TrainConfig(**json.loads((a.out / METRICS_FILE).read_text()).get("config", {}))
+        images, gt = held_out_frames(cfg)
+        path, weight = write_confidence(load_model(a.out / WEIGHTS_FILE), images, gt, a.out)
+        print(
+            f"per_nat {weight.per_nat:.3f}/nat, reference {weight.reference_nats:.3f} nats; "
+            f"wrote {path}"
+        )
+        return 0
     if a.compute:
         torch.set_num_threads(1)
         cfg = TrainConfig(**json.loads((a.out / METRICS_FILE).read_text()).get("config", {}))
@@ -439,6 +480,7 @@ def main(argv: list[str] | None = None) -> int:
     torch.save(model.state_dict(), a.out / WEIGHTS_FILE)
     (a.out / METRICS_FILE).write_text(json.dumps(metrics, indent=2) + "\n")
     write_compute_profile(model, drive_frames(cfg.town_seed), a.out)
+    write_confidence(model, *held_out_frames(cfg), a.out)
     h = metrics["held_out"]
     print(
         f"held-out: median {h['median_translation_m']:.2f} m, {h['median_rotation_deg']:.2f} deg, "

@@ -35,7 +35,8 @@ second; `centred` is BEYOND THE PAPER, the scenario's fusion with its robust wei
 from the last 2 s' mean innovation (`fusion.robust_centre`), so a lag the VO's drift builds up
 is not shrunk as an outlier; `confidence` is an ablation, the scenario's fusion with each
 answer's u scaled by the DNN's place entropy (`fusion.confidence_weight`, fitted on the held-out
-drives by `train.entropy_calibration`; the replay alone has the entropy, a real run does not).
+drives by `train.entropy_calibration`, read from the calibration file beside the weights; a
+scenario turns it on with `workload.fusion.confidence: true`).
 `--fusion all` (the default) prints the first four, before first.
 Last, unless `--no-white`, an ablation: the scenario's fusion (or `per-second`, when it is the
 one asked for) on white-noise answers (ground truth plus Gaussian noise with the DNN's median
@@ -56,6 +57,7 @@ from __future__ import annotations
 
 import argparse
 import functools
+import json
 import math
 import sys
 import time
@@ -90,15 +92,8 @@ from nodes.edgeloc.replay import (
     model_provenance,
     run_replay,
 )
-from nodes.edgeloc.settings import ReplayConfig
-from nodes.edgeloc.train import (
-    EntropyBand,
-    TrainConfig,
-    WeightsMissing,
-    entropy_calibration,
-    held_out_frames,
-    load_model,
-)
+from nodes.edgeloc.settings import ReplayConfig, confidence_file
+from nodes.edgeloc.train import EntropyBand, WeightsMissing, load_model
 from testbed.replay import compute_profile, latency_model, replay_config
 from testbed.scenario import load
 from testbed.scenario.model import Scenario
@@ -202,10 +197,13 @@ def fusion_config(config: ReplayConfig, fusion: str) -> ReplayConfig:
 
 @functools.cache
 def calibrated_confidence(weights: str | None) -> tuple[ConfidenceWeight, tuple[EntropyBand, ...]]:
-    """The confidence weight of this DNN and its entropy bands, fitted on the held-out drives
-    that training never saw (`train.entropy_calibration`), never on the drives scored here."""
-    images, gt = held_out_frames(TrainConfig())
-    return entropy_calibration(load_model(weights), images, gt)
+    """The confidence weight of this DNN and its entropy bands, as its calibration file beside
+    the weights has them (fitted on the held-out drives that training never saw,
+    `train.write_confidence`; never on the drives scored here)."""
+    path = confidence_file(weights)
+    weight = ConfidenceWeight.read(path)
+    bands = json.loads(path.read_text()).get("bands", [])
+    return weight, tuple(EntropyBand(**b) for b in bands)
 
 
 def doubt_table(weights: str | None) -> str:
