@@ -93,6 +93,7 @@ class SynthRun:
                 "yaw": yaw,
                 "latency_s": latency,
                 "frame_id": frame,
+                "entropy_nats": math.nan,
             },
         )
 

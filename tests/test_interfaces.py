@@ -48,7 +48,7 @@ EXPECTED_FIELDS: dict[str, dict[str, str]] = {
     "PoseEstimate": {
         "stamp": "builtin_interfaces/Time", "vehicle": "string", "method": "string",
         "x": "double", "y": "double", "yaw": "double", "latency_s": "double",
-        "frame_id": "uint32",
+        "frame_id": "uint32", "entropy_nats": "double",
     },
     "Goal": {
         "vehicle": "string", "frame_id": "uint32", "split_name": "string",
@@ -58,7 +58,7 @@ EXPECTED_FIELDS: dict[str, dict[str, str]] = {
     "Result": {
         "ok": "boolean", "error": "string", "frame_id": "uint32", "split_index": "uint8",
         "pose": "geometry_msgs/PoseWithCovarianceStamped", "edge_compute_s": "double",
-        "edge_receive_stamp": "builtin_interfaces/Time",
+        "entropy_nats": "double", "edge_receive_stamp": "builtin_interfaces/Time",
         "edge_send_stamp": "builtin_interfaces/Time",
     },
     "Feedback": {"stage": "string"},

@@ -261,3 +261,22 @@ def test_the_committed_confidence_calibration_is_the_fit_of_the_committed_weight
     path.write_text('{"per_nat": -1, "reference_nats": 1}')
     with pytest.raises(ConfidenceMissing, match="not a confidence calibration"):
         ConfidenceWeight.read(path)
+
+
+@pytest.mark.parametrize("split", SPLITS)
+def test_exactly_one_side_reads_the_doubt_and_the_vehicle_sends_what_head_gives(
+    net: LocNet, frames: np.ndarray, split: str
+) -> None:
+    """`vehicle_side` sends `head`'s activation bit for bit; the entropy comes from the edge,
+    or from the vehicle at the vehicle split, and equals torch's own of the place logits."""
+    x = torch.from_numpy(frames)
+    with torch.no_grad():
+        act, mine = net.vehicle_side(split, x)
+        out, theirs = net.edge_side(split, act)
+        logits = net.pose_layer.parts(net.head(SPLITS[-2], x))[0]
+        assert torch.equal(act, net.head(split, x))
+        assert torch.equal(out, net(x))
+    assert (mine is None) != (theirs is None) and (mine is None) == (split != "vehicle")
+    entropy = mine if mine is not None else theirs
+    oracle = torch.distributions.Categorical(logits=logits).entropy()
+    torch.testing.assert_close(entropy, oracle, rtol=1e-5, atol=1e-5)

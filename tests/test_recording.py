@@ -133,6 +133,7 @@ def pose(store: Any, t: float, frame: int, method: str = "vo") -> Any:
         yaw=0.25,
         latency_s=math.nan,
         frame_id=frame,
+        entropy_nats=math.nan,
     )
 
 

@@ -13,6 +13,7 @@ import numpy as np
 import pytest
 
 from nodes.edgeloc.dataset import open_dataset
+from nodes.edgeloc.fusion import ConfidenceWeight, confidence_weight
 from nodes.edgeloc.gate import GateSettings
 from nodes.edgeloc.metrics import position_errors
 from nodes.edgeloc.replay import ReplayConfig
@@ -102,6 +103,34 @@ def test_the_node_runs_the_ekf_fusion_the_settings_name() -> None:
     edge_err = position_errors(poses["edgeloc"], gt).sum()
     assert est.applied > 150 and 0 < est.weight_sum / est.applied < 1
     assert edge_err < 0.5 * vo_err, (edge_err, vo_err)
+
+
+def test_the_node_scales_each_answer_by_the_doubt_it_carries() -> None:
+    """With `fusion.confidence`, the fusion node multiplies each answer's latency weight by
+    `confidence_weight` of the entropy that came with it, as the replay does; an answer that
+    came without one is fused unscaled and counted. Without the setting, entropy is ignored."""
+    weight = ConfidenceWeight(1.9, 0.98)
+    plain = VehicleEstimators(ReplayConfig(robust_c=None, gate=None))
+    doubting = VehicleEstimators(ReplayConfig(robust_c=None, gate=None, confidence=weight))
+    ds = open_dataset("synthetic", seed=3, rate_hz=20.0, duration_s=5.0)
+    entropies = [0.5, 2.0, math.nan, 1.3]
+    seen = []
+    for i in range(len(ds)):
+        t = float(ds.timestamps[i])
+        for est in (plain, doubting):
+            est.on_vo(ds.vo_poses[i], t)
+        if i % 5 == 4:
+            h = entropies[(i // 5) % len(entropies)]
+            j = i - 2  # captured 100 ms before it arrives
+            u = [
+                est.on_dnn(ds.gt_poses[j], float(ds.timestamps[j]), t, h)
+                for est in (plain, doubting)
+            ]
+            scale = 1.0 if math.isnan(h) else confidence_weight(h, weight)
+            assert u[1] == pytest.approx(u[0] * scale, rel=1e-12)  # type: ignore[operator]
+            seen.append(scale)
+    assert min(seen) < 0.2 and 0.2 < sorted(set(seen))[1] < 1.0 and 1.0 in seen
+    assert doubting.without_entropy == len(seen) // 4 and plain.without_entropy == 0
 
 
 def test_no_answers_leave_every_estimator_on_vo() -> None:

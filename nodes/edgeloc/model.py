@@ -208,6 +208,27 @@ class LocNet(nn.Module):
         logits, xy, cs = self.pose_layer.parts(a)
         return torch.cat([xy, cs], dim=1), place_entropy(logits)
 
+    def vehicle_side(
+        self, split: int | str, x: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor | None]:
+        """What the vehicle computes for a request at `split`: `head(split, x)` and, for the
+        `vehicle` split, whose activation is the pose itself, the place entropy that only the
+        vehicle can read (None at every other split: the edge reads it, `edge_side`). One pass
+        either way; the activation is the same as `head`'s."""
+        if split_index(split) < len(self.stages):
+            return self.head(split, x), None
+        fc = SPLITS[-2]
+        return self.tail_with_entropy(fc, self.head(fc, x))
+
+    def edge_side(
+        self, split: int | str, a: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor | None]:
+        """What the edge computes for an activation at `split`: `tail(split, a)` and the place
+        entropy per row (None for the `vehicle` split: `vehicle_side` has it)."""
+        if split_index(split) < len(self.stages):
+            return self.tail_with_entropy(split, a)
+        return self.tail(split, a), None
+
     @property
     def pose_layer(self) -> _PoseOut:
         return self.stages[-1]

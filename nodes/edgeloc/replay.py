@@ -60,7 +60,7 @@ from nodes.edgeloc.metrics import (
     write_tum,
 )
 from nodes.edgeloc.model import LocNet, to_pose
-from nodes.edgeloc.settings import SPLITS, KalmanSettings, LearnerSettings, ReplayConfig
+from nodes.edgeloc.settings import KalmanSettings, LearnerSettings, ReplayConfig
 
 SUMMARY_VERSION = 1
 
@@ -87,14 +87,11 @@ class InferenceCache:
         key = (frame, split)
         if key not in self._cache:
             x = torch.from_numpy(np.ascontiguousarray(self.dataset.image(frame)[None]))
-            if split == SPLITS[-1]:  # the vehicle runs the last stage and reads its logits
-                fc = SPLITS[-2]
-                pose_out, entropy = self.model.tail_with_entropy(fc, self.model.head(fc, x))
-                blob = encode(pose_out, self.codec)
-                out = decode(blob)
-            else:
-                blob = encode(self.model.head(split, x), self.codec)
-                out, entropy = self.model.tail_with_entropy(split, decode(blob))
+            act, entropy = self.model.vehicle_side(split, x)
+            blob = encode(act, self.codec)
+            out, at_edge = self.model.edge_side(split, decode(blob))
+            entropy = at_edge if entropy is None else entropy
+            assert entropy is not None
             pose = to_pose(out)[0].numpy().astype(np.float64)
             self._cache[key] = Answer(pose, len(blob), float(entropy[0]))
         return self._cache[key]

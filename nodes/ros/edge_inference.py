@@ -1,9 +1,11 @@
 """The edge server's RSU inference (paper §4): layers [k:] of the split DNN for each request.
 
 Serves the SplitInference action `/<edge>/split_inference`: decodes the activation
-(`codec.decode`, self-describing blob), runs `LocNet.tail(split)` and answers L_alpha(t0) with
-the goal's capture stamp. A goal that cannot be decoded or names an unknown split is answered
-with ok = false and the reason (never a crash of the server).
+(`codec.decode`, self-describing blob), runs `LocNet.edge_side(split)` and answers L_alpha(t0)
+with the goal's capture stamp and the DNN's place entropy (its doubt, for the fusion's
+confidence weight; NaN for the vehicle split, where the vehicle reads it). A goal that cannot be
+decoded or names an unknown split is answered with ok = false and the reason (never a crash of
+the server).
 """
 
 from __future__ import annotations
@@ -51,7 +53,7 @@ def main() -> int:
         codec = args.config.codec
         with torch.no_grad():
             for split in args.config.splits:
-                model.tail(split, decode(encode(model.head(split, blank), codec)))
+                model.edge_side(split, decode(encode(model.head(split, blank), codec)))
 
     tail_thread = ComputeThread(args.compute_cgroup, name="dnn-tail", warmup=warmup)
     tail_s: list[float] = []
@@ -68,16 +70,20 @@ def main() -> int:
             per_vehicle[goal.vehicle] += 1
             blob = bytes(goal.payload)
             payload_bytes[0] += len(blob)
-            result = SplitInference.Result(frame_id=goal.frame_id, split_index=goal.split_index)
+            result = SplitInference.Result(
+                frame_id=goal.frame_id, split_index=goal.split_index, entropy_nats=math.nan
+            )
             try:
                 if split_index(goal.split_name) != goal.split_index:
                     raise ValueError(f"split {goal.split_name!r} is not index {goal.split_index}")
 
-                def tail() -> list[float]:
+                def tail() -> tuple[list[float], float]:
                     with torch.no_grad():
-                        return to_pose(model.tail(goal.split_name, decode(blob)))[0].tolist()
+                        out, entropy = model.edge_side(goal.split_name, decode(blob))
+                    doubt = math.nan if entropy is None else float(entropy[0])
+                    return to_pose(out)[0].tolist(), doubt
 
-                pose, took = tail_thread.run(tail)
+                (pose, result.entropy_nats), took = tail_thread.run(tail)
                 tail_s.append(took)
                 result.ok = True
                 stats["ok"] += 1

@@ -2,7 +2,8 @@
 on the network.
 
 Inputs: `/<vehicle>/vo` (L_beta at the frame rate) and `/<vehicle>/dnn_answer` (L_alpha(t0)
-with its capture stamp, from the inference node, whenever one arrives); `/<vehicle>/gt` only
+with its capture stamp and the DNN's place entropy, which the fusion's confidence weight reads
+when the settings have one, from the inference node, whenever one arrives); `/<vehicle>/gt` only
 to score at exit. Output: `/<vehicle>/pose`, one PoseEstimate per method per frame (vo, dnn,
 kalman, edgeloc). Both callbacks run on one executor thread, so an answer is applied between
 two frames, as in the replay; a missing edge only means no answer arrives.
@@ -18,6 +19,7 @@ from __future__ import annotations
 import math
 import time
 from collections import Counter
+from dataclasses import asdict
 from typing import Any
 
 import numpy as np
@@ -61,6 +63,10 @@ class VehicleEstimators:
         self.gated: Counter[str] = Counter()
         self.weight_sum = 0.0  # of the u applied, for their mean (no per-answer list)
         self.last_answer_age: float = math.nan
+        # With the confidence weight: answers that came without the DNN's entropy (fused with
+        # the latency weight alone); none are expected.
+        self.confidence = cfg.confidence  # ReplayConfig allows it only with the paper fuser
+        self.without_entropy = 0
 
     def on_vo(self, vo: np.ndarray, t: float) -> dict[str, np.ndarray]:
         """One frame of thread 1: each method's pose at `t`."""
@@ -86,14 +92,22 @@ class VehicleEstimators:
         candidate = time_zone_revision(pose_t0, vo_t0, latest[1])
         return gate.admit(candidate, est, latest[1], self.odometer)
 
-    def on_dnn(self, pose_t0: np.ndarray, t0: float, t_now: float) -> float | None:
-        """A DNN answer for capture time `t0` arrived at `t_now`: the EdgeLoc weight u applied
-        (None when the fuser did not take it)."""
+    def on_dnn(
+        self, pose_t0: np.ndarray, t0: float, t_now: float, entropy_nats: float = math.nan
+    ) -> float | None:
+        """A DNN answer for capture time `t0` arrived at `t_now`, with the DNN's place entropy
+        (NaN: unknown): the EdgeLoc weight u applied (None when the fuser did not take it)."""
         pose_t0 = np.asarray(pose_t0, dtype=np.float64)
         self.hold.on_dnn(pose_t0, t0, t_now)
         weight = None
+        doubt: dict[str, float] = {}
+        if self.confidence is not None:  # as the replay's `_apply` does
+            if math.isfinite(entropy_nats):
+                doubt = {"entropy_nats": entropy_nats}
+            else:
+                self.without_entropy += 1
         if self._admit("edgeloc", pose_t0, t0, self.fuser.pose):
-            if self.fuser.on_dnn(pose_t0, t0, t_now) is not None:
+            if self.fuser.on_dnn(pose_t0, t0, t_now, **doubt) is not None:
                 weight = self.fuser.last_update.weight  # type: ignore[union-attr]
                 self.weight_sum += weight
                 self.applied += 1
@@ -188,6 +202,7 @@ def main() -> int:
                         yaw=float(p[2]),
                         latency_s=float(age),
                         frame_id=msg.frame_id,
+                        entropy_nats=math.nan,  # estimates, not answers
                     )
                 )
                 published[method] += 1
@@ -200,7 +215,12 @@ def main() -> int:
 
         def on_answer(msg: PoseEstimate) -> None:
             stats["answers"] += 1
-            est.on_dnn(np.array([msg.x, msg.y, msg.yaw]), from_stamp(msg.stamp), time.time())
+            est.on_dnn(
+                np.array([msg.x, msg.y, msg.yaw]),
+                from_stamp(msg.stamp),
+                time.time(),
+                msg.entropy_nats,
+            )
 
         def on_gt(msg: PoseEstimate) -> None:
             board.truth(msg.frame_id, np.array([msg.x, msg.y, msg.yaw]))
@@ -219,6 +239,8 @@ def main() -> int:
     stats["applied_edgeloc"] = est.applied
     stats["gated"] = dict(est.gated)
     stats["mean_weight_u"] = est.weight_sum / est.applied if est.applied else None
+    stats["confidence"] = None if est.confidence is None else asdict(est.confidence)
+    stats["answers_without_entropy"] = est.without_entropy
     stats["errors"] = board.errors()
     write_stats(args.stats, stats)
     return 0

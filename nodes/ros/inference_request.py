@@ -4,7 +4,8 @@ Loop, as fast as answers come: take the newest camera frame not sent yet (captur
 ask the learner for a split k (`AdaptiveSplitLearner`, or the scenario's fixed split); run
 layers [0:k] and encode (`LocNet.head`, `codec.encode`); send a SplitInference goal to the
 edge; wait for the result up to the timeout. An answer is published on `/<vehicle>/dnn_answer`
-(PoseEstimate method "dnn", stamp = t0, latency_s = Δt = t_answer − t0) for the fusion node;
+(PoseEstimate method "dnn", stamp = t0, latency_s = Δt = t_answer − t0, entropy_nats the DNN's
+doubt: the edge's, or for the vehicle split the vehicle's own) for the fusion node;
 the learner is charged the request's own end-to-end time (loop start → answer), or the timeout
 when no answer came (a lost request brings no pose), as `nodes.edgeloc.replay` does.
 
@@ -167,9 +168,15 @@ def goal_msg(
 
 
 def answer_msg(
-    vehicle: str, frame: int, t0: float, pose: tuple[float, float, float], t_answer: float
+    vehicle: str,
+    frame: int,
+    t0: float,
+    pose: tuple[float, float, float],
+    t_answer: float,
+    entropy_nats: float,
 ) -> Any:
-    """The edge's pose for the frame captured at `t0`, for the fusion node (stamp = t0)."""
+    """The edge's pose for the frame captured at `t0`, for the fusion node (stamp = t0), with
+    the DNN's place entropy (from the edge, or the vehicle's own for the vehicle split)."""
     from edgeloc_interfaces.msg import PoseEstimate
 
     return PoseEstimate(
@@ -181,6 +188,7 @@ def answer_msg(
         yaw=math.atan2(math.sin(pose[2]), math.cos(pose[2])),
         latency_s=t_answer - t0,
         frame_id=frame,
+        entropy_nats=float(entropy_nats),
     )
 
 
@@ -292,11 +300,12 @@ class RequestLoop:
 
 def _ask(
     client: Any, goal: Any, deadline: float, stop: Any, frame: int
-) -> tuple[tuple[float, float, float] | None, Any, float, str, bool]:
+) -> tuple[tuple[float, float, float] | None, Any, float, float, str, bool]:
     """Send `goal` and wait for its result until `deadline`: (pose or None, goal handle or
-    None, edge compute time, error text, whether the request timed out)."""
+    None, edge compute time, the edge's place entropy, error text, whether the request timed
+    out)."""
     pose, handle = None, None
-    edge_s, error, timed_out = math.nan, "", False
+    edge_s, entropy, error, timed_out = math.nan, math.nan, "", False
     sent = client.send_goal_async(goal)
     if _wait(sent, deadline, stop):
         handle = sent.result()
@@ -309,6 +318,7 @@ def _ask(
                     p = result.pose.pose.pose
                     yaw = 2.0 * math.atan2(p.orientation.z, p.orientation.w)
                     pose = (p.position.x, p.position.y, yaw)
+                    entropy = result.entropy_nats
                 else:
                     error = f"edge: {result.error}"
                     emit("edge-error", frame=frame, error=result.error)
@@ -318,7 +328,7 @@ def _ask(
             error = "goal rejected by the edge server"
     else:
         timed_out, error = True, "goal not acknowledged within the request timeout"
-    return pose, handle, edge_s, error, timed_out
+    return pose, handle, edge_s, entropy, error, timed_out
 
 
 def main() -> int:
@@ -339,7 +349,7 @@ def main() -> int:
         blank = torch.zeros((1, *IMAGE_SHAPE), dtype=torch.uint8)
         with torch.no_grad():
             for split in cfg.splits:
-                encode(model.head(split, blank), cfg.codec)
+                encode(model.vehicle_side(split, blank)[0], cfg.codec)
 
     compute = ComputeThread(args.compute_cgroup, name="dnn-head", warmup=warmup)
     loop = RequestLoop(cfg, args.vehicle, args.edge, args.timeout_s, compute.budget)
@@ -387,16 +397,20 @@ def main() -> int:
                 decision_msg(args.vehicle, learner, split, loop.fixed, frame, loop.last_latency)
             )
 
-            def head(split: str = split, image: np.ndarray = image) -> tuple[Any, bytes]:
+            def head(split: str = split, image: np.ndarray = image) -> tuple[Any, bytes, Any]:
                 with torch.no_grad():
-                    act = model.head(split, torch.from_numpy(image[None]))
-                return act, encode(act, cfg.codec)
+                    act, entropy = model.vehicle_side(split, torch.from_numpy(image[None]))
+                return act, encode(act, cfg.codec), entropy
 
-            (act, blob), took = compute.run(head)
+            (act, blob, own_entropy), took = compute.run(head)
             goal = goal_msg(args.vehicle, frame, split, t0, cfg.codec, act, blob)
             loop.sent(split, took, len(blob))
             deadline = time.monotonic() + args.timeout_s
-            pose, handle, edge_s, error, timed_out = _ask(client, goal, deadline, stop, frame)
+            pose, handle, edge_s, entropy, error, timed_out = _ask(
+                client, goal, deadline, stop, frame
+            )
+            if own_entropy is not None:  # the vehicle split: the logits never left the vehicle
+                entropy = float(own_entropy[0])
             t_answer = time.time()
 
             ok = pose is not None and not stop
@@ -426,7 +440,7 @@ def main() -> int:
                 if handle is not None and handle.accepted:
                     handle.cancel_goal_async()  # the edge may still hold it
             else:
-                answers.publish(answer_msg(args.vehicle, frame, t0, pose, t_answer))
+                answers.publish(answer_msg(args.vehicle, frame, t0, pose, t_answer, entropy))
             if loop.fixed:
                 continue
             event = loop.learn(split, cost, t_answer)

@@ -49,6 +49,7 @@ def pose_msg(vehicle: str, method: str, pose: np.ndarray, t: float, frame: int) 
         yaw=float(pose[2]),
         latency_s=float("nan"),
         frame_id=frame,
+        entropy_nats=float("nan"),
     )
 
 
