@@ -43,6 +43,7 @@ from netem.profile import LinkProfile
 from netem.traces import Trace, load_trace
 from nodes.edgeloc import bands
 from nodes.edgeloc.compare import compare_splits
+from nodes.edgeloc.fusion import ConfidenceWeight
 from nodes.edgeloc.gate import GateSettings
 from nodes.edgeloc.latency import (
     PACKET_OVERHEAD,
@@ -64,6 +65,7 @@ from nodes.edgeloc.replay import (
     config_dataset,
     run_replay,
 )
+from nodes.edgeloc.settings import confidence_file
 from nodes.edgeloc.train import load_model
 from nodes.recording import layout as names
 from nodes.recording.jsonfile import write_json
@@ -142,6 +144,9 @@ def replay_config(scenario: Scenario, gate: GateSettings | None = DEFAULT_GATE) 
         robust_centre_s=w.fusion.robust_centre_s,
         fusion_method=w.fusion.method,
         dnn_correlation_s=w.fusion.correlation_s,
+        confidence=(
+            ConfidenceWeight.read(confidence_file(w.weights)) if w.fusion.confidence else None
+        ),
         kalman=KalmanSettings(w.kalman.q_pos, w.kalman.q_yaw, w.kalman.r_pos, w.kalman.r_yaw),
         gate=gate,
         phases=tuple(times),

@@ -348,12 +348,14 @@ def test_the_confidence_weight_scales_u_by_the_error_variance_of_a_less_sure_ans
         ConfidenceWeight(per_nat=math.nan, reference_nats=1.0)
 
 
-def test_the_confidence_weight_is_named_an_ablation_and_is_for_the_papers_weight_only() -> None:
+def test_the_confidence_weight_is_named_beyond_the_paper_and_is_for_the_papers_weight_only() -> (
+    None
+):
     from nodes.edgeloc.settings import ReplayConfig, config_from_dict, config_to_dict
 
     weight = ConfidenceWeight(1.9, 0.98)
     cfg = ReplayConfig(confidence=weight)
-    assert "entropy" in cfg.describe_fusion() and "AN ABLATION" in cfg.describe_fusion()
+    assert "entropy" in cfg.describe_fusion() and "BEYOND THE PAPER" in cfg.describe_fusion()
     assert cfg.build_fuser().confidence == weight  # type: ignore[union-attr]
     assert config_from_dict(config_to_dict(cfg)) == cfg
     assert "bare form" not in ReplayConfig(robust_c=None, confidence=weight).describe_fusion()

@@ -299,6 +299,31 @@ def test_the_centred_robust_weight_reaches_the_fuser_and_the_report() -> None:
     assert "from the last 1.5 s' mean innovation (BEYOND THE PAPER)" in cfg.describe_fusion()
 
 
+def test_the_confidence_weight_reads_the_calibration_beside_the_weights(tmp_path: Path) -> None:
+    """`fusion.confidence` reaches the fuser with the committed weights' calibration; weights
+    of one's own without a calibration beside them are refused at the field, with the command
+    that writes one."""
+    from nodes.edgeloc.fusion import ConfidenceWeight
+    from nodes.edgeloc.settings import confidence_file
+    from testbed.replay import replay_config
+
+    s = loads(BASE + "workload:\n  fusion: {confidence: true}\n")
+    assert s.workload.fusion == m.Fusion(confidence=True)
+    cfg = replay_config(s)
+    assert cfg.confidence == ConfidenceWeight.read(confidence_file(None))
+    assert cfg.build_fuser().confidence == cfg.confidence  # type: ignore[union-attr]
+    assert "entropy" in cfg.describe_fusion() and "(BEYOND THE PAPER)" in cfg.describe_fusion()
+    assert replay_config(loads(BASE)).confidence is None
+    (tmp_path / "own.pt").write_bytes(b"weights")
+    text = BASE + "workload:\n  weights: own.pt\n  fusion: {confidence: true}\n"
+    (tmp_path / "s.yaml").write_text(text)
+    with pytest.raises(ScenarioError) as err:
+        load(tmp_path / "s.yaml")
+    issue = err.value.issues[0]
+    assert issue.path == "workload.fusion.confidence"
+    assert "--calibrate --out" in str(err.value) and str(tmp_path) in str(err.value)
+
+
 def test_loading_never_constructs_arbitrary_tags(tmp_path: Path) -> None:
     marker = tmp_path / "ran"
     text = BASE + f'x-evil: !!python/object/apply:os.system ["touch {marker}"]\n'

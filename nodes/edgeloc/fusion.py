@@ -29,14 +29,14 @@ each answer's u becomes `per_second_weight(u, gap, P)`, the weight that pulls as
 gap since the previous answer as u does once every P seconds. It separates what an answer's
 age costs from what the answer rate buys (`tests/bench/bench_splits.py --fusion per-second`).
 
-AN ABLATION, NOT IN THE SCENARIO SCHEMA (`confidence`): an uncertainty term from the DNN itself.
+BEYOND THE PAPER (`workload.fusion.confidence`): an uncertainty term from the DNN itself.
 Its place classifier's entropy H (`model.place_entropy`) rises with its error: on held-out
 drives the median error grows ~exp(b·H) (`train.entropy_calibration`). With
 `confidence = ConfidenceWeight(per_nat, reference_nats)` each answer's u is multiplied by
 `confidence_weight`, min(1, exp(−per_nat·(H − H_ref))): an answer less sure than the typical
-one pulls as much less as its error variance is larger. The replay has H; a real run's answers
-do not carry it yet, so the ROS nodes cannot use it (`tests/bench/bench_splits.py --fusion
-confidence`).
+one pulls as much less as its error variance is larger. The weight is read from the
+calibration beside the DNN's weights (`ConfidenceWeight.read`); the edge computes H with the
+pose (the vehicle, for the `vehicle` split) and the answer carries it to the fusion.
 
 Every pose is an SE(2) numpy array [x, y, yaw] (see `geometry`). All times are seconds on the
 vehicle's clock.
@@ -260,7 +260,7 @@ class EdgeLocFuser:
     `robust_c` (beyond the paper, see the module doc) scales u by the answer's Cauchy weight;
     `robust_centre_s` (beyond the paper, needs `robust_c`) measures the Cauchy weight's r from
     the recent answers' mean innovation; `pull_every_s` (an ablation, see the module doc) makes
-    the pull per second rate-free; `confidence` (an ablation) scales u by the answer's entropy.
+    the pull per second rate-free; `confidence` (beyond the paper) scales u by the answer's entropy.
     """
 
     def __init__(

@@ -124,8 +124,8 @@ class ReplayConfig:
     # An ablation for tests/bench/bench_splits.py, not in the scenario schema: each answer's u
     # rescaled to the gap since the previous one (fusion.per_second_weight). None: the paper's.
     pull_every_s: float | None = None
-    # An ablation for the benches, not in the scenario schema: each answer's u scaled by the
-    # DNN's entropy (fusion.confidence_weight). Only the replay has the entropy.
+    # Beyond the paper (`workload.fusion.confidence`): each answer's u scaled by the DNN's
+    # entropy (fusion.confidence_weight), with the calibration beside the weights.
     confidence: ConfidenceWeight | None = None
     fusion_method: str = "paper"  # or "ekf" (beyond the paper: nodes.edgeloc.ekf)
     # The EKF's DNN error correlation time (s): None takes every answer as independent.
@@ -193,7 +193,7 @@ class ReplayConfig:
         if self.confidence is not None:
             pull += (
                 f", scaled by the DNN's entropy H as exp(-{self.confidence.per_nat:.3g}/nat "
-                f"(H - {self.confidence.reference_nats:.3g} nats)) up to 1 (AN ABLATION)"
+                f"(H - {self.confidence.reference_nats:.3g} nats)) up to 1 (BEYOND THE PAPER)"
             )
         return (
             f"the paper's latency weight, k_s {self.k_s:g}/s, dt0 {self.dt0_s:g} s"

@@ -1210,6 +1210,31 @@ class _Builder:
                     " that weight): method: paper and robust set, or no robust_centre",
                     "robust: null" if no_robust else f"robust_centre with method {method!r}",
                 )
+        if isinstance(fusion, Section) and fusion.get("confidence"):
+            method = fusion.get("method", "paper")
+            if method != "paper":
+                self.ctx.add(
+                    fusion.at("confidence"),
+                    fusion.path_of("confidence"),
+                    "confidence only with the paper's fusion (it scales that weight): method:"
+                    " paper, or no confidence",
+                    f"confidence with method {method!r}",
+                )
+            else:
+                from nodes.edgeloc.fusion import ConfidenceMissing, ConfidenceWeight
+                from nodes.edgeloc.settings import confidence_file
+
+                calibration = confidence_file(changes.get("weights"))
+                try:
+                    ConfidenceWeight.read(calibration)
+                except ConfidenceMissing as e:
+                    self.ctx.add(
+                        fusion.at("confidence"),
+                        fusion.path_of("confidence"),
+                        "a confidence calibration beside the weights (`python -m"
+                        " nodes.edgeloc.train --calibrate --out DIR` writes it)",
+                        str(e),
+                    )
         if not workload.clean or self.ctx.issues:
             return model.Workload()
         built: model.Workload = schema_v1.WORKLOAD.build(workload)

@@ -417,6 +417,10 @@ class Fusion:
     method: Literal["paper", "ekf"] = "paper"
     # ekf only: the DNN's error correlation time (`nodes.edgeloc.ekf`); None: white answers.
     correlation_s: float | None = None
+    # BEYOND THE PAPER, method paper only: scale each answer's u by the DNN's own doubt, its
+    # place entropy H, as min(1, exp(-per_nat (H - H_ref))) with the calibration committed
+    # beside the weights (`nodes.edgeloc.fusion.confidence_weight`, `train.write_confidence`).
+    confidence: bool = False
 
 
 @dataclass(frozen=True)

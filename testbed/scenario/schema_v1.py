@@ -822,6 +822,14 @@ FUSION = Obj(
             " (1 - rho), rho = exp(-gap / correlation)); null: every answer independent.",
             attr="correlation_s",
         ),
+        Field(
+            "confidence",
+            Bool(),
+            "BEYOND THE PAPER, method paper only: scale each answer's weight by the DNN's own"
+            " doubt, the entropy H of its place classifier, as min(1, exp(-per_nat (H -"
+            " H_ref))), calibrated on held-out drives (confidence.json beside the weights:"
+            " `python -m nodes.edgeloc.train --calibrate --out DIR` writes it).",
+        ),
     ],
     model=model.Fusion,
 )

@@ -33,7 +33,7 @@ scenario's fusion with each answer's u rescaled to the gap since the previous on
 (`fusion.per_second_weight`), so that a split that answers more often pulls no harder per
 second; `centred` is BEYOND THE PAPER, the scenario's fusion with its robust weight measured
 from the last 2 s' mean innovation (`fusion.robust_centre`), so a lag the VO's drift builds up
-is not shrunk as an outlier; `confidence` is an ablation, the scenario's fusion with each
+is not shrunk as an outlier; `confidence` is BEYOND THE PAPER, the scenario's fusion with each
 answer's u scaled by the DNN's place entropy (`fusion.confidence_weight`, fitted on the held-out
 drives by `train.entropy_calibration`, read from the calibration file beside the weights; a
 scenario turns it on with `workload.fusion.confidence: true`).
@@ -127,7 +127,7 @@ TITLES = {
     "ekf-corr": "beyond the paper: the EKF with the DNN's error correlation",
     "per-second": "ablation: the scenario's fusion, its pull per second rate-free",
     "centred": "beyond the paper: the scenario's fusion, its robust weight centred on the lag",
-    "confidence": "ablation: the scenario's fusion, each answer weighted by the DNN's entropy",
+    "confidence": "beyond the paper: the scenario's fusion, each answer weighted by its entropy",
 }
 #: The white-noise ablation's spread: a 2-D Gaussian whose median error is the DNN's.
 RAYLEIGH_MEDIAN = math.sqrt(2 * math.log(2))
@@ -528,8 +528,9 @@ def main() -> int:
         "ablation, the scenario's fusion with a pull per second that does not grow with the "
         "answer rate (the noise answers then use it too); centred: the scenario's fusion with "
         "its robust weight measured from the last 2 s' mean innovation (beyond the paper); "
-        "confidence: an ablation, the scenario's fusion with each answer weighted by the DNN's "
-        "place entropy; both: before, then after; all (default): before, after, both EKFs",
+        "confidence: the scenario's fusion with each answer weighted by the DNN's "
+        "place entropy (beyond the paper); both: before, then after; all (default): before, "
+        "after, both EKFs",
     )
     p.add_argument(
         "--no-white",
