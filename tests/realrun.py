@@ -77,3 +77,27 @@ def lines_until_the_timeline(proc: subprocess.Popen[str]) -> list[str]:
         if "playing the timeline" in line:
             return lines
     raise AssertionError("testbed run ended before its timeline started:\n" + "".join(lines))
+
+
+def short_smoke(
+    folder: Path,
+    duration_s: int,
+    images: bool = False,
+    name: str = "recording",
+    also: tuple[tuple[str, str], ...] = (),
+) -> Path:
+    """scenarios/smoke.yaml cut to `duration_s`, its squeeze half-way, named `name`; `also`:
+    more (text, replacement) edits, each of which must apply."""
+    text = (REPO / "scenarios" / "smoke.yaml").read_text()
+    for old, new in (
+        ("duration: 20s", f"duration: {duration_s}s"),
+        ("{at: 10s, shape: av1", f"{{at: {duration_s // 2}s, shape: av1"),
+        ("images: false", f"images: {str(images).lower()}"),
+        ("name: smoke", f"name: {name}"),
+        *also,
+    ):
+        assert old in text, old
+        text = text.replace(old, new)
+    path = folder / f"{name}.yaml"
+    path.write_text(text)
+    return path

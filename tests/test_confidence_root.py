@@ -16,26 +16,9 @@ from pathlib import Path
 
 import pytest
 
+from tests.realrun import short_smoke
+
 pytestmark = [pytest.mark.root, pytest.mark.ros, pytest.mark.slow, pytest.mark.e2e]
-
-REPO = Path(__file__).resolve().parents[1]
-
-
-def confident_smoke(folder: Path, duration_s: int) -> Path:
-    """scenarios/smoke.yaml cut to `duration_s`, camera frames recorded, confidence on."""
-    text = (REPO / "scenarios" / "smoke.yaml").read_text()
-    for old, new in (
-        ("duration: 20s", f"duration: {duration_s}s"),
-        ("{at: 10s, shape: av1", f"{{at: {duration_s // 2}s, shape: av1"),
-        ("images: false", "images: true"),
-        ("name: smoke", "name: confidence"),
-        ("learner: {window: 20}", "learner: {window: 20}\n  fusion: {confidence: true}"),
-    ):
-        assert old in text, old
-        text = text.replace(old, new)
-    path = folder / "confidence.yaml"
-    path.write_text(text)
-    return path
 
 
 def test_each_answer_carries_the_dnns_doubt_and_the_fusion_weighs_it(
@@ -57,7 +40,8 @@ def test_each_answer_carries_the_dnns_doubt_and_the_fusion_weighs_it(
     from testbed.scenario.loader import load
 
     lines: list[str] = []
-    scenario = load(confident_smoke(tmp_path, 8))
+    doubt = ("learner: {window: 20}", "learner: {window: 20}\n  fusion: {confidence: true}")
+    scenario = load(short_smoke(tmp_path, 8, images=True, name="confidence", also=(doubt,)))
     result = run_scenario(scenario, tmp_path, lines.append)
     assert result.ok, "\n".join(lines)
 
@@ -81,7 +65,9 @@ def test_each_answer_carries_the_dnns_doubt_and_the_fusion_weighs_it(
         seen.add(split)
         img = images[a.frame_id]
         x = torch.from_numpy(
-            np.frombuffer(bytes(img.data), dtype=np.uint8).reshape(1, img.height, img.width, 3)
+            np.frombuffer(bytes(img.data), dtype=np.uint8)
+            .reshape(1, img.height, img.width, 3)
+            .copy()
         )
         with torch.no_grad():
             if split == SPLITS[-1]:  # the vehicle reads the logits; only the pose is sent

@@ -20,27 +20,11 @@ from typing import Any
 
 import pytest
 
-from tests.realrun import processes_mentioning, testbed_popen
+from tests.realrun import processes_mentioning, short_smoke, testbed_popen
 
 pytestmark = [pytest.mark.root, pytest.mark.ros, pytest.mark.slow, pytest.mark.e2e]
 
 REPO = Path(__file__).resolve().parents[1]
-
-
-def short_smoke(folder: Path, duration_s: int, images: bool = False) -> Path:
-    """scenarios/smoke.yaml cut to `duration_s`, its squeeze half-way."""
-    text = (REPO / "scenarios" / "smoke.yaml").read_text()
-    for old, new in (
-        ("duration: 20s", f"duration: {duration_s}s"),
-        ("{at: 10s, shape: av1", f"{{at: {duration_s // 2}s, shape: av1"),
-        ("images: false", f"images: {str(images).lower()}"),
-        ("name: smoke", "name: recording"),
-    ):
-        assert old in text, old
-        text = text.replace(old, new)
-    path = folder / "recording.yaml"
-    path.write_text(text)
-    return path
 
 
 def read_both(path: Path) -> tuple[dict[str, list[Any]], dict[str, int], Any]:

@@ -2,8 +2,8 @@
 on the network.
 
 Inputs: `/<vehicle>/vo` (L_beta at the frame rate) and `/<vehicle>/dnn_answer` (L_alpha(t0)
-with its capture stamp and the DNN's place entropy, which the fusion's confidence weight reads
-when the settings have one, from the inference node, whenever one arrives); `/<vehicle>/gt` only
+with its capture stamp and the DNN's place entropy, from the inference node, whenever one
+arrives; the entropy counts only with the settings' confidence weight); `/<vehicle>/gt` only
 to score at exit. Output: `/<vehicle>/pose`, one PoseEstimate per method per frame (vo, dnn,
 kalman, edgeloc). Both callbacks run on one executor thread, so an answer is applied between
 two frames, as in the replay; a missing edge only means no answer arrives.
