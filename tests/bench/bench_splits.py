@@ -37,7 +37,7 @@ is not shrunk as an outlier; `confidence` is BEYOND THE PAPER, the scenario's fu
 answer's u scaled by the DNN's place entropy (`fusion.confidence_weight`, fitted on the held-out
 drives by `train.entropy_calibration`, read from the calibration file beside the weights; a
 scenario turns it on with `workload.fusion.confidence: true`).
-`--fusion all` (the default) prints the first four, before first.
+`--fusion all` (the default) prints the first four and `confidence`, before first.
 Last, unless `--no-white`, an ablation: the scenario's fusion (or `per-second`, when it is the
 one asked for) on white-noise answers (ground truth plus Gaussian noise with the DNN's median
 error, the real payloads and so the real latencies), which shows what latency alone does to the
@@ -530,7 +530,7 @@ def main() -> int:
         "its robust weight measured from the last 2 s' mean innovation (beyond the paper); "
         "confidence: the scenario's fusion with each answer weighted by the DNN's "
         "place entropy (beyond the paper); both: before, then after; all (default): before, "
-        "after, both EKFs",
+        "after, both EKFs and confidence",
     )
     p.add_argument(
         "--no-white",
@@ -568,7 +568,7 @@ def main() -> int:
         p.error(f"--memory takes correlation times > 0 ms, got {a.memory!r}")
     memories = [] if a.no_white else [0.0, *memories]
     fusions = {
-        "all": ("paper", "scenario", "ekf", "ekf-corr"),
+        "all": ("paper", "scenario", "ekf", "ekf-corr", "confidence"),
         "both": ("paper", "scenario"),
     }.get(a.fusion, (a.fusion,))
     noise_fusion = "per-second" if fusions == ("per-second",) else "scenario"
