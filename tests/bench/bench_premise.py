@@ -212,7 +212,7 @@ def main() -> int:
     t0 = time.perf_counter()
     comps: dict[int, SplitComparison] = {}
     jobs = [(s, a.stretch, a.fusion, a.answers) for s in seeds]
-    fusion_config(replay_config(sc), a.fusion)  # a fitted weight is fitted once, before the fork
+    fusion_config(replay_config(sc), a.fusion)  # the confidence weight: read once, before forking
     with ProcessPoolExecutor(max_workers=max(1, a.jobs)) as pool:
         drives: dict[int, Drive] = {}
         for d in pool.map(replay_seed, jobs):

@@ -637,10 +637,8 @@ def main() -> int:
             [name, *[x for g in per for x in (g[i][1], "PASS" if g[i][2] else "MISS")]]
             for i, name in enumerate(names)
         ]
-        short = {"paper": "before", "scenario": "after", "ekf": "ekf", "ekf-corr": "ekf-corr",
-                 "per-second": "per-second", "centred": "centred",
-                 "white": "white answers"}  # fmt: skip
-        headers = ["goal", *[x for k in keys for x in (short[k], "verdict")]]
+        short = {"paper": "before", "scenario": "after", "white": "white answers"}
+        headers = ["goal", *[x for k in keys for x in (short.get(k, k), "verdict")]]
         print(table(headers, rows))
     if len(memories) > 1:
         tau_dnn = float(np.mean([e.correlation_s for e in errors]))
