@@ -402,7 +402,7 @@ def test_vehicle_picks_the_path_the_replay_models(tmp_path: Path, monkeypatch) -
 
 
 @pytest.mark.parametrize("split", ["conv3", "vehicle"])
-def test_the_confidence_ablation_weights_each_answer_by_the_dnns_own_entropy(split: str) -> None:
+def test_the_confidence_weight_weights_each_answer_by_the_dnns_own_entropy(split: str) -> None:
     """The replay hands the fuser each answer's place entropy, computed where the last stage
     ran (the edge from the decoded activation, the vehicle from its own `fc`): every fused
     answer's weight is the plain run's times `confidence_weight` of that entropy."""

@@ -357,7 +357,11 @@ def compare_splits(
         res = run_replay(free, latency, dataset, model, cache, schedule=schedule)  # type: ignore[arg-type]
         oracle = policy_row("oracle", res, bounds)
     paper = None
-    if config.robust_c is not None or config.confidence or config.fusion_method != "paper":
+    if (
+        config.robust_c is not None
+        or config.confidence is not None
+        or config.fusion_method != "paper"
+    ):
         bare = replace(
             free, robust_c=None, robust_centre_s=None, confidence=None, fusion_method="paper"
         )

@@ -211,8 +211,13 @@ class DelayedEkf:
                     del kept[:cut]
             return x[:3].copy()
 
-    def on_dnn(self, l_alpha_t0: Pose, t0: float, t_now: float) -> Pose | None:
-        """Thread 2: correct the state at t0's VO frame with the answer, replay up to now."""
+    def on_dnn(
+        self, l_alpha_t0: Pose, t0: float, t_now: float, entropy_nats: float | None = None
+    ) -> Pose | None:
+        """Thread 2: correct the state at t0's VO frame with the answer, replay up to now.
+        `entropy_nats` is taken as `EdgeLocFuser.on_dnn` takes it, so a caller feeds either
+        fuser alike; the EKF weighs each answer by R (the confidence weight is the paper
+        fusion's, and `ReplayConfig` refuses it with the EKF)."""
         z = as_pose(l_alpha_t0, "DNN pose")
         t0, t_now = check_times(t0, t_now)
         with self._lock:

@@ -560,12 +560,9 @@ class Replay:
         weight, gated_e, gated_k = None, False, False
         if answer is not None:
             pose, t_now = answer.pose, play.answer_s
-            doubt: dict[str, float | None] = {}
-            if self.cfg.confidence is not None:
-                doubt = {"entropy_nats": answer.entropy_nats}
             self.hold.on_dnn(pose, play.t0_s, t_now)
             if self._admit("edgeloc", pose, play.t0_s, self.fuser.pose):
-                if self.fuser.on_dnn(pose, play.t0_s, t_now, **doubt) is not None:
+                if self.fuser.on_dnn(pose, play.t0_s, t_now, answer.entropy_nats) is not None:
                     weight = self.fuser.last_update.weight  # type: ignore[union-attr]
             else:
                 gated_e = True

@@ -200,12 +200,12 @@ def entropy_calibration(
     robust term handles do not set it), per_nat = 2b, reference = the median entropy.
     """
     model.eval()
-    fc = SPLITS[-2]
     pos, ent = [], []
     with torch.no_grad():
         for i in range(0, len(images), 256):
             x = torch.from_numpy(np.ascontiguousarray(images[i : i + 256]))
-            out, h = model.tail_with_entropy(fc, model.head(fc, x))
+            out, h = model.vehicle_side(SPLITS[-1], x)  # the whole net, logits read on the way
+            assert h is not None
             pos.append(out[:, :2].numpy())
             ent.append(h.numpy())
     h = np.concatenate(ent).astype(np.float64)
@@ -389,6 +389,11 @@ def reevaluate(weights_dir: Path = WEIGHTS_DIR, log=print) -> dict:
     return metrics
 
 
+def recorded_config(weights_dir: Path) -> TrainConfig:
+    """The training settings recorded in the metrics.json of the weights in `weights_dir`."""
+    return TrainConfig(**json.loads((weights_dir / METRICS_FILE).read_text()).get("config", {}))
+
+
 def load_model(weights_path: str | os.PathLike | None = None) -> LocNet:
     """The trained LocNet in eval mode (default: the committed weights of this package)."""
     path = Path(weights_path) if weights_path is not None else WEIGHTS_DIR / WEIGHTS_FILE
@@ -453,7 +458,7 @@ def main(argv: list[str] | None = None) -> int:
     a = p.parse_args(argv)
     if a.calibrate:
         torch.set_num_threads(TrainConfig.threads)
-        cfg = TrainConfig(**json.loads((a.out / METRICS_FILE).read_text()).get("config", {}))
+        cfg = recorded_config(a.out)
         images, gt = held_out_frames(cfg)
         path, weight = write_confidence(load_model(a.out / WEIGHTS_FILE), images, gt, a.out)
         print(
@@ -463,7 +468,7 @@ def main(argv: list[str] | None = None) -> int:
         return 0
     if a.compute:
         torch.set_num_threads(1)
-        cfg = TrainConfig(**json.loads((a.out / METRICS_FILE).read_text()).get("config", {}))
+        cfg = recorded_config(a.out)
         path = write_compute_profile(
             load_model(a.out / WEIGHTS_FILE), drive_frames(cfg.town_seed), a.out
         )

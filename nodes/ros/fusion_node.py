@@ -100,14 +100,11 @@ class VehicleEstimators:
         pose_t0 = np.asarray(pose_t0, dtype=np.float64)
         self.hold.on_dnn(pose_t0, t0, t_now)
         weight = None
-        doubt: dict[str, float] = {}
-        if self.confidence is not None:  # as the replay's `_apply` does
-            if math.isfinite(entropy_nats):
-                doubt = {"entropy_nats": entropy_nats}
-            else:
-                self.without_entropy += 1
+        doubt = entropy_nats if math.isfinite(entropy_nats) else None
+        if doubt is None and self.confidence is not None:
+            self.without_entropy += 1
         if self._admit("edgeloc", pose_t0, t0, self.fuser.pose):
-            if self.fuser.on_dnn(pose_t0, t0, t_now, **doubt) is not None:
+            if self.fuser.on_dnn(pose_t0, t0, t_now, doubt) is not None:
                 weight = self.fuser.last_update.weight  # type: ignore[union-attr]
                 self.weight_sum += weight
                 self.applied += 1

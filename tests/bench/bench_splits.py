@@ -47,7 +47,7 @@ every phase stretched alike (`testbed.sweep.rescale`).
 A benchmark reports: a missed goal is printed as MISS and the script still exits 0.
 
 The compute profile is the reference committed with the weights, so the figures are the same
-on every machine. ~30 replays per seed with the four fusions and the ablation, ~2.5 s each.
+on every machine. ~35 replays per seed with the five fusions and the ablation, ~2.5 s each.
 Usage: python tests/bench/bench_splits.py [--seeds 1,2,3,4,7] [--no-white]
        [--fusion all|both|scenario|paper|ekf|ekf-corr|per-second|centred|confidence]
        [--memory 25,50,100,150] [--weights FILE] [--stretch K]
@@ -117,8 +117,8 @@ PER_SECOND_FUSION = {"pull_every_s": 0.1}
 #: Beyond the paper: the scenario's fusion with its robust weight centred on the mean innovation
 #: over 2 s, the latency weight's time constant at ~10 answers/s (see testbed.scenario.model).
 CENTRED_FUSION = {"robust_centre_s": 2.0}
-#: An ablation: the scenario's fusion with each answer's u scaled by the DNN's own doubt, its
-#: place entropy; the weight is fitted on the held-out drives when asked for (`fusion_config`).
+#: Beyond the paper: the scenario's fusion with each answer's u scaled by the DNN's own doubt,
+#: its place entropy; `fusion_config` adds the weight from the calibration beside the weights.
 CONFIDENCE_FUSION: dict[str, object] = {}
 TITLES = {
     "paper": "before: the paper's bare fusion",
@@ -576,7 +576,7 @@ def main() -> int:
     sc = default_scenario(a.stretch)
     compute = compute_profile(sc.workload.codec, None)
     lm = latency_model(sc, compute)
-    config = replace(replay_config(sc), weights=a.weights)  # the confidence fit reads it
+    config = replace(replay_config(sc), weights=a.weights)  # whose calibration confidence reads
     try:
         model = load_model(a.weights)
     except WeightsMissing as err:
