@@ -263,6 +263,39 @@ def test_more_latency_means_more_error_at_the_extremes() -> None:
     assert totals[1] > 2 * totals[0]
 
 
+def test_the_inference_cache_renders_each_frame_once_and_answers_as_without_the_memo() -> None:
+    """A comparison of fixed splits asks for each frame once per split: the frame is rendered
+    once, kept up to `max_images`, and every answer is bit for bit the one computed from a
+    fresh render."""
+    from nodes.edgeloc.dataset import open_dataset
+    from nodes.edgeloc.replay import InferenceCache
+    from nodes.edgeloc.train import load_model
+
+    class Counting:
+        """The drive, counting its renders."""
+
+        def __init__(self, seed: int) -> None:
+            self.inner = open_dataset("synthetic", seed=seed, duration_s=2.0)
+            self.renders = 0
+
+        def image(self, i: int) -> np.ndarray:
+            self.renders += 1
+            return self.inner.image(i)
+
+    model = load_model()
+    memo, bare = Counting(7), Counting(7)
+    kept = InferenceCache(model, memo, "fp16-zlib", max_images=30)  # type: ignore[arg-type]
+    fresh = InferenceCache(model, bare, "fp16-zlib", max_images=0)  # type: ignore[arg-type]
+    frames, splits = range(40), ("image", "conv3", "vehicle")
+    for split in splits:  # one split after another, as compare_splits asks
+        for i in frames:
+            a, b = kept.answer(i, split), fresh.answer(i, split)
+            assert np.array_equal(a.pose, b.pose) and a.payload == b.payload
+            assert a.entropy_nats == b.entropy_nats
+    assert memo.renders == 30 + 3 * 10  # the first 30 kept, the other 10 rendered per split
+    assert bare.renders == 3 * 40
+
+
 def test_slow_vehicle_makes_the_split_move_with_bandwidth(smoke_run) -> None:
     sc = load(ROOT / "scenarios" / "smoke.yaml")
     slow = replace(
