@@ -84,6 +84,7 @@ def test_a_failing_measurement_says_so_and_leaves_nothing(
 
 
 def test_validate_host_prints_the_figure_then_reuses_it(state_dir: Path) -> None:
+    (state_dir / CACHE_FILE).unlink(missing_ok=True)  # conftest's copy: this test measures it
     before = {n for n in list_netns() if n.startswith(PROBE_PREFIX)}
     first = testbed_cli("validate", "--host", "scenarios/default.yaml", timeout=120)
     assert first.returncode == 0, first.stdout + first.stderr

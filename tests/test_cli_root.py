@@ -18,6 +18,7 @@ import pytest
 
 from netem.netns import list_netns
 from testbed import state as st
+from testbed.capacity import CACHE_FILE
 from testbed.namespaces import Netns
 from tests.realrun import TESTBED, testbed_cli
 
@@ -113,6 +114,7 @@ def test_sigkill_of_up_midway_then_clean_leaves_nothing(state_dir: Path, tmp_pat
 
 
 def test_run_leaves_a_run_folder_and_no_namespaces(state_dir: Path, tmp_path: Path) -> None:
+    (state_dir / CACHE_FILE).unlink(missing_ok=True)  # conftest's copy: this run measures it
     # The smoke scenario, shortened to 3 s with its second uplink phase at 2 s.
     short = tmp_path / "smoke-short.yaml"
     short.write_text(
