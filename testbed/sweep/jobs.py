@@ -68,8 +68,11 @@ class _ReplayEngine:
             self.models[cfg.weights] = load_model(cfg.weights)
         ckey = (*dkey, cfg.weights, cfg.codec)
         if ckey not in self.caches:
+            # Held for the whole sweep, one per drive: the answers (~0.3 kB per frame and
+            # split) are what variants share; kept images (9 kB per frame) would grow with
+            # every seed swept.
             self.caches[ckey] = InferenceCache(
-                self.models[cfg.weights], self.datasets[dkey], cfg.codec
+                self.models[cfg.weights], self.datasets[dkey], cfg.codec, max_images=0
             )
         rows = []
         for v in scenario.edgeloc_vehicles():
