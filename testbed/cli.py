@@ -400,13 +400,13 @@ def run(
 ) -> None:
     """Run a scenario: build its network, check every vehicle reaches its edge server with real
     packets, run the EdgeLoc ROS 2 nodes in the namespaces while the timeline plays, tear down,
-    and leave runs/<run-id>/ (run.json with node stats and link byte counters, logs/<node>.log,
-    nodes/<node>.json, connectivity.json, events.jsonl, scenario.yaml, run.mcap) with the
-    report built from run.mcap (report.html, report.md, summary.json, plots/, trajectories/);
-    the last lines are the headline numbers and the report's path. A run that fails or is
-    interrupted still gets a (partial) report when anything was recorded. Before it starts, it
-    says which link rates this host's relay cannot carry (as `validate --host`; it never fails
-    the run).
+    and leave runs/<run-id>/ (run.json with node stats and link byte counters,
+    logs/<host>.<node>.log, nodes/<host>.<node>.json, connectivity.json, events.jsonl,
+    scenario.yaml, run.mcap) with the report built from run.mcap (report.html, report.md,
+    summary.json, plots/, trajectories/); the last lines are the headline numbers and the
+    report's path. A run that fails or is interrupted still gets a (partial) report when
+    anything was recorded. Before it starts, it says which link rates this host's relay cannot
+    carry (as `validate --host`; it never fails the run).
 
     Example: testbed run scenarios/default.yaml
     """
@@ -920,7 +920,7 @@ def exec_(
     Fast DDS profile, the node's unicast peers): your own ROS 2 tool meets the run's nodes.
     The exit code is the command's; Ctrl-C goes to it. `python` is the testbed's interpreter.
 
-    Example: testbed exec 3fa2c1 av1 -- python my_listener.py --topic /av1/edgeloc/pose
+    Example: testbed exec 3fa2c1 av1 -- python my_listener.py --topic /av1/pose
     """
     from testbed.attach import Attachment
 

@@ -1,15 +1,26 @@
 """README.md describes this repository and nothing outside it: every path it names in
 backticks that looks like a repository path exists, and it points at no file a user who clones
-the repository does not get (a shared folder beside the checkout, a SPEC.md that is not here)."""
+the repository does not get (a shared folder beside the checkout, a SPEC.md that is not here).
+Every YAML example in it is a scenario fragment that the loader accepts, laid over the library
+scenario that the comment above it names: a user copies these."""
 
 from __future__ import annotations
 
+import copy
 import os
 import re
 from pathlib import Path
+from typing import Any
+
+import pytest
+import yaml
+
+from testbed.scenario import loads
+from testbed.scenario.issues import ScenarioError
 
 ROOT = Path(__file__).resolve().parent.parent
 README = ROOT / "README.md"
+SCENARIOS = ROOT / "scenarios"
 #: Folders that hold what a run or a build produces, not part of the checkout.
 GENERATED = {"runs", ".venv", "build"}
 
@@ -91,3 +102,84 @@ def test_the_path_filter_finds_paths_and_leaves_the_rest() -> None:
         "scenarios/traces/uplink-steps.csv",
         "elsewhere/thing.yaml",
     ]
+
+
+# ---- YAML examples ---------------------------------------------------------------------------
+
+#: The line right above each ```yaml fence: the library scenario the example is laid over.
+BASE_COMMENT = re.compile(
+    r"<!-- validated over (scenarios/[\w.-]+\.yaml) \(tests/test_readme\.py\) -->"
+)
+
+
+def yaml_examples(text: str) -> list[tuple[int, str | None, str]]:
+    """(line of the fence, the scenario named in the comment above it or None, the YAML) per
+    ```yaml block of Markdown text."""
+    lines = text.splitlines()
+    out = []
+    for m in re.finditer(r"^```yaml\n(.*?)^```", text, flags=re.MULTILINE | re.DOTALL):
+        line = text.count("\n", 0, m.start()) + 1
+        above = BASE_COMMENT.fullmatch(lines[line - 2]) if line >= 2 else None
+        out.append((line, above.group(1) if above else None, m.group(1)))
+    return out
+
+
+def laid_over(base: dict[str, Any], fragment: dict[str, Any]) -> dict[str, Any]:
+    """`fragment` laid over `base`: mappings merge key by key, anything else replaces."""
+    out = copy.deepcopy(base)
+    for key, value in fragment.items():
+        below = out.get(key)
+        if isinstance(value, dict) and isinstance(below, dict):
+            out[key] = laid_over(below, value)
+        else:
+            out[key] = copy.deepcopy(value)
+    return out
+
+
+def check_example(base_file: Path, fragment_text: str) -> None:
+    """Raise ScenarioError when the fragment over the base scenario is refused by the loader
+    (paths in it resolve against scenarios/, as the library's own do)."""
+    fragment = yaml.safe_load(fragment_text)
+    assert isinstance(fragment, dict), "a scenario fragment is a mapping"
+    tree = laid_over(yaml.safe_load(base_file.read_text(encoding="utf-8")), fragment)
+    loads(
+        yaml.safe_dump(tree, sort_keys=False),
+        source=f"<README over {base_file.name}>",
+        base_dir=SCENARIOS,
+    )
+
+
+EXAMPLES = yaml_examples(README.read_text())
+
+
+def test_the_readme_has_yaml_examples_and_each_names_its_base_scenario() -> None:
+    assert len(EXAMPLES) >= 7, EXAMPLES
+    unnamed = [line for line, base, _ in EXAMPLES if base is None]
+    assert not unnamed, (
+        f"README.md lines {unnamed}: a ```yaml example needs the line "
+        "'<!-- validated over scenarios/<file>.yaml (tests/test_readme.py) -->' right above it"
+    )
+
+
+@pytest.mark.parametrize(
+    ("base", "fragment"),
+    [(base, fragment) for _, base, fragment in EXAMPLES if base],
+    ids=[f"line{line}" for line, base, _ in EXAMPLES if base],
+)
+def test_every_yaml_example_is_accepted_over_its_base_scenario(base: str, fragment: str) -> None:
+    try:
+        check_example(ROOT / base, fragment)
+    except ScenarioError as err:
+        pytest.fail(f"README's example over {base} is refused:\n{err}", pytrace=False)
+
+
+def test_the_example_check_bites_and_merges_mappings_only() -> None:
+    # two UEs of one cell on different slot grids: what an earlier example in the README did
+    with pytest.raises(ScenarioError, match="slot grid of cell gnb1"):
+        check_example(
+            SCENARIOS / "multi_vehicle.yaml",
+            "links:\n  air: {radio: oai-tdd-30k}\n  overrides:\n"
+            "    - {link: av2-gnb1, uplink: {radio: {profile: srsran-lowlat}}}\n",
+        )
+    merged = laid_over({"a": {"b": 1, "c": [1]}, "d": 2}, {"a": {"c": [2]}, "e": 3})
+    assert merged == {"a": {"b": 1, "c": [2]}, "d": 2, "e": 3}
