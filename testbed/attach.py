@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import os
 import shlex
+import shutil
 import sys
 from dataclasses import dataclass
 from ipaddress import IPv4Network
@@ -20,9 +21,9 @@ from pathlib import Path
 
 from nodes.ros.env import RosEnv, domain_id_for
 from testbed import state as st
-from testbed.errors import BadInput
+from testbed.errors import BadInput, HostError
 from testbed.links import link_state_dir
-from testbed.namespaces import netns_path
+from testbed.namespaces import netns_path, require_root
 from testbed.scenario import ScenarioError, load
 from testbed.supervisor import ros_peers
 from testbed.topology.names import netns_name
@@ -97,6 +98,9 @@ class Attachment:
         """Replace this process by `command` in the namespace: its exit code is ours, and a
         Ctrl-C on the terminal reaches it directly (one foreground process)."""
         argv = self.argv(command)
+        require_root()  # entering a namespace needs CAP_SYS_ADMIN: say so, not nsenter's 1
+        if shutil.which("nsenter") is None:
+            raise HostError("nsenter is not installed (Debian: apt install util-linux)")
         try:
             os.execvpe(argv[0], argv, self.environ)
         except OSError as err:

@@ -3,8 +3,9 @@
 Exit codes mean the same thing for every verb:
   0  done as asked
   1  the run or the measurement failed (a node died, a link out of tolerance)
-  2  bad input (scenario file, option, unknown run id)
-  3  this host cannot do it (not root, a kernel feature missing, a link rate beyond its relay)
+  2  bad input (scenario file, option, unknown run id, a folder that cannot be written)
+  3  this host cannot do it (not root, a kernel feature or ROS 2 missing, a link rate beyond
+     its relay)
   130 interrupted (Ctrl-C); everything created was removed
 """
 
@@ -27,6 +28,7 @@ from nodes.ros.errors import RosError
 from reports.errors import ReportError, ReportInputError
 from testbed import console as con
 from testbed.errors import BadInput, HostError, TestbedError
+from testbed.folders import check_writable_folder
 
 EXIT_OK, EXIT_FAILED, EXIT_BAD_INPUT, EXIT_HOST, EXIT_INTERRUPTED = 0, 1, 2, 3, 130
 
@@ -67,6 +69,13 @@ app = typer.Typer(
         "  testbed run scenarios/default.yaml # the whole experiment\n\n"
         "  testbed report runs/<id>           # rebuild its report from run.mcap\n\n"
         "  testbed sweep FILE --set KEY=A,B   # a grid of variants, one comparison"
+    ),
+    epilog=(
+        "Exit codes, the same for every command: 0 done as asked; 1 the run or the "
+        "measurement failed (a node died, a link out of tolerance); 2 bad input (a scenario "
+        "file, an option, an unknown run id, a folder that cannot be written); 3 this host "
+        "cannot do it (not root, a kernel feature or ROS 2 missing, a link rate beyond its "
+        "relay); 130 interrupted (Ctrl-C), everything created removed."
     ),
     no_args_is_help=True,
     add_completion=False,
@@ -168,10 +177,17 @@ def validate(
 
             for note in coverage_notes(scenario):
                 con.plain(f"note: {path}: {note}")
-    if host and scenarios and _validate_host(scenarios) and not bad:
-        raise typer.Exit(EXIT_HOST)
+    host_failed = False
+    if host and scenarios:
+        try:
+            host_failed = _validate_host(scenarios) > 0
+        except typer.Exit:
+            if not bad:  # a bad file is the first thing to fix: its exit code wins
+                raise
     if bad:
         raise typer.Exit(EXIT_BAD_INPUT)
+    if host_failed:
+        raise typer.Exit(EXIT_HOST)
 
 
 def _validate_host(scenarios: list[tuple[Path, Any]]) -> int:
@@ -234,7 +250,10 @@ def up(
     dry_run: Annotated[
         bool,
         typer.Option(
-            "--dry-run", help="Print the equivalent ip/tc (and relay) commands; change nothing."
+            "--dry-run",
+            help="Print the equivalent ip/tc (and relay) commands and build nothing (as root, "
+            "the sch_netem probe of backend auto/tc makes and removes one throwaway namespace; "
+            "without root, auto is taken to mean the relay).",
         ),
     ] = False,
     host: Annotated[
@@ -401,8 +420,9 @@ def run(
     """Run a scenario: build its network, check every vehicle reaches its edge server with real
     packets, run the EdgeLoc ROS 2 nodes in the namespaces while the timeline plays, tear down,
     and leave runs/<run-id>/ (run.json with node stats and link byte counters,
-    logs/<host>.<node>.log, nodes/<host>.<node>.json, connectivity.json, events.jsonl,
-    scenario.yaml, run.mcap) with the report built from run.mcap (report.html, report.md,
+    logs/<host>.<node>.log and logs/app.<name>.log, nodes/<host>.<node>.json, connectivity.json,
+    linktest.json, links.json, events.jsonl, scenario.yaml, pcap/<link>.pcapng when captured,
+    run.mcap) with the report built from run.mcap (report.html, report.md,
     summary.json, plots/, trajectories/); the last lines are the headline numbers and the
     report's path. A run that fails or is interrupted still gets a (partial) report when
     anything was recorded. Before it starts, it says which link rates this host's relay cannot
@@ -507,9 +527,9 @@ def report(
 
       testbed report runs/4a2cf3
 
-      testbed report 4a2cf3 --formats json      # just summary.json
+      testbed report 4a2cf3 --formats json --no-compare   # summary.json and trajectories/
 
-    Exits 2 when the folder has no readable run.mcap.
+    Exits 2 when the folder has no readable run.mcap or this user cannot write in it.
     """
     from reports.build import FORMATS, build_report
 
@@ -524,9 +544,11 @@ def report(
         )
         raise typer.Exit(EXIT_BAD_INPUT)
     if not folder.is_dir():
-        con.error(f"{run_folder}: no such run folder")
+        found = "a file, not a run folder" if folder.exists() else "no such run folder"
+        con.error(f"{run_folder}: {found}")
         raise typer.Exit(EXIT_BAD_INPUT)
     try:
+        check_writable_folder(folder, "run folder")  # the report is written beside run.mcap
         built = build_report(folder, formats=wanted, plots=not no_plots, splits=compare)
     except KNOWN_ERRORS as err:
         raise _fail(err) from None
@@ -554,8 +576,8 @@ def replay(
         typer.Option(
             "--against",
             help="A run folder of `testbed run` of this scenario: print, per split, its "
-            "measured request latency beside the model's for the same requests, and do "
-            "nothing else.",
+            "measured request latency beside the model's for the same requests (with "
+            "--json, as JSON), and do nothing else.",
         ),
     ] = None,
     vehicle: Annotated[
@@ -564,7 +586,7 @@ def replay(
             "--vehicle",
             metavar="NAME",
             help="Replay this EdgeLoc vehicle's path (default: the first); with --against, "
-            "compare its requests.",
+            "compare its requests (default: the first vehicle that made any).",
         ),
     ] = None,
 ) -> None:
@@ -585,6 +607,9 @@ def replay(
             agreement = latency_against_run(load(file), against, vehicle=vehicle)
         except KNOWN_ERRORS as err:
             raise _fail(err) from None
+        if json_out:
+            sys.stdout.write(json.dumps(agreement.to_dict(), indent=2) + "\n")
+            return
         con.table(
             ["split", "requests", "measured ms", "model ms", "measured / model"],
             [
@@ -749,8 +774,9 @@ def sweep(
         str | None,
         typer.Option(
             "--duration",
-            help="Shorten every variant to this length (e.g. 10s); timeline times and outage "
-            "lengths scale with it.",
+            help="Play every variant for this long (e.g. 10s). Shorter than the scenario: "
+            "timeline times and outage lengths scale with it; longer: its last phase is "
+            "lengthened.",
             show_default=False,
         ),
     ] = None,

@@ -70,6 +70,7 @@ from nodes.edgeloc.train import load_model
 from nodes.recording import layout as names
 from nodes.recording.jsonfile import write_json
 from testbed.errors import BadInput
+from testbed.folders import check_writable_folder, make_folder
 from testbed.scenario.model import (
     ClearEvent,
     HandoverEvent,
@@ -620,7 +621,9 @@ def replay_scenario(
 
     With `compare`, summary.json's `splits` holds EdgeLoc with every fixed split and the
     oracle on the same drive (`nodes.edgeloc.compare`; K + 2 more replays).
-    Raises BadInput for a dataset or weights the scenario names that cannot be used."""
+    Raises BadInput for a dataset or weights the scenario names that cannot be used, or a
+    runs folder this user cannot write."""
+    check_writable_folder(Path(runs_dir), "runs folder")
     config = replay_config(scenario, gate=gate)
     model = latency_model(scenario, compute, vehicle=vehicle)
     try:
@@ -634,7 +637,7 @@ def replay_scenario(
             splits = compare_splits(config, model, dataset, net, cache, learned).to_dict()
     except ValueError as err:  # a bad dataset folder, weights that do not fit
         raise BadInput(f"{scenario.name}: {err}") from None
-    folder = Path(runs_dir) / secrets.token_hex(3)
+    folder = make_folder(Path(runs_dir), "runs folder") / secrets.token_hex(3)
     summary = result.write(folder)
     summary["run_id"] = folder.name
     if splits is not None:
@@ -769,6 +772,15 @@ class RunAgreement:
     def worst(self) -> float:
         """The largest |measured / model - 1| over the tested splits."""
         return max((abs(a.ratio - 1) for a in self.tested()), default=0.0)
+
+    def to_dict(self) -> dict[str, Any]:
+        """What `testbed replay --against --json` prints: every field, each row's ratio, and
+        the largest disagreement over the tested splits."""
+        out = dataclasses.asdict(self)
+        for row, a in zip(out["rows"], self.rows, strict=True):
+            row["ratio"] = a.ratio if math.isfinite(a.ratio) else None
+        out["worst"] = self.worst()
+        return out
 
 
 def _cell_neighbours(

@@ -41,7 +41,8 @@ from testbed import __version__, mobility, recording
 from testbed.apps import Apps
 from testbed.capacity import CapacityCheck, check_scenario
 from testbed.connectivity import EchoResult, vehicles_reach_cores
-from testbed.errors import TestbedError
+from testbed.errors import HostError, TestbedError
+from testbed.folders import check_writable_folder, make_folder
 from testbed.linktest import LinkTest, LinkTestReport
 from testbed.scenario.model import (
     HandoverEvent,
@@ -541,6 +542,14 @@ def run_scenario(
     (once the folder exists). `capacity_check` first prints which link rates this host's data
     plane cannot carry (`testbed.capacity`; measuring it, a few seconds, when no figure is
     cached), into run.json too; it never fails the run (`testbed run` turns it on)."""
+    check_writable_folder(runs_dir, "runs folder")  # before minutes of work, not after
+    ros_ok, ros_why = ros_available()
+    if not ros_ok and scenario.edgeloc_vehicles():
+        # A run without its workload would still "succeed", with a report of n/a figures.
+        raise HostError(
+            f"EdgeLoc's ROS 2 nodes cannot start here: {ros_why} "
+            "(or give the scenario `workload: none` to run only the network, apps and traffic)"
+        )
     run = _Run(scenario, runs_dir, progress, capacity_check)
     status = "interrupted"
     try:
@@ -597,7 +606,8 @@ class _Run:
             result = RunResult(net.run_id, self.runs_dir / net.run_id, net.backend_text())
             result.capacity = capacity
             self.result = result
-            result.folder.mkdir(parents=True, exist_ok=False)
+            make_folder(self.runs_dir, "runs folder")
+            result.folder.mkdir(exist_ok=False)
             self.folder = result.folder
             if net.state is not None:  # `testbed clean` finalises the recording from here
                 net.state.record_folder(result.folder)
@@ -657,7 +667,7 @@ class _Run:
         _check(net)
         ros_ok, ros_why = ros_available()
         if result.ok and not ros_ok:
-            progress(f"  warning: EdgeLoc nodes not started: {ros_why}")
+            progress(f"  warning: no ROS 2 nodes started (nothing is recorded from ROS): {ros_why}")
             result.nodes = {"skipped": ros_why}
         if not result.ok:
             return

@@ -120,3 +120,86 @@ def test_link_test_of_a_link_the_scenario_lacks_exits_2_before_building_anything
         in " ".join(out.output.split())
     ), out.output
     assert set(list_netns()) == before
+
+
+# ---- folders a verb writes, and what a host lacks: said before the work, nothing left --------
+
+SMOKE = REPO / "scenarios" / "smoke.yaml"
+
+
+@pytest.mark.parametrize("verb", ["run", "replay"])
+def test_a_runs_dir_that_cannot_be_a_folder_exits_2_before_any_work(
+    verb: str, tmp_path: Path
+) -> None:
+    from netem.netns import list_netns
+
+    blocker = tmp_path / "runs"
+    blocker.write_text("not a folder\n")
+    before = set(list_netns())
+    for runs_dir, said in (
+        (blocker, f"'{blocker}' is a file"),  # the option's own check (click)
+        (blocker / "sub", f"runs folder {blocker / 'sub'}: {blocker} is a file, not a folder"),
+    ):
+        out = CliRunner().invoke(app, [verb, str(SMOKE), "--runs-dir", str(runs_dir)])
+        assert out.exit_code == 2, out.output
+        assert said in " ".join(out.output.split()), out.output
+    assert set(list_netns()) == before
+    assert blocker.read_text() == "not a folder\n"
+
+
+def test_a_sweep_into_a_folder_the_kernel_refuses_exits_2_naming_it(tmp_path: Path) -> None:
+    out = CliRunner().invoke(app, ["sweep", str(SMOKE), "--set", "seed=1,2", "--out", "/proc/x"])
+    assert out.exit_code == 2, out.output
+    assert "--out /proc/x:" in out.output, out.output  # a message, not a traceback
+
+
+def test_a_real_sweep_without_root_exits_3_and_leaves_no_folder(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    monkeypatch.setattr("os.geteuid", lambda: 1000)
+    out_dir = tmp_path / "sweep"
+    out = CliRunner().invoke(
+        app, ["sweep", str(SMOKE), "--set", "seed=1,2", "--real", "--out", str(out_dir)]
+    )
+    assert out.exit_code == 3, out.output
+    assert "needs root" in out.output
+    assert not out_dir.exists()
+
+
+def test_a_run_of_edgeloc_without_ros_exits_3_before_building_anything(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    from netem.netns import list_netns
+
+    monkeypatch.setattr(
+        "testbed.run.ros_available", lambda: (False, "rclpy is not importable: `make setup`")
+    )
+    before = set(list_netns())
+    runs = tmp_path / "runs"
+    out = CliRunner().invoke(app, ["run", str(SMOKE), "--runs-dir", str(runs)])
+    assert out.exit_code == 3, out.output
+    said = " ".join(out.output.split())
+    assert "EdgeLoc's ROS 2 nodes cannot start here: rclpy is not importable" in said, said
+    assert "workload: none" in said
+    assert not runs.exists() and set(list_netns()) == before
+
+
+def test_validate_host_without_root_still_exits_2_for_a_bad_file(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("version: 1\nname: x\nduration: soon\n")
+    monkeypatch.setattr("os.geteuid", lambda: 1000)
+    out = CliRunner().invoke(app, ["validate", "--host", str(bad), str(SMOKE)])
+    assert out.exit_code == 2, out.output
+    assert f"{bad}:3:" in out.output and "needs root" in out.output
+    alone = CliRunner().invoke(app, ["validate", "--host", str(SMOKE)])
+    assert alone.exit_code == 3, alone.output  # a good file, and no root for the host check
+
+
+def test_report_of_a_file_says_it_is_not_a_run_folder(tmp_path: Path) -> None:
+    file = tmp_path / "run.mcap"
+    file.write_bytes(b"")
+    out = CliRunner().invoke(app, ["report", str(file)])
+    assert out.exit_code == 2
+    assert f"{file}: a file, not a run folder" in out.output

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import math
 from pathlib import Path
 
@@ -147,6 +148,22 @@ def test_a_real_runs_latencies_are_set_beside_the_models_for_the_same_requests(
     for a in rows.values():
         assert a.model_s > 0.03  # the radio's SR and grant rounds, in the model too
         assert a.ratio == pytest.approx(a.measured_s / a.model_s)
+
+    # `testbed replay --against --json`: the same comparison, machine-readable
+    from typer.testing import CliRunner
+
+    from testbed.cli import app
+
+    out = CliRunner().invoke(
+        app, ["replay", str(SCENARIOS / "nr_cell.yaml"), "--against", str(folder), "--json"]
+    )
+    assert out.exit_code == 0, out.output
+    printed = json.loads(out.stdout)
+    assert printed == json.loads(json.dumps(agreement.to_dict()))
+    assert {r["split"]: r["ratio"] for r in printed["rows"]} == pytest.approx(
+        {s: a.ratio for s, a in rows.items()}
+    )
+    assert printed["worst"] == pytest.approx(agreement.worst())
 
 
 def test_the_runs_compute_replaces_the_reference_where_the_run_answered() -> None:

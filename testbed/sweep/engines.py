@@ -15,6 +15,7 @@ from typing import TYPE_CHECKING
 import yaml
 
 from testbed.errors import BadInput
+from testbed.folders import check_writable_folder, make_folder
 from testbed.scenario.model import Scenario
 from testbed.sweep.grid import grid, label, load_tree, parse_set, read_tree, shorten, variant_tree
 from testbed.sweep.jobs import Job, Progress, _ReplayEngine, run_job
@@ -70,7 +71,12 @@ def run_sweep(
         scenarios.append(load_tree(variant_tree(base, overrides), file, what))
     if out is None:
         out = runs_root / f"sweep-{secrets.token_hex(3)}"
-    out.mkdir(parents=True, exist_ok=True)
+    check_writable_folder(out, "--out")
+    if real and ray is None:  # before the folder: a sweep that cannot run leaves none
+        from testbed.namespaces import require_root
+
+        require_root()
+    make_folder(out, "--out")
     (out / "variants").mkdir(exist_ok=True)
     report = SweepReport(str(file), "real" if real else "replay", axes, out=out, seeds=seeds)
     repeats = f" x {seeds} seeds" if seeds > 1 else ""
