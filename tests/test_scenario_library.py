@@ -265,9 +265,21 @@ def test_multi_vehicle_each_vehicle_has_its_own_path_and_a_shape_hits_only_its_t
     # Both vehicles' uplinks run through the 20 Mbit/s backhaul (the bottleneck hop) ...
     assert {p.uplink_rate_bps for p in av1.plays} == {20e6}
     assert {p.uplink_rate_bps for p in av2.plays if p.sent_s < shape_at} == {20e6}
-    # ... until av2 alone is capped to 6 Mbit/s.
-    assert {p.uplink_rate_bps for p in av2.plays if p.sent_s >= shape_at} == {6e6}
+    # ... until av2 alone is capped to 2 Mbit/s.
+    assert {p.uplink_rate_bps for p in av2.plays if p.sent_s >= shape_at} == {2e6}
     # av2 is farther from the gNB (12 ms instead of 8 ms each way): its answers take longer.
     lat1 = np.mean([p.latency_s for p in av1.plays if p.sent_s < shape_at and not p.lost])
     lat2 = np.mean([p.latency_s for p in av2.plays if p.sent_s < shape_at and not p.lost])
     assert lat2 > lat1 + 0.004, (lat1, lat2)
+
+
+def test_multi_vehicle_the_capped_vehicle_moves_to_a_deeper_split_and_the_other_does_not() -> None:
+    """What the scenario's header promises, on the whole drive: after the cap, av2's learner
+    leaves the raw frame for a split that sends less; av1, whose link is untouched, keeps it."""
+    scenario = load(SCENARIOS / "multi_vehicle.yaml")
+    chosen = {}
+    for vehicle in ("av1", "av2"):
+        result = run_replay(replay_config(scenario), latency_model(scenario, vehicle=vehicle))
+        chosen[vehicle] = [p["chosen"] for p in result.summary()["learner"]["phases"]]
+    assert chosen["av1"] == ["image", "image"], chosen
+    assert chosen["av2"][0] == "image" and chosen["av2"][1] != "image", chosen
