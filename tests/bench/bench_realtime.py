@@ -10,7 +10,7 @@ p50 / p95.
 
 Part 2 (real-time under a saturated uplink): the default scenario's nodes are started in a
 fresh run (`el-<id>-*` namespaces, removed at the end) with the uplink held at one rate, and a
-TCP bulk flow from the vehicle's namespace to the core fills the uplink for the whole run
+TCP bulk flow from the vehicle's namespace to its edge server fills the uplink for the whole run
 (`testbed.linktest.tcp_send` / `tcp_receive`). Printed: fused-pose rate, the fraction of 50 ms
 frame slots that got no fused pose (missed deadlines, from the fusion node's per-second
 counts), the bulk flow's goodput, and the inference node's answers and head times.
@@ -23,7 +23,6 @@ from __future__ import annotations
 
 import argparse
 import os
-import re
 import secrets
 import statistics
 import sys
@@ -104,45 +103,43 @@ def part_head(cpu: float, calls: int) -> None:
 def part_realtime(seconds: int, cpu: float, uplink: str) -> None:
     from nodes.ros.build import ensure_built
     from testbed import linktest
-    from testbed.scenario.loader import load
     from testbed.supervisor import Supervisor
+    from testbed.sweep.grid import load_tree, read_tree
     from testbed.topology import build
 
     ensure_built()
-    text = (REPO / "scenarios" / "default.yaml").read_text()
-    start, end = text.index("timeline:"), text.index("workload:")
-    text = (
-        text[:start] + f"timeline:\n  - {{at: 0s, shape: av1, uplink: {uplink}}}\n\n" + text[end:]
-    )
-    text = text.replace("duration: 90s", f"duration: {seconds}s")
-    text = text.replace("link_test: true", "link_test: false")
+    file = REPO / "scenarios" / "default.yaml"
+    tree = read_tree(file)
+    tree["duration"] = f"{seconds}s"
+    tree["timeline"] = [{"at": "0s", "shape": "av1", "uplink": uplink}]
+    tree["report"]["link_test"] = False
     # No timeline player here: the air link is built at the rate the flow should saturate.
-    text = text.replace("uplink:   {rate: 50mbit", f"uplink:   {{rate: {uplink}")
-    text = re.sub(r"(?m)^      cpu: [0-9.]+$", f"      cpu: {cpu}", text)
-    with tempfile.TemporaryDirectory() as tmp:
-        path = Path(tmp) / "bench.yaml"
-        path.write_text(text)
-        scenario = load(path)
-        with build(scenario, mode="run") as net:
-            nodes = Supervisor(net, Path(tmp) / "run", lambda line: None)
-            try:
-                nodes.start()
-                core = net["core1"]
-                addr = str(core.address_towards("gnb1"))
-                ready = linktest.CTX.Event()
-                rx = linktest.in_namespace(
-                    core.netns, linktest.tcp_receive, ready, addr, 5201, seconds + 2.0
-                )
-                ready.wait(10)
-                tx = linktest.in_namespace(net["av1"].netns, linktest.tcp_send, addr, 5201, seconds)
-                t0 = time.monotonic()
-                while time.monotonic() - t0 < seconds:
-                    nodes.check()
-                    time.sleep(0.2)
-                sent = tx.result(seconds + 30)
-                marks = rx.result(seconds + 30)
-            finally:
-                summary = nodes.stop()
+    tree["links"]["air"]["uplink"]["rate"] = uplink
+    for vehicle in tree["topology"]["vehicles"]:
+        vehicle["cpu"] = cpu
+    scenario = load_tree(tree, file, f"uplink {uplink}, cpu {cpu}, {seconds} s")
+    with tempfile.TemporaryDirectory() as tmp, build(scenario, mode="run") as net:
+        nodes = Supervisor(net, Path(tmp) / "run", lambda line: None)
+        try:
+            nodes.start()
+            # the TCP sink sits where the vehicle's requests go: its cell's edge server
+            cell = scenario.topology.cell_of_gnb(scenario.topology.vehicles[0].gnb)
+            server = net[cell.server]
+            addr = str(net.server_address(cell))
+            ready = linktest.CTX.Event()
+            rx = linktest.in_namespace(
+                server.netns, linktest.tcp_receive, ready, addr, 5201, seconds + 2.0
+            )
+            ready.wait(10)
+            tx = linktest.in_namespace(net["av1"].netns, linktest.tcp_send, addr, 5201, seconds)
+            t0 = time.monotonic()
+            while time.monotonic() - t0 < seconds:
+                nodes.check()
+                time.sleep(0.2)
+            sent = tx.result(seconds + 30)
+            marks = rx.result(seconds + 30)
+        finally:
+            summary = nodes.stop()
     procs = summary["processes"]
     fusion = procs["av1.fusion"]["stats"]
     inference = procs["av1.inference"]["stats"]
