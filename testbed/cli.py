@@ -84,7 +84,8 @@ app = typer.Typer(
 )
 
 ScenarioFile = Annotated[
-    Path, typer.Argument(help="Scenario YAML file.", show_default=False, dir_okay=False)
+    Path,
+    typer.Argument(help="Scenario YAML file.", show_default=False, dir_okay=False, metavar="FILE"),
 ]
 JsonFlag = Annotated[bool, typer.Option("--json", help="Print machine-readable JSON.")]
 RunsDir = Annotated[Path, typer.Option("--runs-dir", help="Where run folders go.", file_okay=False)]
@@ -92,6 +93,7 @@ HostsEngine = Annotated[
     str,
     typer.Option(
         "--engine",
+        metavar="local|ray",
         help="local: this host only; ray: every host of topology.hosts, each on its own Ray "
         "node (the one offering the resource testbed-host-<name>; pip install '.[ray]').",
     ),
@@ -99,7 +101,9 @@ HostsEngine = Annotated[
 HostsAddress = Annotated[
     str,
     typer.Option(
-        "--address", help="--engine ray: the Ray cluster: auto (a running one) or HOST:PORT."
+        "--address",
+        metavar="ADDRESS",
+        help="--engine ray: the Ray cluster: auto (a running one) or HOST:PORT.",
     ),
 ]
 
@@ -112,7 +116,10 @@ def _fail(err: BaseException) -> typer.Exit:
 
 @app.command()
 def validate(
-    files: Annotated[list[Path], typer.Argument(help="Scenario YAML files.", show_default=False)],
+    files: Annotated[
+        list[Path],
+        typer.Argument(help="Scenario YAML files.", show_default=False, metavar="FILE..."),
+    ],
     host: Annotated[
         bool,
         typer.Option(
@@ -272,6 +279,7 @@ def up(
         str | None,
         typer.Option(
             "--run-id",
+            metavar="ID",
             help=(
                 "The run id (6 lowercase hex characters) instead of a fresh one. Every host of "
                 "a topology across hosts is given the same: its tunnels' VNIs come from it."
@@ -506,7 +514,7 @@ def report(
         ),
     ],
     formats: Annotated[
-        str, typer.Option("--formats", help="Comma-separated: html, md, json.")
+        str, typer.Option("--formats", metavar="LIST", help="Comma-separated: html, md, json.")
     ] = "html,md,json",
     no_plots: Annotated[bool, typer.Option("--no-plots", help="Skip the figures.")] = False,
     compare: Annotated[
@@ -758,6 +766,7 @@ def sweep(
         list[str],
         typer.Option(
             "--set",
+            metavar="KEY=V1,V2",
             help="KEY=V1,V2,...: a scenario field (dotted path) and its values; repeat for a "
             "grid. Values are written as in the YAML (8ms, 20mbit, 0.5%, [image,conv3]).",
             show_default=False,
@@ -774,6 +783,7 @@ def sweep(
         str | None,
         typer.Option(
             "--duration",
+            metavar="TIME",
             help="Play every variant for this long (e.g. 10s). Shorter than the scenario: "
             "timeline times and outage lengths scale with it; longer: its last phase is "
             "lengthened.",
@@ -784,6 +794,7 @@ def sweep(
         str,
         typer.Option(
             "--engine",
+            metavar="local|ray",
             help="local: run the variants one by one here; ray: each run is a Ray task on a "
             "cluster (pip install '.[ray]'), its folder copied back into --out.",
         ),
@@ -792,6 +803,7 @@ def sweep(
         str,
         typer.Option(
             "--address",
+            metavar="ADDRESS",
             help="--engine ray: auto (a running cluster), HOST:PORT, or local (start a "
             "one-host cluster for this sweep).",
         ),
@@ -800,6 +812,7 @@ def sweep(
         str,
         typer.Option(
             "--ray-resource",
+            metavar="NAME",
             help="--engine ray: the custom resource a real run takes one unit of (each "
             "testbed host offers 1, so two real runs never share a host).",
         ),
@@ -808,6 +821,7 @@ def sweep(
         int,
         typer.Option(
             "--seeds",
+            metavar="N",
             help="Run each variant N times, with the scenario's seed and the N-1 after it; the "
             "report adds each figure's mean and 95% confidence interval, the plot error bars.",
             min=1,
@@ -874,6 +888,7 @@ def link_test(
         list[str] | None,
         typer.Option(
             "--link",
+            metavar="LINK",
             help="Measure only this link (repeatable), e.g. --link av1-gnb1. Default: every link.",
             show_default=False,
         ),
