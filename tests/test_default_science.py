@@ -79,6 +79,7 @@ def test_majority_split_changes_with_each_phase(summary: dict) -> None:
 
 
 def test_learner_reconverges_after_each_change(summary: dict) -> None:
+    assert len(summary["learner"]["phases"]) == 3  # 40, 2 and 20 Mbit/s
     for p in summary["learner"]["phases"]:
         print(
             f"{p['start_s']:g} s: best {p['best_in_hindsight']}, last third "
@@ -107,7 +108,9 @@ def _lead_per_phase(result: ReplayResult) -> list[tuple[str, int | None, float |
 
 def test_best_split_gets_ninety_percent_once_it_leads(replay: ReplayResult) -> None:
     window = replay.config.learner.window
-    for best, lead, share in _lead_per_phase(replay):
+    leads = _lead_per_phase(replay)
+    assert len(leads) == 3  # 40, 2 and 20 Mbit/s
+    for best, lead, share in leads:
         print(f"{best}: leads after {lead} plays, then {share:.3f} of the plays")
         assert lead is not None and lead <= 2 * window
         assert share is not None and share >= SHARE_AFTER_LEAD

@@ -64,14 +64,22 @@ def test_stationary_costs_do_not_fire() -> None:
 
 def test_arms_are_watched_separately_and_history_clears_on_event() -> None:
     det = KLChangeDetector(window=5, threshold=1.0, consecutive=2)
-    events = []
+    fired = None
     for i in range(30):
-        events.append(det.update("steady", 0.040 + 0.0005 * (i % 2)))
-        events.append(det.update("moving", (0.040 if i < 15 else 0.060) + 0.0005 * (i % 2)))
-    fired = [e for e in events if e is not None]
-    assert [e.arm for e in fired] == ["moving"]
-    assert det.last_kl("steady") is None or fired[0].at_play < det.plays  # history was reset
-    assert det.plays == 60
+        assert det.update("steady", 0.040 + 0.0005 * (i % 2)) is None
+        fired = det.update("moving", (0.040 if i < 15 else 0.060) + 0.0005 * (i % 2))
+        if fired is not None:
+            break
+    assert fired is not None and fired.arm == "moving" and fired.at_play == det.plays
+    assert det.plays < 60
+    # the event cleared every arm's history, the steady one's too ...
+    assert det.last_kl("steady") is None and det.last_kl("moving") is None
+    # ... which needs 2 windows of new costs before it is compared again
+    for i in range(2 * det.window - 1):
+        det.update("steady", 0.040 + 0.0005 * (i % 2))
+    assert det.last_kl("steady") is None
+    det.update("steady", 0.040)
+    assert det.last_kl("steady") is not None
 
 
 def test_variance_floor_keeps_constant_windows_finite() -> None:

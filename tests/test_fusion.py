@@ -301,7 +301,9 @@ def test_a_centred_robust_weight_still_shrinks_an_answer_unlike_the_recent_ones(
     assert moved["centred"] < moved["bare"] / 20
 
 
-def test_the_innovation_the_centred_weight_averages_is_along_and_across_the_heading() -> None:
+def test_between_puts_a_point_along_and_across_the_heading() -> None:
+    """The frame convention of the centred weight's innovations (`RecentInnovation` averages
+    `geometry.between(fused, answer)`): x along the heading, y to its left."""
     pose = geometry.pose(1.0, 2.0, math.pi / 2)  # facing +y
     np.testing.assert_allclose(geometry.between(pose, geometry.pose(1.0, 5.0, 0.0))[:2], [3, 0],
                                atol=1e-12)  # fmt: skip

@@ -16,7 +16,9 @@ from typing import Any
 
 import pytest
 
-MESSAGES = ("SplitDecision", "DetectorEvent", "LinkEvent", "LinkCounters", "PoseEstimate")
+MSG_DIR = Path(__file__).resolve().parents[1] / "nodes" / "edgeloc_interfaces" / "msg"
+#: Every message the package defines: its .msg files, so a new one is tested without a list.
+MESSAGES = tuple(sorted(p.stem for p in MSG_DIR.glob("*.msg")))
 ACTION_PARTS = ("Goal", "Result", "Feedback")
 
 # The contract with the nodes and the recorder: field -> ROS type (as rosidl reports it).
@@ -62,7 +64,36 @@ EXPECTED_FIELDS: dict[str, dict[str, str]] = {
         "edge_send_stamp": "builtin_interfaces/Time",
     },
     "Feedback": {"stage": "string"},
+    "InferenceResult": {
+        "stamp": "builtin_interfaces/Time", "vehicle": "string", "frame_id": "uint32",
+        "split": "string", "split_index": "uint8", "payload_bytes": "uint64",
+        "head_s": "double", "edge_compute_s": "double", "latency_s": "double",
+        "ok": "boolean", "timed_out": "boolean", "error": "string", "edge": "string",
+    },
+    "RadioState": {
+        "stamp": "builtin_interfaces/Time", "vehicle": "string", "cell": "string",
+        "x": "double", "y": "double", "rsrp_dbm": "double", "sinr_db": "double",
+        "cqi": "int32", "mcs": "int32", "bler": "double", "ul_sinr_db": "double",
+        "ul_mcs": "int32", "ul_bler": "double",
+    },
+    "Handover": {
+        "stamp": "builtin_interfaces/Time", "vehicle": "string", "source": "string",
+        "target": "string", "scheduled_s": "double", "lateness_s": "double",
+        "interruption_s": "double", "lossless": "boolean", "error": "string",
+    },
+    "TrafficSample": {
+        "stamp": "builtin_interfaces/Time", "flow": "string", "kind": "string",
+        "role": "string", "t": "double", "bytes": "uint64", "packets": "uint64",
+        "rate_bps": "double", "goodput_bps": "double", "loss": "double",
+        "delay_ms": "double", "rtt_ms": "double", "late": "uint64",
+    },
 }  # fmt: skip
+
+
+def test_every_message_and_action_part_has_its_contract() -> None:
+    assert len(MESSAGES) >= 9, MESSAGES  # the glob found the package's messages
+    assert set(MESSAGES) | set(ACTION_PARTS) == set(EXPECTED_FIELDS)
+
 
 _INT_RANGES = {
     "uint8": (0, 2**8 - 1), "uint16": (0, 2**16 - 1), "uint32": (0, 2**32 - 1),

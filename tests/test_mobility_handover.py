@@ -131,7 +131,12 @@ def test_same_seed_same_handovers_another_seed_others() -> None:
 def test_with_channel_again_replaces_the_handovers() -> None:
     scenario = _load()
     again = mobility.with_channel(scenario)
-    assert again.timeline == scenario.timeline
+    assert again.timeline == scenario.timeline  # the channel's radio changes, not twice
+    # and a route that hands over: its one handover, not two
+    first = mobility.with_channel(_load(), _straight(SPEED, 60.0))
+    second = mobility.with_channel(first, _straight(SPEED, 60.0))
+    assert sum(isinstance(e, HandoverEvent) for e in first.timeline) == 1
+    assert second.timeline == first.timeline
 
 
 def test_the_replay_follows_the_serving_cell_and_stalls_for_the_interruption() -> None:

@@ -83,10 +83,38 @@ def test_every_repository_path_the_readme_names_exists() -> None:
     assert not missing, f"README names paths the repository does not have: {missing}"
 
 
+def broken_links(text: str) -> tuple[list[str], list[str]]:
+    """(every markdown link target of `text`, the ones inside the repository that are not
+    there); an anchor must be one of the text's headings, as GitHub spells them."""
+    targets = re.findall(r"\]\(([^)\s]+)\)", text)
+    anchors = {
+        re.sub(r"[^\w\- ]", "", h.strip().lower()).replace(" ", "-")
+        for h in re.findall(r"^#+ (.+)$", text, flags=re.MULTILINE)
+    }
+    broken = []
+    for target in targets:
+        if re.match(r"[a-z]+:", target):
+            continue  # a web address: not checked offline
+        if target.startswith("#"):
+            if target[1:] not in anchors:
+                broken.append(target)
+        elif not (ROOT / target).exists():
+            broken.append(target)
+    return targets, broken
+
+
 def test_markdown_links_inside_the_repository_exist() -> None:
-    for target in re.findall(r"\]\(([^)\s]+)\)", README.read_text()):
-        if not re.match(r"[a-z]+:", target) and not target.startswith("#"):
-            assert (ROOT / target).exists(), f"README links to {target}, which is not here"
+    targets, broken = broken_links(README.read_text())
+    assert targets, "the link pattern found no link in the README"
+    assert not broken, f"README links to what is not here: {broken}"
+    # and the check bites: a missing file and an unknown anchor, beside ones that exist
+    text = (
+        "# Reports\n[a](Makefile) [b](nowhere/x.md) [c](#reports) [d](#nothing) [e](https://x.y)\n"
+    )
+    assert broken_links(text) == (
+        ["Makefile", "nowhere/x.md", "#reports", "#nothing", "https://x.y"],
+        ["nowhere/x.md", "#nothing"],
+    )
 
 
 def test_the_path_filter_finds_paths_and_leaves_the_rest() -> None:

@@ -98,7 +98,7 @@ def test_onoff_sends_cbr_while_on_and_nothing_while_off() -> None:
     # The mean rate over many cycles: 3 packets of 800 bits a second.
     k = 3 * 1000
     assert flow.offset_ns(k) == 1000 * NS
-    assert k * 800 / 1000 == pytest.approx(2400)
+    assert k * flow.size * 8 / (flow.offset_ns(k) / NS) == pytest.approx(2400)
 
 
 def test_onoff_counts_packets_per_burst_at_the_edge_and_never_goes_back() -> None:
