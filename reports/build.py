@@ -983,8 +983,18 @@ def _recording(data: RunData, s: dict[str, Any]) -> Section:
         sec.add(Para("Not recorded: " + ", ".join(s["not_recorded"]) + ".", "note"))
     if data.attachments:
         sec.add(Para("Attachments: " + ", ".join(sorted(data.attachments)) + "."))
+    if not (data.path.parent / "run.json").is_file():
+        sec.add(Para(FROM_MCAP_ALONE, "note"))
     _captures(sec, data.path.parent)
     return sec
+
+
+#: What a report rebuilt from run.mcap alone, away from its run folder, cannot show.
+FROM_MCAP_ALONE = (
+    "No run.json beside run.mcap (a report rebuilt from the recording alone): what the run "
+    "wrote there is left out: the path to the edge, apps, cross-traffic and EdgeLoc under "
+    "load, and the packet captures."
+)
 
 
 def _run_json(folder: Path) -> dict[str, Any]:

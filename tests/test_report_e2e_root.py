@@ -53,6 +53,12 @@ def test_run_reports_and_the_report_rebuilds_identically(state_dir: Path, tmp_pa
     again = tmp_path / "again"
     again.mkdir()
     shutil.copyfile(folder / "run.mcap", again / "run.mcap")
-    rebuilt = testbed_cli("report", str(again), "--formats", "json")
+    rebuilt = testbed_cli("report", str(again), "--formats", "json,md", "--no-plots")
     assert rebuilt.returncode == 0, rebuilt.stdout + rebuilt.stderr
     assert (again / "summary.json").read_bytes() == (folder / "summary.json").read_bytes()
+    # What only run.json holds (here the path to the edge) is left out, and the report says so
+    from reports.build import FROM_MCAP_ALONE
+
+    md, md_again = (folder / "report.md").read_text(), (again / "report.md").read_text()
+    assert "## Path to the edge" in md and "## Path to the edge" not in md_again
+    assert FROM_MCAP_ALONE in md_again and FROM_MCAP_ALONE not in md

@@ -21,6 +21,7 @@ import pytest
 
 from netem.netns import in_netns
 from netem.sniff import LinkSniffer, SniffConfig, SniffError
+from tests.realrun import processes_mentioning
 from tests.tshark import TSHARK
 from tests.tshark import fields as tshark_fields
 
@@ -119,6 +120,10 @@ def test_a_capture_holds_each_packet_once_as_a_wire_carries_it(tmp_path: Path) -
 def test_a_capture_on_a_missing_interface_says_which_and_leaves_nothing(tmp_path: Path) -> None:
     with veth_pair() as (a, b):
         config = SniffConfig("a-b", str(tmp_path / "x.pcapng"), a, "e0", b, "nope0")
+        sniffer = LinkSniffer(config)
         with pytest.raises(SniffError, match="nope0"):
-            LinkSniffer(config).start()
+            sniffer.start()
     assert list(tmp_path.iterdir()) == []
+    # no capture process, and its own working folder (config, log) is gone too
+    assert sniffer.proc is None and not Path(sniffer._dir).exists()
+    assert processes_mentioning(sniffer._dir) == []
