@@ -3,6 +3,7 @@ link self-test's table, JSON and the warning `testbed run` prints for a link out
 
 from __future__ import annotations
 
+import os
 import time
 from types import SimpleNamespace
 from typing import Any, ClassVar
@@ -54,8 +55,13 @@ def test_an_old_kernel_without_steal_and_an_idle_window() -> None:
 
 
 def test_this_host_is_readable_and_tests_machine_uses_the_same_arithmetic() -> None:
-    load = cpu_load_between(CpuSample.read(), CpuSample.read())
+    before = CpuSample.read()
+    end = time.monotonic() + 0.2
+    while time.monotonic() < end:  # this process keeps one core busy meanwhile
+        pass
+    load = cpu_load_between(before, CpuSample.read())
     assert 0.0 <= load.steal <= load.busy <= 1.0
+    assert load.busy > 0.5 / (os.cpu_count() or 1)  # at least half of the core it kept busy
     busy, steal = tests.machine.CpuTimes().since()
     assert 0.0 <= steal <= busy <= 1.0
     assert tests.machine.cpu_load_between is cpu_load_between  # one copy of the arithmetic

@@ -5,6 +5,9 @@ hosts, their VNIs, each host's tunnels and transit namespaces, and what `testbed
 
 from __future__ import annotations
 
+import os
+import subprocess
+import sys
 from ipaddress import IPv4Address, IPv4Network
 from pathlib import Path
 
@@ -97,7 +100,17 @@ def test_without_hosts_every_node_is_on_this_one(tmp_path: Path) -> None:
 
 def test_vnis_are_24_bit_the_same_everywhere_and_apart_per_link_and_run() -> None:
     one = vxlan.vnis(RUN, ["gnb1-core1", "av1-gnb1"])
-    assert one == vxlan.vnis(RUN, ["gnb1-core1", "av1-gnb1"])  # what the other host derives
+    # What the other host derives: another interpreter, another string-hash seed
+    probe = (
+        "from testbed.topology import vxlan; "
+        f"print(vxlan.vnis({RUN!r}, ['gnb1-core1', 'av1-gnb1']))"
+    )
+    for seed in ("1", "2"):
+        out = subprocess.run(
+            [sys.executable, "-c", probe], capture_output=True, text=True, check=True,
+            cwd=Path(__file__).resolve().parents[1], env={**os.environ, "PYTHONHASHSEED": seed},
+        )  # fmt: skip
+        assert out.stdout.strip() == str(one), (seed, out.stdout, one)
     assert all(1 <= v < 2**24 for v in one.values())
     assert len(set(one.values())) == 2
     assert vxlan.vnis("def456", ["gnb1-core1"])["gnb1-core1"] != one["gnb1-core1"]

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import re
+from typing import Any
 
 import pytest
 from hypothesis import given
@@ -194,23 +195,35 @@ def test_format_duration_parses_back_closely(seconds: float) -> None:
     assert parse_duration(format_duration(seconds)) == pytest.approx(seconds, rel=1e-5)
 
 
+def _rate_or_unlimited(text: str) -> float | None:
+    return None if text == "unlimited" else units.parse_rate(text)
+
+
 @pytest.mark.parametrize(
-    ("pattern", "good", "bad"),
+    ("pattern", "parse", "good", "bad"),
     [
-        (units.RATE_PATTERN, ["20mbit", "1.5GBit/s", "64000bit"], ["20mbps", "20", "unlimited"]),
-        (units.RATE_OR_UNLIMITED_PATTERN, ["unlimited", "20mbit"], ["Unlimited", "mbit"]),
-        (units.DURATION_PATTERN, ["8ms", "1.5s", "2m", "500us"], ["8MS", "90", "-1s"]),
-        (units.PERCENT_PATTERN, ["0.5%", "100%"], ["0.5", "%"]),
+        (units.RATE_PATTERN, units.parse_rate, ["20mbit", "1.5GBit/s", "64000bit"],
+         ["20mbps", "20", "unlimited"]),
+        (units.RATE_OR_UNLIMITED_PATTERN, _rate_or_unlimited, ["unlimited", "20mbit"],
+         ["Unlimited", "mbit"]),
+        (units.DURATION_PATTERN, units.parse_duration, ["8ms", "1.5s", "2m", "500us"],
+         ["8MS", "90", "-1s"]),
+        (units.PERCENT_PATTERN, units.parse_percent, ["0.5%", "100%"], ["0.5", "%"]),
     ],
-)
+    ids=["rate", "rate_or_unlimited", "duration", "percent"],
+)  # fmt: skip
 def test_schema_patterns_agree_with_the_parsers(
-    pattern: str, good: list[str], bad: list[str]
+    pattern: str, parse: Any, good: list[str], bad: list[str]
 ) -> None:
-    # The JSON Schema uses these patterns verbatim; they must accept what the parsers accept.
+    # The JSON Schema uses these patterns verbatim: an editor must accept what the loader's
+    # parser accepts, and flag what it refuses.
     for text in good:
         assert re.search(pattern, text), text
+        parse(text)  # raises UnitError if the parser refuses what the schema allows
     for text in bad:
         assert not re.search(pattern, text), text
+        with pytest.raises(units.UnitError):
+            parse(text)
 
 
 def test_signed_durations_only_where_asked() -> None:
