@@ -23,7 +23,14 @@ import numpy as np
 
 from nodes.edgeloc.metrics import write_tum
 from nodes.recording import linktable
-from nodes.recording.layout import HANDOVER_TOPIC, PARTS_DIR, PCAP_DIR, RUN_MCAP, SUMMARY_FILE
+from nodes.recording.layout import (
+    HANDOVER_TOPIC,
+    PARTS_DIR,
+    PCAP_DIR,
+    RUN_FILE,
+    RUN_MCAP,
+    SUMMARY_FILE,
+)
 from reports.document import Code, Document, Image, Para, Section, Table, to_markdown
 from reports.html import to_html
 from reports.mcapread import ReportInputError, RunData, read_run
@@ -983,32 +990,37 @@ def _recording(data: RunData, s: dict[str, Any]) -> Section:
         sec.add(Para("Not recorded: " + ", ".join(s["not_recorded"]) + ".", "note"))
     if data.attachments:
         sec.add(Para("Attachments: " + ", ".join(sorted(data.attachments)) + "."))
-    if not (data.path.parent / "run.json").is_file():
-        sec.add(Para(FROM_MCAP_ALONE, "note"))
-    _captures(sec, data.path.parent)
+    if not _run_json(data):
+        sec.add(Para(NO_RUN_JSON, "note"))
+    _captures(sec, data)
     return sec
 
 
-#: What a report rebuilt from run.mcap alone, away from its run folder, cannot show.
-FROM_MCAP_ALONE = (
-    "No run.json beside run.mcap (a report rebuilt from the recording alone): what the run "
-    "wrote there is left out: the path to the edge, apps, cross-traffic and EdgeLoc under "
-    "load, and the packet captures."
+#: What a report cannot show without the run's run.json (a run that ended before writing it).
+NO_RUN_JSON = (
+    "No run.json, in the run folder or attached to run.mcap (the run ended before writing "
+    "it): the path to the edge, apps, cross-traffic and EdgeLoc under load are left out."
 )
 
 
-def _run_json(folder: Path) -> dict[str, Any]:
+def _run_json(data: RunData) -> dict[str, Any]:
+    """The run's run.json: the folder's copy, else the one attached to run.mcap (so a report
+    rebuilt from the recording alone, anywhere, shows the same); {} without either."""
     try:
-        data = json.loads((folder / "run.json").read_text())
-    except (OSError, ValueError):
+        raw = (data.path.parent / RUN_FILE).read_bytes()
+    except OSError:
+        raw = data.attachments.get(RUN_FILE, b"")
+    try:
+        out = json.loads(raw.decode("utf-8", "replace")) if raw else {}
+    except ValueError:
         return {}
-    return data if isinstance(data, dict) else {}
+    return out if isinstance(out, dict) else {}
 
 
-def _apps(folder: Path) -> Section | None:
+def _apps(data: RunData) -> Section | None:
     """The apps a researcher brought (`apps:`): where each ran, when it was ready, how it
     ended and what it used (run.json's `apps`)."""
-    apps = _run_json(folder).get("apps") or {}
+    apps = _run_json(data).get("apps") or {}
     if not apps:
         return None
     rows = []
@@ -1056,10 +1068,10 @@ def _mbit(bps: Any) -> str:
     return "-" if bps is None else f"{bps / 1e6:.2f} Mbit/s"
 
 
-def _traffic(folder: Path) -> Section | None:
+def _traffic(data: RunData) -> Section | None:
     """The cross-traffic flows (`traffic:`): offered against carried, loss, delay, RTT, and
     the sender's own lateness (run.json's `traffic`); their samples are /traffic/<flow>."""
-    flows = _run_json(folder).get("traffic") or {}
+    flows = _run_json(data).get("traffic") or {}
     if not flows:
         return None
     rows = []
@@ -1146,15 +1158,13 @@ def _load(s: dict[str, Any]) -> Section | None:
     return sec.add(Table(headers, rows))
 
 
-def _captures(sec: Section, folder: Path) -> None:
-    """The run's packet captures (`record.pcap`), with what run.json says each holds."""
-    files = sorted((folder / PCAP_DIR).glob("*.pcapng"))
+def _captures(sec: Section, data: RunData) -> None:
+    """The run's packet captures (`record.pcap`) beside run.mcap, with what run.json says each
+    holds."""
+    files = sorted((data.path.parent / PCAP_DIR).glob("*.pcapng"))
     if not files:
         return
-    try:
-        captures = json.loads((folder / "run.json").read_text()).get("captures") or {}
-    except (OSError, ValueError):
-        captures = {}
+    captures = _run_json(data).get("captures") or {}
     rows = []
     for f in files:
         info = captures.get(f.stem) or {}
@@ -1178,7 +1188,7 @@ def _captures(sec: Section, folder: Path) -> None:
 
 
 def _paths(
-    folder: Path,
+    data: RunData,
     per_vehicle: dict[str, Any] | None = None,
     linktest: dict[str, Any] | None = None,
 ) -> Section | None:
@@ -1187,10 +1197,7 @@ def _paths(
     (its one-way median per direction, `_measured_hops`), and what the path gave (the
     summary's `per_vehicle`): its requests' median latency and EdgeLoc's mean error, so
     placements compare side by side; with a UPF, what GTP-U added on N3."""
-    try:
-        run = json.loads((folder / "run.json").read_text())
-    except (OSError, ValueError):
-        return None
+    run = _run_json(data)
     paths, core = run.get("paths") or [], run.get("core_path")
     if not paths:
         return None
@@ -1308,8 +1315,8 @@ def document(
     else:
         title = title.replace("EdgeLoc run", "Run", 1)
     sections += [_links(s, plots), _radio(s, plots)]
-    sections += [_paths(data.path.parent, s.get("per_vehicle"), s["links"].get("linktest"))]
-    sections += [_apps(data.path.parent), _traffic(data.path.parent), _load(s)]
+    sections += [_paths(data, s.get("per_vehicle"), s["links"].get("linktest"))]
+    sections += [_apps(data), _traffic(data), _load(s)]
     sections += [_nodes(s), _recording(data, s)]
     return Document(title, s["headline"], [x for x in sections if x is not None])
 
@@ -1364,7 +1371,7 @@ def build_report(
         raise ReportInputError(f"unknown report format(s) {sorted(unknown)}; use {list(FORMATS)}")
     data = read_run(folder / RUN_MCAP)
     s = summarize(data, splits=splits)
-    s["load"] = load_comparison(data, load_windows(_run_json(folder)))
+    s["load"] = load_comparison(data, load_windows(_run_json(data)))
     errs = method_errors(data)
     files: list[Path] = []
     tum = write_trajectories(data, folder)

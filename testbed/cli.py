@@ -528,10 +528,9 @@ def report(
 ) -> None:
     """Build a run's report from its run.mcap alone: report.html (self-contained, figures
     embedded), report.md, summary.json, plots/*.png and trajectories/<vehicle>/*.tum (TUM, for
-    evo). Rebuilding in the run folder gives the same summary.json; from run.mcap alone,
-    elsewhere, the report leaves out what only run.json holds (path to the edge, apps,
-    cross-traffic, load, captures) and says so. A recording cut short gives a partial report
-    that says so.
+    evo). Rebuilding gives the same summary.json anywhere (run.json, with the paths to the
+    edge, apps and cross-traffic, is attached to run.mcap); a recording cut short gives a
+    partial report that says so.
 
     Examples:
 

@@ -628,7 +628,7 @@ class _Run:
         }
         write_json(result.folder / "connectivity.json", [r.to_dict() for r in result.connectivity])
         write_json(
-            result.folder / "run.json",
+            result.folder / names.RUN_FILE,
             {
                 "scenario": scenario.name,
                 "source": str(scenario.source) if scenario.source else None,

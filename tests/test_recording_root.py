@@ -128,7 +128,9 @@ def test_run_mcap_decodes_fully_and_counts_match_the_nodes(
     assert nodes["av1.fusion"]["stats"]["published"] == fusion["published"]
     assert meta["edgeloc.timeline"]["applied"] == "2"
     assert meta["edgeloc.linktest"] == {"ran": "false"}
-    assert attachments == {"scenario.yaml", "links.json", "events.jsonl", "nodes/config.json"}
+    assert attachments == {
+        "scenario.yaml", "links.json", "events.jsonl", "nodes/config.json", "run.json"
+    }  # fmt: skip
     links = json.loads((folder / "links.json").read_text())
     assert (
         set(links["links"])

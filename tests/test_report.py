@@ -725,6 +725,12 @@ def test_a_radio_link_test_shows_its_cdfs_beside_the_oracle(tmp_path: Path) -> N
         assert text in md, text
 
 
+def _folder(path: Path) -> SimpleNamespace:
+    """What the report's sections read of a run (`RunData`): where its run.mcap is, and the
+    files attached to it (none here: the folder's own files speak)."""
+    return SimpleNamespace(path=path / "run.mcap", attachments={})
+
+
 def test_the_recording_section_lists_the_runs_captures(tmp_path: Path) -> None:
     import json
 
@@ -738,7 +744,7 @@ def test_the_recording_section_lists_the_runs_captures(tmp_path: Path) -> None:
                              "dropped": {"uplink": 2, "downlink": 0}}}  # fmt: skip
     (tmp_path / "run.json").write_text(json.dumps({"captures": captures}))
     sec = Section("Recording")
-    _captures(sec, tmp_path)
+    _captures(sec, _folder(tmp_path))
     (table,) = [b for b in sec.blocks if isinstance(b, Table)]
     assert table.rows == [["pcap/av1-gnb1.pcapng", "0.00", "7 / 2", "5 / 0"]]
     # Both renderings link the file, relative to the report in the run folder.
@@ -771,11 +777,11 @@ def test_the_path_section_shows_each_vehicles_tunnel_edge_and_hops(tmp_path: Pat
             "qos_flows": "QFI 2 for DDS discovery; QFI 1 for the rest",
             "endpoints": {"gnb1": {"qfi_sent": {"1": 900, "2": 40}},
                           "upf1/gnb1": {"qfi_sent": {"1": 800, "2": 38}}}}  # fmt: skip
-    assert _paths(tmp_path) is None  # no run.json: no section
+    assert _paths(_folder(tmp_path)) is None  # no run.json: no section
     (tmp_path / "run.json").write_text(json.dumps({"paths": [path], "core_path": core}))
     per_vehicle = {"av1": {"requests": 40, "answers": 38, "latency_s": {"median": 0.0623},
                            "methods": {"edgeloc": {"position_m": {"mean": 1.234}}}}}  # fmt: skip
-    sec = _paths(tmp_path, per_vehicle)
+    sec = _paths(_folder(tmp_path), per_vehicle)
     assert sec is not None
     (table,) = [b for b in sec.blocks if isinstance(b, Table)]
     (row,) = table.rows
@@ -789,7 +795,7 @@ def test_the_path_section_shows_each_vehicles_tunnel_edge_and_hops(tmp_path: Pat
     linktest = {"links": [{"link": "gnb1-upf1", "directions": [
         {"direction": "uplink", "owd_median_ms": 1.154, "baseline_ms": 0.084},
         {"direction": "downlink", "owd_median_ms": 1.212, "baseline_ms": 0.1}]}]}  # fmt: skip
-    measured = _paths(tmp_path, per_vehicle, linktest)
+    measured = _paths(_folder(tmp_path), per_vehicle, linktest)
     assert measured is not None
     (table,) = [b for b in measured.blocks if isinstance(b, Table)]
     assert table.rows[0][6] == (
@@ -801,3 +807,26 @@ def test_the_path_section_shows_each_vehicles_tunnel_edge_and_hops(tmp_path: Pat
         "QoS flows: QFI 2 for DDS discovery; QFI 1 for the rest. G-PDUs sent: uplink QFI 1: "
         "900, QFI 2: 40; downlink QFI 1: 800, QFI 2: 38."
     )
+
+
+def test_run_json_is_read_from_the_folder_or_else_from_run_mcap(tmp_path: Path) -> None:
+    """What the orchestrator wrote (run.json) comes with the recording: a report rebuilt from
+    run.mcap alone shows it; without it anywhere, the report says what is left out."""
+    from reports.build import NO_RUN_JSON
+
+    bare = write_run(tmp_path, small_run(), "bare")
+    build_report(bare, formats=("md",), plots=False, splits=False)
+    assert NO_RUN_JSON in (bare / "report.md").read_text()
+
+    synth = small_run()
+    flow = {"kind": "udp", "from": "av1", "to": "core1", "sent_bps": 1e6, "goodput_bps": 9e5,
+            "loss": 0.1, "delay_p50_ms": 12.0, "stats": {}}  # fmt: skip
+    synth.attachments["run.json"] = json.dumps({"traffic": {"cbr": flow}}).encode()
+    attached = write_run(tmp_path, synth, "attached")
+    build_report(attached, formats=("md",), plots=False, splits=False)
+    md = (attached / "report.md").read_text()
+    assert NO_RUN_JSON not in md and "## Cross-traffic" in md and "| cbr |" in md
+    # the folder's own copy wins over the attached one
+    (attached / "run.json").write_text(json.dumps({"traffic": {}}))
+    build_report(attached, formats=("md",), plots=False, splits=False)
+    assert "## Cross-traffic" not in (attached / "report.md").read_text()

@@ -15,6 +15,10 @@ PARTS_DIR = "parts"
 MANIFEST = "manifest.json"
 #: The scenario as run (a copy of the YAML).
 SCENARIO_FILE = "scenario.yaml"
+#: What the orchestrator measured and decided (`testbed.run.RunResult`): paths to the edge,
+#: apps, cross-traffic, captures, the timeline's start. Written as the run ends, just before
+#: the recording is finalised, so a run that ends normally has it attached.
+RUN_FILE = "run.json"
 #: The link self-test's measurements (`testbed.linktest.LinkTestReport.to_dict`).
 LINKTEST_FILE = "linktest.json"
 #: Per link and direction, the profile applied at the start and left at the end.
@@ -32,7 +36,14 @@ START_FILE = "nodes/start.json"
 SUMMARY_FILE = "summary.json"
 #: Files of the run folder attached to run.mcap, when the run wrote them (a name with a
 #: folder is attached under that same relative name).
-ATTACHED_FILES = (SCENARIO_FILE, LINKTEST_FILE, LINKS_CONFIG_FILE, EVENTS_FILE, NODE_CONFIG_FILE)
+ATTACHED_FILES = (
+    SCENARIO_FILE,
+    LINKTEST_FILE,
+    LINKS_CONFIG_FILE,
+    EVENTS_FILE,
+    NODE_CONFIG_FILE,
+    RUN_FILE,
+)
 
 LINK_EVENTS_TOPIC = "/links/events"
 LINK_COUNTERS_TOPIC = "/links/counters"
