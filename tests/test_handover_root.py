@@ -50,13 +50,17 @@ channel:
 """
 UE = "10.45.0.2"  # the pool's first UE address
 SLOT_MS = 0.5  # oai-tdd-30k: 30 kHz subcarriers
-#: How much shorter than the interruption the silence at the edge may be. Before the gap, the
+#: How much shorter or longer than the interruption the silence at the edge may be (beyond a
+#: slot, and the stream's own spacing for longer). Before the gap, the
 #: last datagram leaves the source's air link and crosses gnb1's N3 relay and the N6 relay;
 #: after it, the first crosses gnb2's N3 relay and N6: separate relay processes that share the
 #: host's cores with the others and the test's threads, so one late wake-up on the first path
-#: shortens the silence by as much. Measured on a 2-core host: 38.9-39.5 ms in 4 of 26 lossy
-#: runs, 39.5-46.0 ms in the others; in the short ones the edge's kernel receive timestamps
-#: (SO_TIMESTAMPNS) gave the same silence to 0.06 ms, so it is not the test thread's lateness.
+#: shortens the silence by as much, and one on the second path lengthens it by as much.
+#: Measured on a 2-core host: 38.9-39.5 ms in 4 of 26 lossy runs, 39.5-46.0 ms in the others;
+#: in the short ones the edge's kernel receive timestamps (SO_TIMESTAMPNS) gave the same
+#: silence to 0.06 ms, so it is not the test thread's lateness. Long ones, later: 46.43 ms
+#: (lossy) and 46.68 ms (lossless) with the stream's spacing at 5.22 and 5.32 ms, 0.7 and
+#: 0.9 ms past interruption + slot + spacing, 1 in ~10 runs of each.
 DOWNSTREAM_JITTER_MS = 2.0
 GAP_MS = 40.0
 SEND_EVERY_S = 0.001
@@ -190,7 +194,7 @@ def test_the_user_plane_stops_for_the_interruption_then_resumes(
     state_dir: Path, tmp_path: Path, lossless: bool
 ) -> None:
     """Lossless: nothing reaches the edge for the interruption (± one slot, beyond the
-    stream's own spacing, and short of it by at most the relays' jitter after the air link),
+    stream's own spacing, and either way by at most the relays' jitter after the air link),
     then every datagram, in order. Lossy: exactly the datagrams in flight on the source link
     are lost (the relay's "handover" drops), one run of them."""
     scenario = _scenario(tmp_path, lossless)
@@ -212,7 +216,8 @@ def test_the_user_plane_stops_for_the_interruption_then_resumes(
         f"(interruption {GAP_MS:g} ms, normal spacing up to {spacing:.2f} ms), "
         f"first after it {(arrived[after] - called) * 1000:.2f} ms after the call, lost {lost}"
     )
-    assert GAP_MS - SLOT_MS - DOWNSTREAM_JITTER_MS <= longest <= GAP_MS + SLOT_MS + spacing
+    jitter = DOWNSTREAM_JITTER_MS
+    assert GAP_MS - SLOT_MS - jitter <= longest <= GAP_MS + SLOT_MS + spacing + jitter
     order = sorted(arrived, key=arrived.__getitem__)
     assert order == sorted(order), "delivered out of order"
     drops = source["uplink"]["total"]["dropped_packets"]
