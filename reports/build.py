@@ -10,7 +10,6 @@ recorded is named as such rather than failing the build.
 
 from __future__ import annotations
 
-import json
 import math
 import shutil
 from collections import Counter
@@ -27,7 +26,6 @@ from nodes.recording.layout import (
     HANDOVER_TOPIC,
     PARTS_DIR,
     PCAP_DIR,
-    RUN_FILE,
     RUN_MCAP,
     SUMMARY_FILE,
 )
@@ -377,9 +375,13 @@ def _splits(s: dict[str, Any], plots: dict[str, Plot | None]) -> Section:
         )
     # Latency-best against error-best, inversions and the learned run against the fixed
     # splits: what the drive resolves is a warning; a tie inside its noise is a row of one
-    # table (with K splits there are up to K(K-1)/2 pairs per phase).
+    # table (with K splits there are up to K(K-1)/2 pairs per phase). Imported here: the
+    # comparison that wrote these rows has loaded it (and torch) already; a report without
+    # them does not pay for it.
+    from nodes.edgeloc.compare import WITHIN_NOISE
+
     for line in sp["disagreements"]:
-        if "within the drive's noise" not in line:
+        if WITHIN_NOISE not in line:
             sec.add(Para(f"Against the paper's claim: {line}.", "warning"))
     ties = [
         [
@@ -402,7 +404,7 @@ def _splits(s: dict[str, Any], plots: dict[str, Plot | None]) -> Section:
             )
         )
     for line in sp["disagreements"]:
-        if line.startswith("the learned run") and "within the drive's noise" in line:
+        if line.startswith("the learned run") and WITHIN_NOISE in line:
             sec.add(Para(f"A tie: {line}.", "note"))
     if any(p.get("inversions") for p in phases):
         sec.add(
@@ -990,7 +992,7 @@ def _recording(data: RunData, s: dict[str, Any]) -> Section:
         sec.add(Para("Not recorded: " + ", ".join(s["not_recorded"]) + ".", "note"))
     if data.attachments:
         sec.add(Para("Attachments: " + ", ".join(sorted(data.attachments)) + "."))
-    if not _run_json(data):
+    if not data.run_json:
         sec.add(Para(NO_RUN_JSON, "note"))
     _captures(sec, data)
     return sec
@@ -1003,24 +1005,10 @@ NO_RUN_JSON = (
 )
 
 
-def _run_json(data: RunData) -> dict[str, Any]:
-    """The run's run.json: the folder's copy, else the one attached to run.mcap (so a report
-    rebuilt from the recording alone, anywhere, shows the same); {} without either."""
-    try:
-        raw = (data.path.parent / RUN_FILE).read_bytes()
-    except OSError:
-        raw = data.attachments.get(RUN_FILE, b"")
-    try:
-        out = json.loads(raw.decode("utf-8", "replace")) if raw else {}
-    except ValueError:
-        return {}
-    return out if isinstance(out, dict) else {}
-
-
 def _apps(data: RunData) -> Section | None:
     """The apps a researcher brought (`apps:`): where each ran, when it was ready, how it
     ended and what it used (run.json's `apps`)."""
-    apps = _run_json(data).get("apps") or {}
+    apps = data.run_json.get("apps") or {}
     if not apps:
         return None
     rows = []
@@ -1071,7 +1059,7 @@ def _mbit(bps: Any) -> str:
 def _traffic(data: RunData) -> Section | None:
     """The cross-traffic flows (`traffic:`): offered against carried, loss, delay, RTT, and
     the sender's own lateness (run.json's `traffic`); their samples are /traffic/<flow>."""
-    flows = _run_json(data).get("traffic") or {}
+    flows = data.run_json.get("traffic") or {}
     if not flows:
         return None
     rows = []
@@ -1164,7 +1152,7 @@ def _captures(sec: Section, data: RunData) -> None:
     files = sorted((data.path.parent / PCAP_DIR).glob("*.pcapng"))
     if not files:
         return
-    captures = _run_json(data).get("captures") or {}
+    captures = data.run_json.get("captures") or {}
     rows = []
     for f in files:
         info = captures.get(f.stem) or {}
@@ -1197,7 +1185,7 @@ def _paths(
     (its one-way median per direction, `_measured_hops`), and what the path gave (the
     summary's `per_vehicle`): its requests' median latency and EdgeLoc's mean error, so
     placements compare side by side; with a UPF, what GTP-U added on N3."""
-    run = _run_json(data)
+    run = data.run_json
     paths, core = run.get("paths") or [], run.get("core_path")
     if not paths:
         return None
@@ -1371,7 +1359,7 @@ def build_report(
         raise ReportInputError(f"unknown report format(s) {sorted(unknown)}; use {list(FORMATS)}")
     data = read_run(folder / RUN_MCAP)
     s = summarize(data, splits=splits)
-    s["load"] = load_comparison(data, load_windows(_run_json(data)))
+    s["load"] = load_comparison(data, load_windows(data.run_json))
     errs = method_errors(data)
     files: list[Path] = []
     tum = write_trajectories(data, folder)

@@ -38,6 +38,7 @@ from nodes.recording.layout import (
     LINK_COUNTERS_TOPIC,
     LINK_EVENTS_TOPIC,
     LINKS_CONFIG_FILE,
+    RUN_FILE,
     RUN_MCAP,
     VEHICLE_TOPICS,
     radio_topic,
@@ -274,6 +275,9 @@ class RunData:
     #: (link, direction) -> the NR radio that direction started the run with, rebuilt from
     #: links.json: what the report needs to say what an air link carried at a step's MCS.
     link_radios: dict[tuple[str, str], Radio] = field(default_factory=dict)
+    #: The run's run.json (`read_run_json`): paths to the edge, apps, cross-traffic,
+    #: captures, the timeline's start; {} when the run ended before writing it.
+    run_json: dict[str, Any] = field(default_factory=dict)
 
     @property
     def t0(self) -> float:
@@ -504,7 +508,22 @@ def read_run(path: Path | str) -> RunData:
         handovers=sorted(handovers, key=lambda h: (h.t, h.vehicle)),
         links_config=links_config,
         link_radios=_link_radios(links_config, problems),
+        run_json=read_run_json(p.parent, attachments),
     )
+
+
+def read_run_json(folder: Path, attachments: dict[str, bytes]) -> dict[str, Any]:
+    """The run's run.json: the folder's copy, else the one attached to run.mcap (so a report
+    rebuilt from the recording alone, anywhere, shows the same); {} without either."""
+    try:
+        raw = (folder / RUN_FILE).read_bytes()
+    except OSError:
+        raw = attachments.get(RUN_FILE, b"")
+    try:
+        out = json.loads(raw.decode("utf-8", "replace")) if raw else {}
+    except ValueError:
+        return {}
+    return out if isinstance(out, dict) else {}
 
 
 def _link_radios(

@@ -726,9 +726,11 @@ def test_a_radio_link_test_shows_its_cdfs_beside_the_oracle(tmp_path: Path) -> N
 
 
 def _folder(path: Path) -> SimpleNamespace:
-    """What the report's sections read of a run (`RunData`): where its run.mcap is, and the
-    files attached to it (none here: the folder's own files speak)."""
-    return SimpleNamespace(path=path / "run.mcap", attachments={})
+    """What the report's sections read of a run (`RunData`): where its run.mcap is, and its
+    run.json (the folder's: nothing is attached here)."""
+    from reports.mcapread import read_run_json
+
+    return SimpleNamespace(path=path / "run.mcap", run_json=read_run_json(path, {}))
 
 
 def test_the_recording_section_lists_the_runs_captures(tmp_path: Path) -> None:

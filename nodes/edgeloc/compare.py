@@ -83,12 +83,16 @@ class Inversion:
         )
 
 
+#: How a sentence of `against_noise` says a difference is a tie the drive cannot resolve.
+WITHIN_NOISE = "within the drive's noise"
+
+
 def against_noise(by_m: float, noise_m: float, digits: int = 2) -> str:
     """Where a difference of `by_m` lies against a noise band of ±`noise_m`, in words."""
     if math.isinf(noise_m):
         return "too short a stretch to tell from the drive's noise"
-    where = "beyond" if by_m > noise_m else "within"
-    return f"{where} the drive's noise (±{noise_m:.{digits}f} m)"
+    where = "beyond the drive's noise" if by_m > noise_m else WITHIN_NOISE
+    return f"{where} (±{noise_m:.{digits}f} m)"
 
 
 def paired_noise_m(a: Sequence[float], b: Sequence[float]) -> float:
