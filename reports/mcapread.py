@@ -426,6 +426,10 @@ def read_run(path: Path | str) -> RunData:
             first_log = log_t if first_log is None else min(first_log, log_t)
             last_log = log_t if last_log is None else max(last_log, log_t)
 
+    if not (schemas or channels or metadata or attachments):
+        # Only the magic, or a header and a footer: no run, no metadata, nothing to report.
+        why = "; ".join(read_problems) or "an empty recording"
+        raise ReportInputError(f"{p}: no records in this MCAP ({why}): nothing to report")
     cut = bool(read_problems) or not seen_footer
     problems[:0] = read_problems
     if not seen_footer:

@@ -11,6 +11,7 @@ from pathlib import Path
 from types import SimpleNamespace
 
 import pytest
+from mcap.writer import Writer
 from report_synth import SynthRun, stamp
 from typer.testing import CliRunner
 
@@ -416,6 +417,16 @@ def test_not_an_mcap_is_refused(tmp_path: Path) -> None:
         build_report(tmp_path)
     with pytest.raises(ReportInputError, match=r"no run\.mcap"):
         build_report(tmp_path / "nothing")
+    (tmp_path / "run.mcap").write_bytes(b"\x89MCAP0\r\n")  # a recorder killed at once
+    with pytest.raises(ReportInputError, match=r"no records in this MCAP \(the file ends early"):
+        build_report(tmp_path)
+    with open(tmp_path / "run.mcap", "wb") as f:  # finished, with nothing in it
+        writer = Writer(f)
+        writer.start()
+        writer.finish()
+    with pytest.raises(ReportInputError, match=r"no records in this MCAP \(an empty recording\)"):
+        build_report(tmp_path)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["run.mcap"]
 
 
 # ---- what issue #8 asks the report to show ---------------------------------------------------
