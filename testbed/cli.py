@@ -114,6 +114,16 @@ def _fail(err: BaseException) -> typer.Exit:
     return typer.Exit(exit_code(err))
 
 
+def _check_engine(engine: str, **ray_options: tuple[str, str]) -> None:
+    """--engine is local or ray, and the options only Ray reads (name: (value, default)) are
+    left alone with local: a cluster address given to a local run was silently ignored."""
+    if engine not in ("local", "ray"):
+        raise _fail(BadInput(f"--engine: expected local or ray, found {engine!r}"))
+    given = [name for name, (value, default) in ray_options.items() if value != default]
+    if engine == "local" and given:
+        raise _fail(BadInput(f"{', '.join(given)}: only --engine ray uses it; add --engine ray"))
+
+
 @app.command()
 def validate(
     files: Annotated[
@@ -309,8 +319,7 @@ def up(
     from testbed.scenario import ScenarioError, load
     from testbed.topology import build
 
-    if engine not in ("local", "ray"):
-        raise _fail(BadInput(f"--engine: expected local or ray, found {engine!r}"))
+    _check_engine(engine, **{"--address": (address, "auto")})
     try:
         scenario = load(file)
     except ScenarioError as err:
@@ -854,8 +863,9 @@ def sweep(
     from testbed.sweep import run_sweep
     from testbed.sweep.rayengine import RayOptions
 
-    if engine not in ("local", "ray"):
-        raise _fail(BadInput(f"--engine: expected local or ray, found {engine!r}"))
+    _check_engine(
+        engine, **{"--address": (address, "auto"), "--ray-resource": (ray_resource, "testbed")}
+    )
     ray = RayOptions(address, ray_resource) if engine == "ray" else None
     try:
         report = run_sweep(
@@ -1006,8 +1016,7 @@ def down(
     """
     from testbed.topology import teardown_run
 
-    if engine not in ("local", "ray"):
-        raise _fail(BadInput(f"--engine: expected local or ray, found {engine!r}"))
+    _check_engine(engine, **{"--address": (address, "auto")})
     if engine == "ray":
         _down_on_ray(run_id, address)
         return

@@ -210,3 +210,48 @@ def test_report_of_a_file_says_it_is_not_a_run_folder(tmp_path: Path) -> None:
     out = CliRunner().invoke(app, ["report", str(file)])
     assert out.exit_code == 2
     assert f"{file}: a file, not a run folder" in out.output
+
+
+@pytest.mark.parametrize("content", [b"\x89MCAP0\r\n", b""], ids=["magic only", "zero bytes"])
+def test_report_of_a_recording_with_no_records_exits_2(tmp_path: Path, content: bytes) -> None:
+    """`report --help` promises 2 for a run.mcap that cannot be read: a file holding only the
+    MCAP magic (a recorder killed at its first write) has nothing to report, and was a
+    'partial' report of nothing with exit 0."""
+    (tmp_path / "run.mcap").write_bytes(content)
+    out = CliRunner().invoke(app, ["report", str(tmp_path), "--formats", "md"])
+    assert out.exit_code == 2, out.output
+    said = " ".join(out.output.split())
+    assert ("no records in this MCAP" if content else "not an MCAP file") in said
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["run.mcap"]  # no report written
+
+
+@pytest.mark.parametrize(
+    ("args", "named"),
+    [
+        # --dry-run: were the check gone, the test would not leave a network up
+        (["up", "scenarios/smoke.yaml", "--dry-run", "--address", "10.0.0.1:6379"], "--address"),
+        (["down", "4a2cf3", "--address", "10.0.0.1:6379"], "--address"),
+        (["sweep", "scenarios/smoke.yaml", "--set", "seed=1,2", "--address", "local"],
+         "--address"),
+        (["sweep", "scenarios/smoke.yaml", "--set", "seed=1,2", "--ray-resource", "gpu"],
+         "--ray-resource"),
+    ],
+    ids=["up", "down", "sweep address", "sweep resource"],
+)  # fmt: skip
+def test_a_ray_option_without_engine_ray_exits_2_before_any_work(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, args: list[str], named: str
+) -> None:
+    """A cluster address given to a local sweep (or up/down) was ignored: the sweep ran here,
+    which a user who meant the cluster found out only from the wall time."""
+    from testbed.cli import _check_engine
+
+    monkeypatch.chdir(REPO)
+    if args[0] == "sweep":
+        args = [*args, "--out", str(tmp_path / "o")]
+    out = CliRunner().invoke(app, args)
+    assert out.exit_code == 2, out.output
+    assert f"{named}: only --engine ray uses it; add --engine ray" in " ".join(out.output.split())
+    assert not (tmp_path / "o").exists()
+    # Neither the defaults nor the same option with --engine ray is refused.
+    _check_engine("local", **{"--address": ("auto", "auto")})
+    _check_engine("ray", **{"--address": ("local", "auto")})
