@@ -10,8 +10,9 @@ host list to keep besides the scenario's):
   (`<name>` as in `topology.hosts`): a task asking for it can run on that host's node only.
   Before anything is built, every host of the scenario must have such a node, or nothing is.
 - A host's task runs the testbed CLI in a fresh interpreter (this interpreter, the checkout as
-  its working folder), as a sweep's real run does (`rayengine._run_apart`: building forks, and a
-  forked copy of a Ray worker is unsafe), with its output as the task's answer. It runs in the
+  its working folder), not in the worker (building forks, and a forked copy of a Ray worker is
+  unsafe; a sweep's real run is forked from a server of its own, `rayengine._run_apart`), with
+  its output as the task's answer. It runs in the
   network namespace of its Ray node, the host's underlay, where `up --host` must run (the
   tunnels' UDP sockets stay there). It gets a session of its own, so that what `up` leaves
   running (relays, GTP-U ends) is in no process group of the Ray worker; the CLI process itself

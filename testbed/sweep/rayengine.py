@@ -200,45 +200,76 @@ def execute(job: Job, real: bool) -> tuple[list[VariantResult], bytes, str, list
         shutil.rmtree(tmp, ignore_errors=True)
 
 
+#: What the process that forks each real run imports once, before its first run: the run, its
+#: report and the replay the report calls (torch). A fresh interpreter per run paid them every
+#: time (2.35 s here, more than issue #20's 2-s goal for the engine's whole cost per task).
+RUN_PRELOAD = ["testbed.run", "reports.build", "nodes.edgeloc.replay", __name__]
+#: Where a real run's child leaves its answer and its progress lines, in the task's folder
+#: (hidden, and outside the runs/ that goes back to the sweep).
+ANSWER_FILE = ".answer.pickle"
+PROGRESS_FILE = ".progress.log"
+
+_FORKSERVERS: list[Any] = []
+
+
+def _forkserver() -> Any:
+    """This worker's multiprocessing context whose server preloads `RUN_PRELOAD` (it starts
+    with the first real run, and ends when the worker does)."""
+    import multiprocessing
+
+    if not _FORKSERVERS:
+        context = multiprocessing.get_context("forkserver")
+        context.set_forkserver_preload(RUN_PRELOAD)
+        _FORKSERVERS.append(context)
+    return _FORKSERVERS[0]
+
+
 def _run_apart(job: Job, tmp: Path, lines: list[str]) -> list[VariantResult]:
-    """A real run in a fresh interpreter, child of this Ray worker and killed with it.
+    """A real run in a process of its own, forked from a server with the run's modules loaded.
 
-    Not in the worker itself: building namespaces forks (pyroute2), and a forked copy of a Ray
-    worker that is sent SIGTERM runs Ray's exit in the copy, which makes the raylet kill the
-    worker mid-run (seen as WorkerCrashedError in about one run in three on a busy host)."""
+    Not in the worker itself, nor in a fork of it: building namespaces forks (pyroute2), and a
+    forked copy of a Ray worker that is sent SIGTERM runs Ray's exit in the copy, which makes the
+    raylet kill the worker mid-run (seen as WorkerCrashedError in about one run in three on a
+    busy host). The fork server is a fresh interpreter that never imported Ray; it exits with
+    the worker, and the run with it (`die_with_parent`)."""
     import pickle
-    import subprocess
-    import sys
 
-    from netem.proc import die_with_parent
-
-    proc = subprocess.run(
-        [sys.executable, "-m", "testbed.sweep.rayengine"],
-        input=pickle.dumps((job, tmp)),
-        capture_output=True,
-        preexec_fn=die_with_parent,  # only a prctl between fork and exec
-        check=False,
+    answer, log = tmp / ANSWER_FILE, tmp / PROGRESS_FILE
+    child = _forkserver().Process(
+        target=_run_here, args=(job, tmp, answer, log), name=f"testbed run {job.name}"
     )
-    lines += proc.stderr.decode(errors="replace").splitlines()
-    if proc.returncode != 0 or not proc.stdout:
+    child.start()
+    try:
+        child.join()
+    except BaseException:  # a cancelled task: the run tears itself down on SIGTERM
+        child.terminate()
+        child.join(timeout=CLEAN_TIMEOUT_S)
+        raise
+    with contextlib.suppress(OSError):
+        lines += log.read_text(errors="replace").splitlines()
+    if child.exitcode != 0 or not answer.is_file():
         tail = "; ".join(x for x in lines[-5:] if x.strip())
-        raise RuntimeError(f"the run's process exited with {proc.returncode}: {tail}")
-    kind, value = pickle.loads(proc.stdout)
+        raise RuntimeError(f"the run's process exited with {child.exitcode}: {tail}")
+    kind, value = pickle.loads(answer.read_bytes())
     if kind == "raise":
         raise value
     return value  # type: ignore[no-any-return]
 
 
-def _child() -> int:
-    """`python -m testbed.sweep.rayengine`: one real run (a pickled job and folder on stdin);
-    progress lines on stderr, the pickled rows (or the BadInput/HostError) on stdout."""
+def _run_here(job: Job, tmp: Path, answer: Path, log: Path) -> None:
+    """The forked child: one real run; its progress (and anything it prints) into `log`, its
+    pickled rows (or the BadInput/HostError it raised) into `answer`."""
     import pickle
     import sys
 
-    job, tmp = pickle.loads(sys.stdin.buffer.read())
-    # The answer goes to the real stdout; anything the run prints joins the progress lines.
-    answer = os.fdopen(os.dup(1), "wb")
-    os.dup2(2, 1)
+    from netem.proc import die_with_parent
+
+    if not die_with_parent():  # the fork server, hence the worker, is gone already
+        raise SystemExit(1)
+    out_fd = os.open(log, os.O_WRONLY | os.O_CREAT | os.O_APPEND, 0o644)
+    os.dup2(out_fd, 1)
+    os.dup2(out_fd, 2)
+    os.close(out_fd)
 
     def say(line: str) -> None:
         print(line, file=sys.stderr, flush=True)
@@ -247,9 +278,7 @@ def _child() -> int:
         out: tuple[str, Any] = ("rows", run_job(job, True, tmp, say))
     except (BadInput, HostError) as err:
         out = ("raise", err)
-    answer.write(pickle.dumps(out))
-    answer.close()
-    return 0
+    answer.write_bytes(pickle.dumps(out))
 
 
 class _Board:
@@ -525,7 +554,3 @@ class _Sweep:
                           "`testbed clean` there")  # fmt: skip
             else:
                 self._say(f"  {host}: {text}")
-
-
-if __name__ == "__main__":
-    raise SystemExit(_child())

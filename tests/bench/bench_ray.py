@@ -10,8 +10,9 @@ resource, so that both run one job at a time and the difference is the engine's:
    whose first task starts a worker that loads the model, as the local sweep loads it (a
    second sweep on the same cluster would find the worker's DNN outputs cached and say
    nothing about the engine);
-2. real (as root, unless --no-real): two real runs of 4 s; under Ray each runs in its own
-   interpreter, child of the worker (`rayengine._run_apart`).
+2. real (as root, unless --no-real): two real runs of 4 s; under Ray each is forked from the
+   worker's fork server, which imports the run's modules before the first one
+   (`rayengine._run_apart`): the first run waits for those imports, the second does not.
 
 For each it prints the wall times, and the overhead per task, (Ray - local) / tasks, beside
 the goal. The cluster's own start (`ray.init`) is printed apart: a sweep on a running cluster
