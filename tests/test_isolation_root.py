@@ -9,6 +9,7 @@ its tables without sending a packet, so proving "no route to anything else" send
 from __future__ import annotations
 
 import ast
+import os
 from ipaddress import IPv4Address
 from pathlib import Path
 
@@ -115,6 +116,16 @@ def test_run_ids_avoid_the_ros_domains_of_live_runs(state_dir: Path) -> None:
     for _ in range(20):
         run_id = st.fresh_run_id(taken, key=domain_id_for)
         assert run_id not in taken and domain_id_for(run_id) == 100
+    # The same through `build`, where the taken ids are the live runs' state files (a dry run:
+    # it reads them as a real build does, and creates nothing).
+    me = st.ProcessRef.of(os.getpid(), "test")
+    for run_id in taken:
+        st.RunState(run_id, "smoke", None, me, "run", "up", None, 0.0).save()
+    assert {r.run_id for r in st.list_runs()} == taken
+    for _ in range(5):
+        net = build(example_scenario(1, 1), dry_run=True, echo=lambda _line: None)
+        assert domain_id_for(net.run_id) == 100, net.run_id
+    assert {r.run_id for r in st.list_runs()} == taken  # the dry runs recorded nothing
 
 
 # ---- no scenario value reaches a shell ---------------------------------------------------------
