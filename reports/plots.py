@@ -19,12 +19,15 @@ from matplotlib.figure import Figure
 from matplotlib.ticker import FuncFormatter, LogLocator, NullFormatter
 
 from nodes.recording import linktable
+from reports.labels import place
 from reports.mcapread import RunData, VehicleData
 from reports.summary import FrameErrors, fused_method, radio_capacity, split_order
 
 #: Per-vehicle figures are drawn for at most this many vehicles (the tables cover all).
 MAX_VEHICLE_FIGURES = 6
 DPI = 100
+#: The circle of a fixed split in the error-against-latency figure, in points.
+FIXED_MARKER_PT = 6
 METHOD_COLORS = {
     "gt": "black",
     "vo": "#7f7f7f",
@@ -68,6 +71,50 @@ def _save(fig: Figure, folder: Path, name: str) -> str:
     # No "Software" text chunk: the same data then gives the same bytes on any matplotlib.
     fig.savefig(folder / name, dpi=DPI, metadata={"Software": None})
     return name
+
+
+def _label_points(
+    fig: Figure,
+    ax: Any,
+    labels: list[tuple[str, float, float, str]],
+    markers: list[tuple[float, float, float]],
+    fontsize: float = 7,
+) -> None:
+    """Name points (text, x, y, colour) where no name covers another or a marker (x, y,
+    width in points): `reports.labels.place` on the laid-out figure, with a thin leader line
+    to a name that had to move away from its point."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+
+    renderer = FigureCanvasAgg(fig).get_renderer()
+    fig.tight_layout()  # as `_save` lays it out: pixel positions must be the saved ones
+    px = DPI / 72.0
+    to_px = ax.transData.transform
+    circles = [(*to_px((x, y)), width_pt * px / 2) for x, y, width_pt in markers]
+    sizes = []
+    for text, *_ in labels:
+        probe = ax.text(0, 0, text, fontsize=fontsize)
+        extent = probe.get_window_extent(renderer)
+        probe.remove()
+        sizes.append((extent.width, extent.height))
+    anchors = [tuple(to_px((x, y))) for _, x, y, _ in labels]
+    frame = tuple(ax.get_window_extent(renderer).extents)
+    boxes = place(anchors, sizes, circles, frame)  # type: ignore[arg-type]
+    for (text, x, y, colour), (ax_px, ay_px), box in zip(labels, anchors, boxes, strict=True):
+        far = max(box[0] - ax_px, ax_px - box[2], box[1] - ay_px, ay_px - box[3]) > 10
+        note = ax.annotate(
+            text,
+            (x, y),
+            xytext=((box[0] - ax_px) / px, (box[1] - ay_px) / px),
+            textcoords="offset points",
+            ha="left",
+            va="bottom",
+            fontsize=fontsize,
+            color=colour,
+            arrowprops={"arrowstyle": "-", "lw": 0.5, "color": colour, "shrinkA": 0, "shrinkB": 4}
+            if far
+            else None,
+        )
+        note.set_in_layout(False)  # already placed inside the axes: keep the layout as measured
 
 
 def _floored(values: Any, floor: float) -> Any:
@@ -478,6 +525,8 @@ def split_error_latency(summary: dict[str, Any], out: Path) -> Plot | None:
         return None
     fig = Figure(figsize=(9, 5.5))
     ax = fig.add_subplot(1, 1, 1)
+    labels: list[tuple[str, float, float, str]] = []  # (text, x, y, colour)
+    markers: list[tuple[float, float, float]] = []  # (x, y, width in points)
     for j, ph in enumerate(phases):
         c = PHASE_COLORS[j % len(PHASE_COLORS)]
         mine = [p for p in points if p[0] == j]
@@ -489,30 +538,25 @@ def split_error_latency(summary: dict[str, Any], out: Path) -> Plot | None:
             lw=0.8,
             alpha=0.5,
             marker="o",
-            ms=6,
+            ms=FIXED_MARKER_PT,
             label=f"phase {ph['start_s']:g}-{ph['end_s']:g} s",
         )
-        for _, policy, x, y in fixed:
-            ax.annotate(
-                policy.removeprefix("fixed:"),
-                (x, y),
-                xytext=(4, 3),
-                textcoords="offset points",
-                fontsize=7,
-                color=c,
-            )
+        labels += [(policy.removeprefix("fixed:"), x, y, c) for _, policy, x, y in fixed]
+        markers += [(x, y, FIXED_MARKER_PT) for _, _, x, y in fixed]
         for _, policy, x, y in mine:
             if policy in POLICY_MARKERS:
+                size = 120 if policy == "learned" else 60
                 ax.scatter(
                     [x],
                     [y],
                     marker=POLICY_MARKERS[policy],
-                    s=120 if policy == "learned" else 60,
+                    s=size,
                     color=c,
                     edgecolors="black",
                     linewidths=0.8,
                     zorder=3,
                 )
+                markers.append((x, y, size**0.5))
     # One legend entry per marker shape (the colour is the phase's).
     for policy, marker in POLICY_MARKERS.items():
         if any(p[1] == policy for p in points):
@@ -522,6 +566,7 @@ def split_error_latency(summary: dict[str, Any], out: Path) -> Plot | None:
     ax.grid(alpha=0.3)
     ax.legend(fontsize=8)
     ax.set_title("Error against latency per split and phase")
+    _label_points(fig, ax, labels, markers)
     return Plot(
         _save(fig, out, "split_error_latency.png"),
         "Error against latency per split and phase",
