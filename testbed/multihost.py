@@ -11,12 +11,11 @@ host list to keep besides the scenario's):
   Before anything is built, every host of the scenario must have such a node, or nothing is.
 - A host's task runs the testbed CLI in a fresh interpreter (this interpreter, the checkout as
   its working folder), not in the worker (building forks, and a forked copy of a Ray worker is
-  unsafe; a sweep's real run is forked from a server of its own, `rayengine._run_apart`), with
-  its output as the task's answer. It runs in the
-  network namespace of its Ray node, the host's underlay, where `up --host` must run (the
-  tunnels' UDP sockets stay there). It gets a session of its own, so that what `up` leaves
-  running (relays, GTP-U ends) is in no process group of the Ray worker; the CLI process itself
-  dies with the worker.
+  unsafe; a sweep's real run is forked from a server of its own, `rayengine._run_apart`),
+  with its output as the task's answer. It runs in the network namespace of its Ray node, the
+  host's underlay, where `up --host` must run (the tunnels' UDP sockets stay there). It gets a
+  session of its own, so that what `up` leaves running (relays, GTP-U ends) is in no process
+  group of the Ray worker; the CLI process itself dies with the worker.
 - The scenario file goes with the task as text (`Shipped`): a host with the same file at the
   same place (the same path inside its checkout, or the same absolute path outside it) runs
   that; else a hidden copy of the text is written next to where the file would be, so that

@@ -24,7 +24,7 @@ import shutil
 import tarfile
 import tempfile
 import time
-from collections.abc import MutableMapping
+from collections.abc import Iterator, MutableMapping
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
@@ -214,7 +214,7 @@ _FORKSERVERS: list[Any] = []
 
 def _forkserver() -> Any:
     """This worker's multiprocessing context whose server preloads `RUN_PRELOAD` (it starts
-    with the first real run, and ends when the worker does)."""
+    with the first real run, and ends once the worker and its runs have)."""
     import multiprocessing
 
     if not _FORKSERVERS:
@@ -224,36 +224,87 @@ def _forkserver() -> Any:
     return _FORKSERVERS[0]
 
 
+@contextlib.contextmanager
+def _no_main_module() -> Iterator[None]:
+    """Hide this process's `__main__` while a child is started: multiprocessing re-runs the
+    parent's main script in each child, and a Ray worker's is Ray's worker script, which
+    would import Ray into every run (the very thing the fork server keeps out)."""
+    import sys
+    import types
+
+    main = sys.modules["__main__"]
+    sys.modules["__main__"] = types.ModuleType("__main__")
+    try:
+        yield
+    finally:
+        sys.modules["__main__"] = main
+
+
 def _run_apart(job: Job, tmp: Path, lines: list[str]) -> list[VariantResult]:
     """A real run in a process of its own, forked from a server with the run's modules loaded.
 
     Not in the worker itself, nor in a fork of it: building namespaces forks (pyroute2), and a
     forked copy of a Ray worker that is sent SIGTERM runs Ray's exit in the copy, which makes the
     raylet kill the worker mid-run (seen as WorkerCrashedError in about one run in three on a
-    busy host). The fork server is a fresh interpreter that never imported Ray; it exits with
-    the worker, and the run with it (`die_with_parent`)."""
+    busy host). The fork server is a fresh interpreter that never imports Ray; the run dies
+    with this worker (`_die_with_worker`), and `testbed clean` removes what it left."""
     import pickle
 
     answer, log = tmp / ANSWER_FILE, tmp / PROGRESS_FILE
     child = _forkserver().Process(
         target=_run_here, args=(job, tmp, answer, log), name=f"testbed run {job.name}"
     )
-    child.start()
     try:
+        with _no_main_module():
+            child.start()
+    except (OSError, EOFError) as err:  # the server died while loading RUN_PRELOAD
+        # Not a HostError, which would stop the sweep: the run is retried on another host.
+        raise RuntimeError(
+            f"the process that starts real runs on this host failed ({type(err).__name__}: "
+            f"{err}); the Ray worker's log (under /tmp/ray/session_latest/logs) says why"
+        ) from None
+    try:
+        while child.exitcode is None:  # in steps: a cancel must not wait for the run's end
+            child.join(0.5)
+    except BaseException:  # a cancelled task: the run stops as if its worker had died
+        child.kill()
         child.join()
-    except BaseException:  # a cancelled task: the run tears itself down on SIGTERM
-        child.terminate()
-        child.join(timeout=CLEAN_TIMEOUT_S)
         raise
     with contextlib.suppress(OSError):
         lines += log.read_text(errors="replace").splitlines()
     if child.exitcode != 0 or not answer.is_file():
+        code = child.exitcode
+        how = f"was killed by signal {-code}" if code is not None and code < 0 else f"exited {code}"
         tail = "; ".join(x for x in lines[-5:] if x.strip())
-        raise RuntimeError(f"the run's process exited with {child.exitcode}: {tail}")
+        raise RuntimeError(f"the run's process {how}: {tail}")
     kind, value = pickle.loads(answer.read_bytes())
     if kind == "raise":
         raise value
     return value  # type: ignore[no-any-return]
+
+
+def _die_with_worker() -> None:
+    """Kill this process (a run forked by the fork server) the moment the worker that started
+    it is gone, however it went. The fork server outlives the worker while any of its children
+    runs, so its death, which `die_with_parent` would catch, never comes first; the worker's
+    own end of a pipe (multiprocessing's parent sentinel) closes with the worker."""
+    import multiprocessing
+    import select
+    import signal
+    import threading
+
+    parent = multiprocessing.parent_process()
+    if parent is None:
+        return
+    sentinel = parent.sentinel
+
+    def watch() -> None:
+        select.select([sentinel], [], [])
+        os.kill(os.getpid(), signal.SIGKILL)  # as the old child's parent-death signal did
+
+    if select.select([sentinel], [], [], 0)[0]:  # gone before this child got here
+        os.kill(os.getpid(), signal.SIGKILL)
+    threading.Thread(target=watch, name="die with the Ray worker", daemon=True).start()
 
 
 def _run_here(job: Job, tmp: Path, answer: Path, log: Path) -> None:
@@ -262,10 +313,7 @@ def _run_here(job: Job, tmp: Path, answer: Path, log: Path) -> None:
     import pickle
     import sys
 
-    from netem.proc import die_with_parent
-
-    if not die_with_parent():  # the fork server, hence the worker, is gone already
-        raise SystemExit(1)
+    _die_with_worker()
     out_fd = os.open(log, os.O_WRONLY | os.O_CREAT | os.O_APPEND, 0o644)
     os.dup2(out_fd, 1)
     os.dup2(out_fd, 2)
