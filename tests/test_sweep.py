@@ -232,3 +232,31 @@ def test_a_tiny_offline_sweep_writes_the_report(tmp_path: Path) -> None:
     png = (out / "sweep.png").read_bytes()
     assert png.startswith(b"\x89PNG") and len(png) > 10_000
     assert sorted(p.name for p in (out / "variants").iterdir()) == ["v01.yaml", "v02.yaml"]
+
+
+def test_a_real_run_of_a_sweep_runs_with_the_long_lived_objects_frozen(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A sweep's real run may happen in a process that holds torch (the local loop after its
+    first report, each Ray run): its objects are frozen for the run, so the cyclic collector's
+    full passes do not pause the timeline (~140 ms each with torch loaded), and thawed after."""
+    import gc
+
+    import testbed.run
+    from testbed.errors import TestbedError
+    from testbed.scenario import load
+    from testbed.sweep.jobs import Job, run_job
+
+    frozen: list[int] = []
+
+    def run_scenario(*_args: object, **_kwargs: object) -> None:
+        frozen.append(gc.get_freeze_count())
+        raise TestbedError("stopped by the test")
+
+    monkeypatch.setattr(testbed.run, "run_scenario", run_scenario)
+    job = Job(0, 7, "v0-seed7", {"seed": "7"}, load(SMOKE), "", "variant 1/1: seed=7")
+    before = gc.get_freeze_count()
+    (row,) = run_job(job, True, tmp_path, lambda _line: None)
+    assert row.error == "stopped by the test"
+    assert frozen and frozen[0] > 10_000, frozen  # everything alive then, modules included
+    assert gc.get_freeze_count() == before
