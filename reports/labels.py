@@ -48,8 +48,8 @@ def place(
 ) -> list[Box]:
     """A box per label (anchors[i] is its point, sizes[i] its width and height): the first
     spot in `RADII_PX` x `DIRECTIONS` that covers no marker and no label placed before it,
-    inside `frame`. A label with no free spot left gets the first spot inside the frame (or
-    the very first): it overlaps, but is still drawn."""
+    inside `frame` (anywhere when no spot fits inside). A label with no free spot left gets the
+    first spot: it overlaps, but is still drawn."""
     boxes: list[Box] = []
     for (x, y), (w, h) in zip(anchors, sizes, strict=True):
         spots = [_box(x, y, w, h, dx, dy, r) for r in RADII_PX for dx, dy in DIRECTIONS]

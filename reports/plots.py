@@ -87,7 +87,7 @@ def _label_points(
 
     renderer = FigureCanvasAgg(fig).get_renderer()
     fig.tight_layout()  # as `_save` lays it out: pixel positions must be the saved ones
-    px = DPI / 72.0
+    px = fig.dpi / 72.0
     to_px = ax.transData.transform
     circles = [(*to_px((x, y)), width_pt * px / 2) for x, y, width_pt in markers]
     sizes = []
@@ -556,7 +556,8 @@ def split_error_latency(summary: dict[str, Any], out: Path) -> Plot | None:
                     linewidths=0.8,
                     zorder=3,
                 )
-                markers.append((x, y, size**0.5))
+                # a diamond's tips reach 0.71 of its size from the centre, not 0.5
+                markers.append((x, y, size**0.5 * (1.42 if policy == "oracle" else 1.0)))
     # One legend entry per marker shape (the colour is the phase's).
     for policy, marker in POLICY_MARKERS.items():
         if any(p[1] == policy for p in points):

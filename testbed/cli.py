@@ -121,7 +121,11 @@ def _check_engine(engine: str, **ray_options: tuple[str, str]) -> None:
         raise _fail(BadInput(f"--engine: expected local or ray, found {engine!r}"))
     given = [name for name, (value, default) in ray_options.items() if value != default]
     if engine == "local" and given:
-        raise _fail(BadInput(f"{', '.join(given)}: only --engine ray uses it; add --engine ray"))
+        uses = "uses it" if len(given) == 1 else "uses them"
+        raise _fail(
+            BadInput(f"{', '.join(given)}: only --engine ray {uses}; add --engine ray or leave "
+                     f"{'it' if len(given) == 1 else 'them'} out")
+        )  # fmt: skip
 
 
 @app.command()

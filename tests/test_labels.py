@@ -33,7 +33,8 @@ def test_a_cluster_of_points_gets_labels_that_overlap_nothing() -> None:
         assert not covers(box, marker), (box, marker)
     for box, (w, h) in zip(boxes, sizes, strict=True):
         assert box[2] - box[0] == pytest.approx(w) and box[3] - box[1] == pytest.approx(h)
-        assert FRAME[0] <= box[0] and box[2] <= FRAME[2] and FRAME[1] <= box[1] <= box[3]
+        assert FRAME[0] <= box[0] and box[2] <= FRAME[2] and FRAME[1] <= box[1]
+        assert box[3] <= FRAME[3]
 
 
 def test_a_lone_point_keeps_its_label_beside_it_up_and_right() -> None:
@@ -47,9 +48,12 @@ def test_a_point_at_the_frame_edge_gets_its_label_inside() -> None:
     assert box[2] <= 800 and box[3] <= 500
 
 
-def test_no_room_still_gives_every_label_a_box() -> None:
+def test_a_frame_too_small_for_any_label_still_keeps_labels_apart() -> None:
+    # No spot fits inside: the frame is given up, not the spacing (the first goes right-up).
     boxes = place([(5.0, 5.0)] * 3, [(30.0, 9.0)] * 3, [], (0.0, 0.0, 10.0, 10.0))
-    assert len(boxes) == 3  # overlapping, but each name is drawn
+    assert boxes[0] == (8.0, 8.0, 38.0, 17.0)
+    for a, b in itertools.combinations(boxes, 2):
+        assert not overlaps(a, b), (a, b)
 
 
 def _crowded_summary() -> dict[str, Any]:
@@ -95,3 +99,4 @@ def test_the_error_latency_figure_names_crowded_splits_without_overlap(
         assert not a.overlaps(b), (a, b)
     inside = ax.get_window_extent(renderer)
     assert all(inside.x0 <= b.x0 and b.x1 <= inside.x1 for b in boxes)
+    assert all(inside.y0 <= b.y0 and b.y1 <= inside.y1 for b in boxes)
