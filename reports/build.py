@@ -22,13 +22,7 @@ import numpy as np
 
 from nodes.edgeloc.metrics import write_tum
 from nodes.recording import linktable
-from nodes.recording.layout import (
-    HANDOVER_TOPIC,
-    PARTS_DIR,
-    PCAP_DIR,
-    RUN_MCAP,
-    SUMMARY_FILE,
-)
+from nodes.recording.layout import HANDOVER_TOPIC, PARTS_DIR, PCAP_DIR, RUN_MCAP, SUMMARY_FILE
 from reports.document import Code, Document, Image, Para, Section, Table, to_markdown
 from reports.html import to_html
 from reports.mcapread import ReportInputError, RunData, read_run

@@ -114,18 +114,20 @@ def _fail(err: BaseException) -> typer.Exit:
     return typer.Exit(exit_code(err))
 
 
-def _check_engine(engine: str, **ray_options: tuple[str, str]) -> None:
-    """--engine is local or ray, and the options only Ray reads (name: (value, default)) are
-    left alone with local: a cluster address given to a local run was silently ignored."""
+def _check_engine(engine: str, ray_options: dict[str, tuple[str, str]]) -> None:
+    """--engine is local or ray, and the options only Ray reads ({option: (value, default)})
+    are left alone with local: a cluster address given to a local run was silently ignored."""
     if engine not in ("local", "ray"):
         raise _fail(BadInput(f"--engine: expected local or ray, found {engine!r}"))
     given = [name for name, (value, default) in ray_options.items() if value != default]
     if engine == "local" and given:
-        uses = "uses it" if len(given) == 1 else "uses them"
+        it = "it" if len(given) == 1 else "them"
         raise _fail(
-            BadInput(f"{', '.join(given)}: only --engine ray {uses}; add --engine ray or leave "
-                     f"{'it' if len(given) == 1 else 'them'} out")
-        )  # fmt: skip
+            BadInput(
+                f"{', '.join(given)}: only --engine ray uses {it}; add --engine ray or leave "
+                f"{it} out"
+            )
+        )
 
 
 @app.command()
@@ -323,7 +325,7 @@ def up(
     from testbed.scenario import ScenarioError, load
     from testbed.topology import build
 
-    _check_engine(engine, **{"--address": (address, "auto")})
+    _check_engine(engine, {"--address": (address, "auto")})
     try:
         scenario = load(file)
     except ScenarioError as err:
@@ -868,7 +870,7 @@ def sweep(
     from testbed.sweep.rayengine import RayOptions
 
     _check_engine(
-        engine, **{"--address": (address, "auto"), "--ray-resource": (ray_resource, "testbed")}
+        engine, {"--address": (address, "auto"), "--ray-resource": (ray_resource, "testbed")}
     )
     ray = RayOptions(address, ray_resource) if engine == "ray" else None
     try:
@@ -1020,7 +1022,7 @@ def down(
     """
     from testbed.topology import teardown_run
 
-    _check_engine(engine, **{"--address": (address, "auto")})
+    _check_engine(engine, {"--address": (address, "auto")})
     if engine == "ray":
         _down_on_ray(run_id, address)
         return

@@ -253,5 +253,5 @@ def test_a_ray_option_without_engine_ray_exits_2_before_any_work(
     assert f"{named}: only --engine ray uses it; add --engine ray" in " ".join(out.output.split())
     assert not (tmp_path / "o").exists()
     # Neither the defaults nor the same option with --engine ray is refused.
-    _check_engine("local", **{"--address": ("auto", "auto")})
-    _check_engine("ray", **{"--address": ("local", "auto")})
+    _check_engine("local", {"--address": ("auto", "auto")})
+    _check_engine("ray", {"--address": ("local", "auto")})

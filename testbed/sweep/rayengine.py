@@ -202,26 +202,23 @@ def execute(job: Job, real: bool) -> tuple[list[VariantResult], bytes, str, list
 
 #: What the process that forks each real run imports once, before its first run: the run, its
 #: report and the replay the report calls (torch). A fresh interpreter per run paid them every
-#: time (2.35 s here, more than issue #20's 2-s goal for the engine's whole cost per task).
+#: time (`make bench BENCH=ray` prints how long: about 2.2 s here, more than issue #20's 2-s
+#: goal for the engine's whole cost per task).
 RUN_PRELOAD = ["testbed.run", "reports.build", "nodes.edgeloc.replay", __name__]
 #: Where a real run's child leaves its answer and its progress lines, in the task's folder
 #: (hidden, and outside the runs/ that goes back to the sweep).
 ANSWER_FILE = ".answer.pickle"
 PROGRESS_FILE = ".progress.log"
 
-_FORKSERVERS: list[Any] = []
-
 
 def _forkserver() -> Any:
-    """This worker's multiprocessing context whose server preloads `RUN_PRELOAD` (it starts
-    with the first real run, and ends once the worker and its runs have)."""
+    """This worker's multiprocessing context whose server preloads `RUN_PRELOAD` (the server
+    starts with the first real run, and ends once the worker and its runs have)."""
     import multiprocessing
 
-    if not _FORKSERVERS:
-        context = multiprocessing.get_context("forkserver")
-        context.set_forkserver_preload(RUN_PRELOAD)
-        _FORKSERVERS.append(context)
-    return _FORKSERVERS[0]
+    context = multiprocessing.get_context("forkserver")  # one per process
+    context.set_forkserver_preload(RUN_PRELOAD)
+    return context
 
 
 @contextlib.contextmanager

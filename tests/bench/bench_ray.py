@@ -13,6 +13,7 @@ resource, so that both run one job at a time and the difference is the engine's:
 2. real (as root, unless --no-real): two real runs of 4 s; under Ray each is forked from the
    worker's fork server, which imports the run's modules before the first one
    (`rayengine._run_apart`): the first run waits for those imports, the second does not.
+   It also prints how long those imports take in a fresh interpreter.
 
 For each it prints the wall times, and the overhead per task, (Ray - local) / tasks, beside
 the goal. The cluster's own start (`ray.init`) is printed apart: a sweep on a running cluster
@@ -51,6 +52,25 @@ def _sweep(out: Path, sets: list[str], real: bool, on_ray: bool) -> float:
     if failed:
         raise SystemExit(f"a run of the benchmark failed: {failed[0]}")
     return wall
+
+
+def _preload_s() -> float:
+    """Seconds a fresh interpreter takes to import what a worker's fork server preloads
+    (`rayengine.RUN_PRELOAD`): what a worker's first real run waits for, and what each real
+    run paid when it started an interpreter of its own."""
+    import subprocess
+
+    from testbed.sweep.rayengine import RUN_PRELOAD
+
+    code = (
+        "import importlib, time; t = time.perf_counter(); "
+        f"[importlib.import_module(m) for m in {RUN_PRELOAD!r}]; "
+        "print(time.perf_counter() - t)"
+    )
+    done = subprocess.run(
+        [sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True, check=True
+    )
+    return float(done.stdout.split()[-1])
 
 
 def _line(what: str, tasks: int, local_s: float, ray_s: float) -> str:
@@ -102,6 +122,8 @@ def main() -> int:
     print("\n".join(rows))
     if not real:
         print("  real runs: skipped (" + ("--no-real" if a.no_real else "needs root") + ")")
+    print(f"a real run's modules import in {_preload_s():.2f} s in a fresh interpreter (paid "
+          "once per worker, by its fork server)")  # fmt: skip
     return 0
 
 
