@@ -993,6 +993,9 @@ def _recording(data: RunData, s: dict[str, Any]) -> Section:
 
 
 #: What a report cannot show without the run's run.json (a run that ended before writing it).
+NOT_COMPARED = (
+    "the scenario's report.compare is false; `testbed report {folder} --compare` computes it"
+)
 NO_RUN_JSON = (
     "No run.json, in the run folder or attached to run.mcap (the run ended before writing "
     "it): the path to the edge, apps, cross-traffic and EdgeLoc under load are left out."
@@ -1389,8 +1392,11 @@ def report_after_run(
 ) -> tuple[Report | None, str | None]:
     """The report at the end of a run (`testbed run`, each real variant of `testbed sweep`):
     `(report, None)`, or `(None, why not)` when the run recorded nothing or the report cannot
-    be built. Never raises for a report's own failure: the run's outcome is what counts."""
+    be built. Never raises for a report's own failure: the run's outcome is what counts.
+    `splits` False is the scenario's `report.compare: false`, which the report says."""
     folder = Path(run_folder)
+    if splits is False:
+        splits = NOT_COMPARED.format(folder=folder)
     if not (folder / RUN_MCAP).is_file():
         return None, f"{folder} has no {RUN_MCAP} (record.enabled off, or nothing recorded)"
     try:

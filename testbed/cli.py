@@ -471,7 +471,7 @@ def run(
             skip = (
                 f"the run was interrupted; `testbed report {folder}` computes it"
                 if isinstance(err, KeyboardInterrupt)
-                else True
+                else scenario.report.compare
             )
             _report_after_run(
                 Path(folder), scenario.report.formats, scenario.report.plots, splits=skip
@@ -500,7 +500,12 @@ def run(
             f"{n['downlink']} downlink packets; open in Wireshark)"
         )
     if scenario.report.enabled:  # last: the headline numbers and where the report is
-        _report_after_run(result.folder, scenario.report.formats, scenario.report.plots)
+        _report_after_run(
+            result.folder,
+            scenario.report.formats,
+            scenario.report.plots,
+            splits=scenario.report.compare,
+        )
     if not result.ok:
         raise typer.Exit(EXIT_FAILED)
 

@@ -85,7 +85,8 @@ links:
     downlink: {{rate: 100mbit, delay: 5ms}}
 {workload}
 {body}
-report: {{link_test: false, plots: false}}
+# The split comparison (~10 s of replays) is what tests/test_report_e2e_root.py checks.
+report: {{link_test: false, plots: false, compare: false}}
 """
     path = folder / "byo.yaml"
     path.write_text(text)
@@ -351,13 +352,16 @@ def test_loaded_cell_reports_edgeloc_with_and_without_the_background_ues_load(
             # 13-45% between runs of this 2-core host, against a 15% threshold).
             "  splits: [image, conv3, vehicle]\n": "  splits: [image, conv3, vehicle]\n"
             "  learner: {fixed_split: image}\n",
+            "  link_test: false": "  link_test: false\n  compare: false",
         },
     )
     out = testbed_cli("run", str(path), "--runs-dir", str(tmp_path), "--no-capacity-check")
     assert out.returncode == 0, out.stdout + out.stderr
     run_id = _run_id(out.stdout.splitlines(keepends=True))
     folder = tmp_path / run_id
-    load = json.loads((folder / "summary.json").read_text())["load"]["per_vehicle"]["av1"]
+    summary = json.loads((folder / "summary.json").read_text())
+    assert "report.compare is false" in summary["splits"]["skipped"]  # as the scenario asks
+    load = summary["load"]["per_vehicle"]["av1"]
     on, off = load["with_load"], load["without_load"]
     print(
         f"av1 with load: {on['answers']} answers, p50 {on['latency_s']['median'] * 1e3:.1f} ms,"

@@ -121,7 +121,8 @@ def test_a_run_with_a_channel_records_the_radio_and_the_handover_and_reports_the
     # tests/test_linktest_radio.py and test_linktest_root.py cover against the oracle.
     assert "\nreport:" not in text
     short.write_text(
-        text.replace("duration: 90s", "duration: 12s") + "\nreport: {link_test: false}\n"
+        text.replace("duration: 90s", "duration: 12s")
+        + "\nreport: {link_test: false, compare: false}\n"
     )
     scenario = load(short)
     by_channel = [e for e in scenario.timeline if isinstance(e, SetEvent)]

@@ -48,6 +48,17 @@ def test_run_reports_and_the_report_rebuilds_identically(state_dir: Path, tmp_pa
     assert summary["links"]["backend"], "the report must say which link backend ran"
     html = (folder / "report.html").read_text()
     assert html.count('src="data:image/png;base64,') >= 6
+    # Issue #14: the report of a real run compares the learned split with each fixed split
+    # and the oracle, replayed under the latencies this run measured, and draws error
+    # against latency per split
+    splits = summary["splits"]
+    assert splits["latency_source"] == "measured", splits.get("skipped")
+    policies = [r["policy"] for r in splits["rows"]]
+    assert policies[0] == "learned" and "oracle" in policies
+    assert {f"fixed:{k}" for k in splits["replayed_splits"]} <= set(policies)
+    md = (folder / "report.md").read_text()
+    assert "## Split points: learned, fixed, oracle" in md
+    assert (folder / "plots" / "split_error_latency.png").is_file()
 
     # Rebuilt elsewhere from the MCAP alone: the same bytes.
     again = tmp_path / "again"

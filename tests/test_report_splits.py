@@ -15,7 +15,7 @@ from report_synth import SynthRun
 from nodes.edgeloc.dataset import open_dataset
 from nodes.edgeloc.settings import LearnerSettings, ReplayConfig, config_to_dict
 from nodes.recording.layout import NODE_CONFIG_FILE
-from reports.build import build_report
+from reports.build import build_report, report_after_run
 from reports.mcapread import Decision, Inference, VehicleData, read_run
 from reports.splits import measured_requests, split_comparison
 from reports.summary import summarize
@@ -105,6 +105,24 @@ def test_requests_are_timed_from_their_own_start() -> None:
     ]
     assert [r.latency_s for r in reqs] == pytest.approx([0.06, 1.0, 0.07])
     assert [r.t_s for r in reqs] == pytest.approx([1.0, 1.5, 2.93])
+
+
+def test_a_scenario_with_report_compare_false_gets_a_report_that_says_how_to_add_it(
+    tmp_path: Path,
+) -> None:
+    """`report: {compare: false}`: the report after the run leaves the replays out and says
+    which command computes them; that command then does."""
+    folder = write(tmp_path, run_with_splits())
+    rep, why_not = report_after_run(folder, ("md", "json"), plots=False, splits=False)
+    assert rep is not None and why_not is None
+    said = json.loads((folder / "summary.json").read_text())["splits"]
+    assert said == {
+        "skipped": f"the scenario's report.compare is false; `testbed report {folder} --compare`"
+        " computes it"
+    }
+    assert f"Not computed: {said['skipped']}." in (folder / "report.md").read_text()
+    again = build_report(folder, formats=("json",), plots=False)
+    assert [r["policy"] for r in again.summary["splits"]["rows"]][:2] == ["learned", "fixed:image"]
 
 
 def test_real_run_report_compares_learned_fixed_and_oracle(tmp_path: Path) -> None:

@@ -482,6 +482,9 @@ class Report:
     plots: bool = True
     # Short link self-test before the workload: every link, none, or the links named.
     link_test: bool | tuple[str, ...] = True
+    # The split comparison: every fixed split and the oracle replayed on the run's drive under
+    # its measured latencies (~10 s of CPU after a 20-s run; `testbed report --compare` adds it).
+    compare: bool = True
 
     def link_test_links(self, links: Sequence[str]) -> list[str]:
         """The links of a run with `links` that its self-test measures, in the run's order."""

@@ -948,6 +948,13 @@ REPORT = Obj(
             " the links listed, e.g. [av1-gnb1] for the air link alone (each wired link costs"
             " ~8 s, each radio link ~20 s).",
         ),
+        Field(
+            "compare",
+            Bool(),
+            "Replay every fixed split and the oracle on the run's drive under its measured"
+            " latencies, beside the learned run (false: leave them out of the report, saving"
+            " ~10 s of CPU after a 20-s run; `testbed report RUN --compare` adds them later).",
+        ),
     ],
     model=model.Report,
 )

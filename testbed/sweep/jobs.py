@@ -191,7 +191,8 @@ def _report_summary(scenario: Scenario, folder: Path, progress: Progress) -> dic
         return None
     from reports.build import report_after_run
 
-    built, why_not = report_after_run(folder, scenario.report.formats, scenario.report.plots)
+    report = scenario.report
+    built, why_not = report_after_run(folder, report.formats, report.plots, report.compare)
     if built is None:
         if (folder / names.RUN_MCAP).is_file():
             progress(f"    warning: no report: {why_not}")
