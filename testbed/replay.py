@@ -43,7 +43,6 @@ from netem.profile import LinkProfile
 from netem.traces import Trace, load_trace
 from nodes.edgeloc import bands
 from nodes.edgeloc.compare import compare_splits
-from nodes.edgeloc.fusion import ConfidenceWeight
 from nodes.edgeloc.gate import GateSettings
 from nodes.edgeloc.latency import (
     PACKET_OVERHEAD,
@@ -58,19 +57,16 @@ from nodes.edgeloc.latency import (
 )
 from nodes.edgeloc.replay import (
     InferenceCache,
-    KalmanSettings,
-    LearnerSettings,
-    ReplayConfig,
     ReplayResult,
     config_dataset,
     run_replay,
 )
-from nodes.edgeloc.settings import confidence_file
 from nodes.edgeloc.train import load_model
 from nodes.recording import layout as names
 from nodes.recording.jsonfile import write_json
 from testbed.errors import BadInput
 from testbed.folders import check_writable_folder, make_folder
+from testbed.nodesettings import DEFAULT_GATE, replay_config
 from testbed.scenario.model import (
     ClearEvent,
     HandoverEvent,
@@ -81,13 +77,11 @@ from testbed.scenario.model import (
     ShapeEvent,
     TraceEvent,
     Traffic,
-    from_route,
 )
 
 if TYPE_CHECKING:
     from netem.stages import Slots
 
-DEFAULT_GATE = GateSettings()  # beyond the paper; see nodes.edgeloc.gate
 # The ROS nodes ask the edge through the SplitInference action (nodes/ros/inference_request.py):
 # SendGoal (with the activation) up, "accepted" down, GetResult up, the result down, so one
 # small round trip besides the request and the reply (`Exchange.handshakes`). The fixed 7 ms is
@@ -103,55 +97,8 @@ ACTION_EXCHANGE = Exchange(handshakes=1, overhead_s=0.007)
 _ComputeCache: dict[tuple[str, str, bool], ComputeProfile] = {}
 
 
-# ---- scenario -> replay config ----------------------------------------------------------------
-
-
 #: The least part of its rate a hop keeps under cross-traffic (a saturated link still moves).
 MIN_LEFT = 0.02
-
-
-def replay_config(scenario: Scenario, gate: GateSettings | None = DEFAULT_GATE) -> ReplayConfig:
-    """The plain replay settings of a scenario's workload."""
-    w = scenario.workload
-    lr = w.learner
-    # Phases: between timeline events, and where cross-traffic starts or stops.
-    # The channel's radio changes (`testbed.mobility`, several a second) and its handovers
-    # are not phases.
-    edges = [e.at_s for e in scenario.timeline if not from_route(e)]
-    edges += [t for f in scenario.traffic for t in (f.start_s, f.stop_s) if t is not None]
-    times = sorted({0.0, *(t for t in edges if t < scenario.duration_s)})
-    return ReplayConfig(
-        name=scenario.name,
-        seed=scenario.seed,
-        duration_s=scenario.duration_s,
-        rate_hz=w.rate_hz,
-        dataset=str(w.dataset),
-        corruption=w.corruption,
-        codec=w.codec,
-        weights=None if w.weights is None else str(w.weights),
-        splits=tuple(w.splits) if w.splits else ReplayConfig().splits,
-        learner=LearnerSettings(
-            window=lr.window,
-            cost=lr.cost,
-            fixed_split=lr.fixed_split,
-            detector=lr.detector,
-            kl_threshold=lr.kl_threshold,
-            consecutive=lr.consecutive,
-            detector_window=lr.detector_window,
-        ),
-        k_s=w.fusion.k_s,
-        dt0_s=w.fusion.dt0_s,
-        robust_c=w.fusion.robust_c,
-        robust_centre_s=w.fusion.robust_centre_s,
-        fusion_method=w.fusion.method,
-        dnn_correlation_s=w.fusion.correlation_s,
-        confidence=(
-            ConfidenceWeight.read(confidence_file(w.weights)) if w.fusion.confidence else None
-        ),
-        kalman=KalmanSettings(w.kalman.q_pos, w.kalman.q_yaw, w.kalman.r_pos, w.kalman.r_yaw),
-        gate=gate,
-        phases=tuple(times),
-    )
 
 
 class _PathPlan:

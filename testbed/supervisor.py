@@ -18,7 +18,7 @@ Only vehicles whose workload is `edgeloc` (all, unless the scenario's or the veh
 Every process gets the run's ROS environment (`nodes.ros.env.RosEnv`: the run's domain id,
 UDP-only Fast DDS with 4 MiB buffers, unicast peers beyond its gNB plus 127.0.0.1 for the
 participants of its own namespace), the run's node settings (`nodes/config.json`: the
-scenario's workload as `testbed.replay.replay_config` makes it, so a replay and a real run
+scenario's workload as `testbed.nodesettings.replay_config` makes it, so a replay and a real run
 of one scenario use the same settings), a log `logs/<name>.log`, a stats file
 `nodes/<name>.json` it writes when stopped and, when the scenario records, the MCAP part
 `parts/<name>.mcap` of everything it publishes (`testbed.recording`).
@@ -66,6 +66,7 @@ from nodes.ros.start import MATCHED, write_start
 from testbed import cgroups
 from testbed.cgroups import CpuBudget
 from testbed.errors import BadInput, TestbedError
+from testbed.nodesettings import replay_config
 from testbed.scenario.model import Scenario, TopicRecord, Vehicle
 from testbed.topology import Net
 
@@ -248,8 +249,6 @@ class Supervisor:
         self.budgets: dict[str, Budget] = {}
         self.stopping = False
         self.config_path = self.folder / names.NODE_CONFIG_FILE
-        from testbed.replay import replay_config  # imports torch: not for `testbed exec`
-
         self.config = replay_config(net.scenario)
 
     # ---- plan --------------------------------------------------------------------------

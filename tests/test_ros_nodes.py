@@ -6,6 +6,8 @@ from __future__ import annotations
 
 import json
 import math
+import subprocess
+import sys
 import time
 from pathlib import Path
 
@@ -175,6 +177,31 @@ def test_budget_floor_keeps_processes_alive_and_unlimited_stays_unlimited() -> N
     assert applied_cores(None) is None
     assert applied_cores(0.01) == MIN_PROCESS_CORES
     assert applied_cores(1.5) == 1.5
+
+
+def test_the_orchestrator_writes_the_nodes_settings_without_importing_torch(
+    tmp_path: Path,
+) -> None:
+    """`testbed run`'s own process plays the timeline in Python: torch's ~200,000 long-lived
+    objects there made each full pass of the garbage collector pause it ~120 ms. What it
+    needs of the workload (the nodes' settings, `testbed.nodesettings`) imports no torch."""
+    probe = f"""
+import sys
+from pathlib import Path
+import testbed.cli, testbed.run
+from testbed.scenario.loader import load
+from testbed.supervisor import Supervisor
+from testbed.topology import build
+for i, f in enumerate(sorted(Path({str(REPO / "scenarios")!r}).glob("*.yaml"))):
+    net = build(load(f), dry_run=True, run_id=f"ab{{i:04x}}", echo=lambda _line: None)
+    Supervisor(net, Path({str(tmp_path)!r}) / f.stem, print).plan()
+print(sorted(m for m in sys.modules if m == "torch" or m.startswith("torch.")))
+"""
+    out = subprocess.run(
+        [sys.executable, "-c", probe], capture_output=True, text=True, cwd=REPO, check=False
+    )
+    assert out.returncode == 0, out.stderr[-3000:]
+    assert out.stdout.strip().splitlines()[-1] == "[]", out.stdout[-2000:]
 
 
 def test_supervisor_plan_puts_each_node_in_its_namespace_with_its_peers(

@@ -2,7 +2,7 @@
 the JSON lines it logs and the stats file it writes at exit.
 
 The settings are the replay's (`nodes.edgeloc.replay.ReplayConfig`, written as JSON by the
-supervisor from the scenario through `testbed.replay.replay_config`), so a real run and a
+supervisor from the scenario through `testbed.nodesettings.replay_config`), so a real run and a
 replay of the same scenario use the same learner, fusion, Kalman and gate settings.
 
 Lifecycle (Jazzy aborts at exit otherwise, SPEC §8): our own SIGTERM/SIGINT handler sets a
