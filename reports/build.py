@@ -992,10 +992,11 @@ def _recording(data: RunData, s: dict[str, Any]) -> Section:
     return sec
 
 
-#: What a report cannot show without the run's run.json (a run that ended before writing it).
+#: Why a run's report has no split comparison when its scenario says `report.compare: false`.
 NOT_COMPARED = (
     "the scenario's report.compare is false; `testbed report {folder} --compare` computes it"
 )
+#: What a report cannot show without the run's run.json (a run that ended before writing it).
 NO_RUN_JSON = (
     "No run.json, in the run folder or attached to run.mcap (the run ended before writing "
     "it): the path to the edge, apps, cross-traffic and EdgeLoc under load are left out."

@@ -1,8 +1,9 @@
 """`testbed replay FILE`: the scenario's EdgeLoc workload replayed in one process, no network.
 
-This module only adapts: it turns a `Scenario` into the plain `ReplayConfig` and
-`LatencyModel` that `nodes.edgeloc.replay` runs, writes runs/<id>/ (summary.json, TUM
-trajectories, scenario.yaml) and returns what it wrote (`ReplayRun`); the CLI prints it.
+This module only adapts: it turns a `Scenario` into the `LatencyModel` that
+`nodes.edgeloc.replay` runs with the scenario's plain `ReplayConfig` (`testbed.nodesettings`),
+writes runs/<id>/ (summary.json, TUM trajectories, scenario.yaml) and returns what it wrote
+(`ReplayRun`); the CLI prints it.
 
 How the scenario becomes a latency model (for the first vehicle, or `vehicle=`):
 
