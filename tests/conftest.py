@@ -62,6 +62,26 @@ def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item
     items.sort(key=order)
 
 
+# The failed tries of tests that then passed on a rerun: pytest prints only their names, and a
+# flake whose traceback is gone cannot be told from a real bug that shows now and then.
+_RERUNS: list[tuple[str, str]] = []
+
+
+def pytest_runtest_logreport(report: pytest.TestReport) -> None:
+    if report.outcome == "rerun":
+        _RERUNS.append((report.nodeid, report.longreprtext))
+
+
+def pytest_terminal_summary(terminalreporter: pytest.TerminalReporter) -> None:
+    if not _RERUNS:
+        return
+    terminalreporter.section("failed tries of the tests that were rerun")
+    for nodeid, text in _RERUNS:
+        terminalreporter.write_sep("_", nodeid)
+        # the end of the traceback: the assertion and the lines that led to it
+        terminalreporter.write_line("\n".join(text.splitlines()[-60:]))
+
+
 @pytest.fixture
 def quiet_machine() -> float:
     """Wait (at most 20 s) until the disk is flushed and the CPUs are mostly idle.
