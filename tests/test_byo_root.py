@@ -326,15 +326,28 @@ def test_byo_ros2_carries_a_third_party_talker_to_a_listener_across_gtp_u(
     assert out.returncode == 0, out.stdout + out.stderr
     run_id = _run_id(out.stdout.splitlines(keepends=True))
     folder = tmp_path / run_id
-    heard = (folder / "logs" / "app.listener.log").read_text().count('listener: heard "hello')
+    log = (folder / "logs" / "app.listener.log").read_text()
+    heard = [int(n) for n in re.findall(r'listener: heard "hello (\d+)"', log)]
     from rosbags.highlevel import AnyReader
 
     with AnyReader([folder / "run.mcap"]) as reader:
         conns = [c for c in reader.connections if c.topic == "/chatter"]
         data = [reader.deserialize(raw, c.msgtype).data for c, _, raw in reader.messages(conns)]
-    print(f"listener heard {heard}, /chatter recorded {len(data)} at the edge")
-    assert heard >= 0.8 * 10 * 8  # 10 Hz from 2 s to 12 s, less discovery
-    assert data and data[0].startswith("hello ") and abs(len(data) - heard) <= 3
+    print(
+        f"listener heard {len(heard)} ({heard[:1]}..{heard[-1:]}), /chatter recorded"
+        f" {len(data)} at the edge ({data[:1]}..{data[-1:]})"
+    )
+    assert len(heard) >= 0.8 * 10 * 8  # 10 Hz from 2 s to 12 s, less discovery
+    assert data and all(d.startswith("hello ") for d in data), data[:3]
+    recorded = [int(d.removeprefix("hello ")) for d in data]
+    # From its first message on, the recorder has every one, in order, to the end of the run.
+    assert recorded == list(range(recorded[0], recorded[0] + len(recorded)))
+    assert abs(recorded[-1] - heard[-1]) <= 3
+    # It subscribes once the ROS graph shows the talker (as `ros2 bag record` does), one
+    # discovery exchange across the link after the listener, whose subscription exists
+    # from the start: usually within 3 messages of the listener's first, once 11 behind in
+    # CI (a 2-core host under load). Up to 2 s of the 10 Hz talker is allowed.
+    assert recorded[0] - heard[0] <= 20, (recorded[0], heard[0])
     _nothing_left(run_id, folder)
 
 
