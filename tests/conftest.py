@@ -67,9 +67,23 @@ def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item
 _RERUNS: list[tuple[str, str]] = []
 
 
+def failed_try(traceback: str, stdout: str, around: int = 20) -> str:
+    """What to print of a failed try: the lines around its first `E` line (the assertion,
+    not the end of a long diff), where it failed, and the end of what the test printed."""
+    lines = traceback.splitlines()
+    first = next((i for i, line in enumerate(lines) if line.startswith("E ")), len(lines) - 1)
+    shown = lines[max(first - around, 0) : first + around]
+    if lines and lines[-1] not in shown:
+        shown += ["...", lines[-1]]
+    printed = stdout.strip().splitlines()[-around:]
+    if printed:
+        shown += ["--- the test printed (end) ---", *printed]
+    return "\n".join(shown)
+
+
 def pytest_runtest_logreport(report: pytest.TestReport) -> None:
     if report.outcome == "rerun":
-        _RERUNS.append((report.nodeid, report.longreprtext))
+        _RERUNS.append((report.nodeid, failed_try(report.longreprtext, report.capstdout)))
 
 
 def pytest_terminal_summary(terminalreporter: pytest.TerminalReporter) -> None:
@@ -78,8 +92,7 @@ def pytest_terminal_summary(terminalreporter: pytest.TerminalReporter) -> None:
     terminalreporter.section("failed tries of the tests that were rerun")
     for nodeid, text in _RERUNS:
         terminalreporter.write_sep("_", nodeid)
-        # the end of the traceback: the assertion and the lines that led to it
-        terminalreporter.write_line("\n".join(text.splitlines()[-60:]))
+        terminalreporter.write_line(text)
 
 
 @pytest.fixture
