@@ -3,8 +3,9 @@
 
 Kept apart from `testbed.replay` so that what needs only the settings imports no torch: the
 orchestrator of `testbed run` writes them for its nodes (`testbed.supervisor`) and never runs
-the DNN. Torch's ~200,000 long-lived objects in its process made each full pass of the cyclic
-garbage collector pause the run's timeline for ~120 ms.
+the DNN. Importing torch there as the nodes started cost ~2 s and ~200,000 objects, with full
+passes of the garbage collector of up to ~100 ms meanwhile (`make bench BENCH=orchestrator_gc`
+prints both ways).
 """
 
 from __future__ import annotations

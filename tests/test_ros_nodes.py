@@ -182,9 +182,10 @@ def test_budget_floor_keeps_processes_alive_and_unlimited_stays_unlimited() -> N
 def test_the_orchestrator_writes_the_nodes_settings_without_importing_torch(
     tmp_path: Path,
 ) -> None:
-    """`testbed run`'s own process plays the timeline in Python: torch's ~200,000 long-lived
-    objects there made each full pass of the garbage collector pause it ~120 ms. What it
-    needs of the workload (the nodes' settings, `testbed.nodesettings`) imports no torch."""
+    """`testbed run`'s own process never runs the DNN: importing torch there as the nodes
+    started cost ~2 s and full garbage-collector passes of up to ~100 ms
+    (`make bench BENCH=orchestrator_gc`). What it needs of the workload (the nodes'
+    settings, `testbed.nodesettings`) imports no torch."""
     probe = f"""
 import sys
 from pathlib import Path

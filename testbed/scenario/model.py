@@ -482,8 +482,7 @@ class Report:
     plots: bool = True
     # Short link self-test before the workload: every link, none, or the links named.
     link_test: bool | tuple[str, ...] = True
-    # The split comparison: every fixed split and the oracle replayed on the run's drive under
-    # its measured latencies (~10 s of CPU after a 20-s run; `testbed report --compare` adds it).
+    # The split comparison after the run (the schema's `report.compare` says what it costs).
     compare: bool = True
 
     def link_test_links(self, links: Sequence[str]) -> list[str]:
