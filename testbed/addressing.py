@@ -11,7 +11,6 @@ they are unit-tested without root; `host_networks` is the one reader of the host
 
 from __future__ import annotations
 
-import ipaddress
 import socket
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass
@@ -109,8 +108,3 @@ def assign(pool: IPv4Network, link_names: Sequence[str]) -> dict[str, LinkAddres
             upper=IPv4Interface(f"{first + 1}/{LINK_PREFIX}"),
         )
     return out
-
-
-def parse_pool(text: str) -> IPv4Network:
-    """A pool as written in a state file."""
-    return ipaddress.IPv4Network(text)

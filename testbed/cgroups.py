@@ -352,25 +352,6 @@ class CpuBudget:
                 f"cannot put pid {pid} into cgroup {self.path}: {_oserror_text(err)}"
             ) from None
 
-    def add_thread(self, tid: int) -> None:
-        """Put one thread (not its whole process) under this budget: cgroup v1 only.
-
-        v1's `tasks` file takes thread ids, so one thread of a process (say, the one running a
-        DNN head) can be throttled while its siblings are not. v2 only allows that in
-        "threaded" cgroups, whose domain must hold the whole process; that is not done here.
-        """
-        if self.controller.version != 1:
-            raise HostError(
-                f"cannot budget thread {tid} alone: {self.controller.describe()} needs threaded "
-                "cgroups for per-thread CPU budgets (only cgroup v1 is supported)"
-            )
-        try:
-            _write(self.path / "tasks", str(int(tid)))
-        except OSError as err:
-            raise HostError(
-                f"cannot put thread {tid} into cgroup {self.path}: {_oserror_text(err)}"
-            ) from None
-
     def threads(self) -> list[int]:
         """Thread ids now in the group (v1 `tasks`; v2 `cgroup.threads`)."""
         name = "tasks" if self.controller.version == 1 else "cgroup.threads"

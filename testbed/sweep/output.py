@@ -264,10 +264,6 @@ def plot(report: SweepReport, path: Path) -> None:
     plt.close(fig)
 
 
-def _nan(x: float | None) -> float:
-    return math.nan if x is None else float(x)
-
-
 def write_report(report: SweepReport) -> None:
     out = report.out
     (out / "sweep.json").write_text(json.dumps(report.to_dict(), indent=2) + "\n")
