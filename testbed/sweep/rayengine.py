@@ -202,8 +202,8 @@ def execute(job: Job, real: bool) -> tuple[list[VariantResult], bytes, str, list
 
 #: What the process that forks each real run imports once, before its first run: the run, its
 #: report and the replay the report calls (torch). A fresh interpreter per run paid them every
-#: time (`make bench BENCH=ray` prints how long: about 2.2 s here, more than issue #20's 2-s
-#: goal for the engine's whole cost per task).
+#: time (`make bench BENCH=ray` prints how long: about 2.2 s here, more than the engine's 2-s
+#: goal for its whole cost per task).
 RUN_PRELOAD = ["testbed.run", "reports.build", "nodes.edgeloc.replay", __name__]
 #: Where a real run's child leaves its answer and its progress lines, in the task's folder
 #: (hidden, and outside the runs/ that goes back to the sweep).
