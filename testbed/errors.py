@@ -3,7 +3,7 @@
 Every package has its own root: `TestbedError` here, `netem.errors.NetemError` for links,
 `nodes.recording.RecordingError` for the recording format, `reports.ReportInputError` for a
 run folder a report cannot read, `nodes.edgeloc.errors.EdgeLocError` for the algorithms.
-Which exit code each one means is decided in one table, `testbed.cli.EXIT_CODES`.
+Which exit code each one means is decided in one table, `testbed.cli.common.EXIT_CODES`.
 """
 
 from __future__ import annotations

@@ -21,7 +21,8 @@ from typer.testing import CliRunner
 from netem.netns import NETNS_DIR
 from testbed import cgroups, check, console
 from testbed.check import Check, CheckReport, netem_probe, sandbox
-from testbed.cli import EXIT_HOST, app
+from testbed.cli import app
+from testbed.cli.common import EXIT_HOST
 from testbed.errors import BadInput
 
 REQUIRED = {"root", "netns", "veth", "tun", "qdisc htb", "qdisc pfifo"}

@@ -1,5 +1,5 @@
 """Errors and exit codes: every package has its own error root, and the CLI alone turns an
-error's type into an exit code, in one table (`testbed.cli.EXIT_CODES`)."""
+error's type into an exit code, in one table (`testbed.cli.common.EXIT_CODES`)."""
 
 from __future__ import annotations
 
@@ -21,7 +21,8 @@ from nodes.recording import RecordingError
 from nodes.ros.env import RosEnvError
 from nodes.ros.errors import RosError
 from reports.errors import ReportError, ReportInputError
-from testbed.cli import EXIT_CODES, app, exit_code
+from testbed.cli import app
+from testbed.cli.common import EXIT_CODES, exit_code
 from testbed.errors import BadInput, HostError, TestbedError
 from testbed.scenario import ScenarioError
 
@@ -243,7 +244,7 @@ def test_a_ray_option_without_engine_ray_exits_2_before_any_work(
 ) -> None:
     """A cluster address given to a local sweep (or up/down) was ignored: the sweep ran here,
     which a user who meant the cluster found out only from the wall time."""
-    from testbed.cli import _check_engine
+    from testbed.cli.common import check_engine
 
     monkeypatch.chdir(REPO)
     if args[0] == "sweep":
@@ -253,5 +254,5 @@ def test_a_ray_option_without_engine_ray_exits_2_before_any_work(
     assert f"{named}: only --engine ray uses it; add --engine ray" in " ".join(out.output.split())
     assert not (tmp_path / "o").exists()
     # Neither the defaults nor the same option with --engine ray is refused.
-    _check_engine("local", {"--address": ("auto", "auto")})
-    _check_engine("ray", {"--address": ("local", "auto")})
+    check_engine("local", {"--address": ("auto", "auto")})
+    check_engine("ray", {"--address": ("local", "auto")})

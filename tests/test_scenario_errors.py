@@ -11,7 +11,7 @@ from pathlib import Path
 
 import pytest
 
-from testbed.cli import exit_code
+from testbed.cli.common import exit_code
 from testbed.errors import BadInput
 from testbed.scenario import Issue, ScenarioError, load, loads
 

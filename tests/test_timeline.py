@@ -12,7 +12,7 @@ import pytest
 
 from netem.profile import LinkProfile
 from netem.traces import parse_csv, parse_mahimahi
-from testbed.cli import exit_code
+from testbed.cli.common import exit_code
 from testbed.errors import HostError
 from testbed.links import choose_backend, netem_needs, trace_rate_steps
 from testbed.scenario.model import (
