@@ -8,7 +8,7 @@ timed wake-ups are.
     timer_floor().text()  # "timed wake-ups late by 0.061 ms median, 0.143 ms p99 (300)"
 
 A link that misses its rate on a busy host is the host's doing as often as the link's: the
-relays and the measuring endpoints wait for a CPU. The link self-test (`testbed/linktest.py`)
+relays and the measuring endpoints wait for a CPU. The link self-test (`testbed.linktest`)
 and the tests' rate measurements (`tests/machine.py`) report this figure beside their own.
 
 A slot-timed link cannot send more precisely than its relay wakes up: the timer floor is the

@@ -230,7 +230,8 @@ def test_a_recorded_radio_trace_plays_its_own_mcs(tmp_path: Path) -> None:
 
 
 def test_the_replay_s_air_hop_runs_at_the_channel_s_mcs() -> None:
-    from testbed.replay import _PathPlan, replay_config
+    from testbed.replay import replay_config
+    from testbed.replay.path import _PathPlan
 
     scenario = _load(site1="{x: 0, y: 20}", channel="{model: uma, los: nlos, shadowing: false}")
     plan = mobility.plans(scenario)["av1"]

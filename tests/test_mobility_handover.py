@@ -11,7 +11,7 @@ from pathlib import Path
 import pytest
 
 from testbed import mobility
-from testbed.replay import _PathPlan
+from testbed.replay.path import _PathPlan
 from testbed.scenario import loads
 from testbed.scenario.model import HandoverEvent, Scenario, SetEvent
 from tests.test_mobility import _straight, _uma_los_db

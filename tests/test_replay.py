@@ -322,7 +322,7 @@ def test_unknown_split_and_bad_file_give_clear_errors(tmp_path: Path) -> None:
 
 
 def test_command_prints_table_and_headline(tmp_path: Path, monkeypatch) -> None:
-    import testbed.replay as rc
+    import testbed.replay.path as rc
 
     monkeypatch.setattr(rc, "compute_profile", lambda codec, weights: COMPUTE)
     monkeypatch.setenv("COLUMNS", "200")  # one table row a line
@@ -412,7 +412,7 @@ def test_convergence_finds_the_first_window_the_best_arm_holds() -> None:
 def test_vehicle_picks_the_path_the_replay_models(tmp_path: Path, monkeypatch) -> None:
     # multi_vehicle_nr: av4 drives to the cell edge (MCS 5) half-way, the others do not; the
     # replay of av4 must take its path and its radio, av1's not.
-    import testbed.replay as rc
+    import testbed.replay.path as rc
 
     monkeypatch.setattr(rc, "compute_profile", lambda codec, weights: COMPUTE)
     text = (ROOT / "scenarios" / "multi_vehicle_nr.yaml").read_text()

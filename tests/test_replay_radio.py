@@ -72,13 +72,9 @@ def test_against_a_run_the_other_vehicles_requests_share_the_cell(tmp_path: Path
 
     from netem.nr import RADIO_PROFILES
     from reports.mcapread import Inference, VehicleData
-    from testbed.replay import (
-        ContendedHop,
-        _cell_neighbours,
-        _contended,
-        _PathPlan,
-        compute_profile,
-    )
+    from testbed.replay import ContendedHop, compute_profile
+    from testbed.replay.against import _cell_neighbours, _contended
+    from testbed.replay.path import _PathPlan
 
     scenario = load(SCENARIOS / "multi_vehicle_nr.yaml")
     t0 = 1000.0
@@ -170,7 +166,8 @@ def test_the_runs_compute_replaces_the_reference_where_the_run_answered() -> Non
     from types import SimpleNamespace
 
     from nodes.edgeloc.latency import ComputeProfile
-    from testbed.replay import _PathPlan, run_compute
+    from testbed.replay import run_compute
+    from testbed.replay.path import _PathPlan
 
     base = ComputeProfile(("image", "conv3"), (0.001, 0.002), (0.003, 0.004))
     scenario = load(SCENARIOS / "nr_cell.yaml")

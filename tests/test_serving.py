@@ -75,7 +75,7 @@ channel:
     stay_net = plan(stay, "abc124", IPv4Network("10.99.0.0/24"))
     first = str(stay_net.server_address(stay.topology.cells[0]))
     assert ros_peers(stay_net, "av1") == [first, "127.0.0.1"]
-    from testbed.replay import _PathPlan
+    from testbed.replay.path import _PathPlan
 
     # The replay's path after a handover: the target's N3, then the edge asked.
     assert [w.name for w in _PathPlan(follow, None).paths["gnb2"]] == ["gnb2-upf1", "upf1-edge2"]

@@ -248,7 +248,7 @@ def test_the_tc_path_and_the_replay_bin_a_mahimahi_trace_alike(
 ) -> None:
     """One binning: window k holds (k*100 ms, (k+1)*100 ms]; the tc backend's HTB steps and
     the replay's latency model read the same steps (`Trace.rate_steps`)."""
-    from testbed.replay import _trace_rate
+    from testbed.replay.path import _trace_rate
 
     trace = parse_mahimahi(text)
     steps, period = trace_rate_steps(trace)
