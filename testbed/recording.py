@@ -554,7 +554,7 @@ class Recording:
             from nodes.ros.common import to_stamp
             from testbed import mobility
 
-            for plan in mobility.plans(scenario).values():
+            for plan in mobility.plans_of(scenario).values():
                 for s in plan.steps:
                     if s.t > played:
                         break
