@@ -268,7 +268,7 @@ class RunData:
     last_log_time: float | None
     radio: dict[str, RadioSeries] = field(default_factory=dict)  # vehicle -> /radio/<vehicle>
     handovers: list[HandoverRec] = field(default_factory=list)  # /handover, in time order
-    #: The attachment links.json (`testbed.run.links_config`: per link its profiles per
+    #: The attachment links.json (`testbed.recording.links_config`: per link its profiles per
     #: direction as applied at the start, `final_profiles` as the timeline left them); None
     #: when the run did not attach it (runs older than the attachment).
     links_config: dict[str, Any] | None = None

@@ -18,9 +18,10 @@ Nouns:
 
 `plans(scenario)` samples every vehicle; `with_channel(scenario)` returns the scenario with
 the channel's radio on its air links (the initial radio, then the events). The loader calls
-it, so a loaded scenario already carries them. Same seed, same sites and same route give the
-same plans: every random stream of the channel is seeded from the scenario's seed and the
-vehicle's name.
+it, so a loaded scenario already carries them, and the plans too (`plans_of`: a run's start,
+its `/radio/*` recording and the replay read them instead of sampling again). Same seed,
+same sites and same route give the same plans: every random stream of the channel is seeded
+from the scenario's seed and the vehicle's name.
 
 Without `channel.handover` a vehicle is served by the cell it attaches to all run long and
 the other sites only interfere. With it, `netem.handover.A3Handover` measures every site's
@@ -37,6 +38,7 @@ import math
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
+from typing import cast
 
 import numpy as np
 
@@ -316,6 +318,14 @@ def plans(scenario: Scenario, route: Route | None = None) -> dict[str, RadioPlan
     return out
 
 
+def plans_of(scenario: Scenario) -> dict[str, RadioPlan]:
+    """`plans(scenario)` as `with_channel` left them on the scenario, or sampled now (and
+    kept) for one it did not make."""
+    if scenario.radio_plans is None:
+        object.__setattr__(scenario, "radio_plans", plans(scenario))  # a cache, not a field
+    return cast("dict[str, RadioPlan]", scenario.radio_plans)
+
+
 def a3_of(spec: HandoverSpec, step_s: float, serving: str) -> A3Handover:
     """The A3 logic a scenario's `channel.handover` asks for, measuring every channel step,
     the vehicle served by the cell it attaches to at the start."""
@@ -470,13 +480,16 @@ def with_channel(scenario: Scenario, route: Route | None = None) -> Scenario:
                 )
                 for d in plan.handovers
             ]  # fmt: skip
-    return dataclasses.replace(
+    out = dataclasses.replace(
         scenario,
         links=dataclasses.replace(
             scenario.links, links=tuple(links[n.name] for n in scenario.links.links)
         ),
         timeline=tuple(sorted(timeline, key=lambda e: e.at_s)),
     )
+    if route is None:  # the plans of `out` too: the MCS and BLER set here change no sample
+        object.__setattr__(out, "radio_plans", found)
+    return out
 
 
 def _merge(
@@ -536,7 +549,7 @@ def coverage_notes(scenario: Scenario) -> list[str]:
     SINR -6.7 dB): never covered at all (most likely sites placed away from the route), or
     for what share of the run."""
     out = []
-    for plan in plans(scenario).values():
+    for plan in plans_of(scenario).values():
         covered = plan.coverage()
         if covered == 0.0:
             out.append(

@@ -22,8 +22,6 @@ folder as `run_folder` (when the folder exists), so a caller can report on a fai
 from __future__ import annotations
 
 import contextlib
-import json
-import math
 import shutil
 import sys
 import time
@@ -36,18 +34,17 @@ from netem.errors import NetemError
 from nodes.recording import RecordingError
 from nodes.recording import layout as names
 from nodes.recording.jsonfile import write_json
-from nodes.recording.parts import PartWriter
-from testbed import __version__, mobility, recording
+from testbed import __version__, mobility
 from testbed.apps import Apps
 from testbed.capacity import CapacityCheck, check_scenario
 from testbed.connectivity import EchoResult, vehicles_reach_cores
 from testbed.errors import HostError, TestbedError
 from testbed.folders import check_writable_folder, make_folder
 from testbed.linktest import LinkTest, LinkTestReport
+from testbed.recording import Recording
 from testbed.scenario.model import (
     HandoverEvent,
     Scenario,
-    TraceEvent,
     from_channel,
     from_route,
 )
@@ -108,10 +105,6 @@ class RunResult:
         }
 
 
-#: What `/traffic/<flow>` carries.
-TRAFFIC_TYPE = "edgeloc_interfaces/msg/TrafficSample"
-RADIO_TYPE = "edgeloc_interfaces/msg/RadioState"
-HANDOVER_TYPE = "edgeloc_interfaces/msg/Handover"
 #: Seconds between progress lines while the timeline plays.
 PROGRESS_EVERY_S = 5.0
 #: How often the run looks at its links and timeline for a failure.
@@ -283,255 +276,6 @@ def unanswered(nodes: dict[str, Any]) -> list[str]:
         for name, p in nodes.get("processes", {}).items()
         if name.endswith(".inference") and p.get("stats") and not p["stats"].get("answers")
     ]
-
-
-def links_config(net: Net, backend: str) -> dict[str, Any]:
-    """`links.json` of the run folder: per link and direction the applied profile, and how the
-    backend realises it (the relay's command line and stages, or the equivalent tc commands)."""
-    ctl = net.control
-    out: dict[str, Any] = {"backend": backend, "links": {}}
-    if ctl is None:
-        return out
-    for name, link in net.links.items():
-        entry: dict[str, Any] = {
-            "kind": link.kind,
-            "lower": link.lower.name,
-            "upper": link.upper.name,
-            "profiles": {d: ctl.profile(name, d).to_dict() for d in ("uplink", "downlink")},
-        }
-        entry.update(ctl.realisation(name))
-        out["links"][name] = entry
-    if ctl.backend == "tc":
-        try:
-            out["tc_commands"] = ctl.commands()
-        except Exception as err:
-            out["tc_commands"] = f"unavailable: {err}"
-    return out
-
-
-class Recording:
-    """The orchestrator's side of a run's recording (see the module doc): the manifest, its
-    own part with the link counters, and the final merge."""
-
-    def __init__(self, net: Net, folder: Path, backend: str, progress: Progress) -> None:
-        scenario = net.scenario
-        self.folder, self.progress, self.net = folder, progress, net
-        self.sampler: recording.CounterSampler | None = None
-        self.part: PartWriter | None = None
-        self.counters_note = ""
-        reason = net.link_backend.reason if net.link_backend is not None else backend
-        recording.write_manifest(
-            folder,
-            {
-                "run_id": net.run_id,
-                "scenario": scenario.name,
-                "seed": scenario.seed,
-                "link_backend": backend,
-                "started": time.time(),
-                "compression": scenario.record.compression,
-                "images": scenario.record.images,
-                "versions": recording.software_versions(),
-                "host": recording.host_capabilities(reason),
-                "namespaces": {n.name: n.netns for n in net.nodes.values()},
-                "traces": sorted(
-                    {str(e.path) for e in scenario.timeline if isinstance(e, TraceEvent)}
-                ),
-                "timeline_events": len(scenario.timeline),
-                "edgeloc_vehicles": [v.name for v in scenario.edgeloc_vehicles()],
-                "channel": mobility.describe(scenario),
-            },
-        )
-        write_json(folder / names.LINKS_CONFIG_FILE, links_config(net, backend))
-
-    def start_counters(self, ros_ok: bool) -> None:
-        """Sample the link counters into `/links/counters` (userspace relays; the tc
-        backend's qdisc statistics are not read, as in run.json's link_counters)."""
-        ctl = self.net.control
-        if ctl is None or not ctl.counts:
-            self.counters_note = "not recorded: the tc backend's qdisc counters are not read"
-            return
-        if not ros_ok:
-            self.counters_note = "not recorded: rclpy/edgeloc_interfaces not importable"
-            return
-        from edgeloc_interfaces.msg import LinkCounters
-        from rclpy.serialization import serialize_message
-
-        from nodes.ros.common import to_stamp
-
-        backend = self.net.control.backend  # type: ignore[union-attr]
-
-        def read() -> list[dict[str, Any]]:
-            return [
-                row
-                for link in self.net.links
-                for row in recording.counter_rows(link, ctl.counters(link) or {})
-            ]
-
-        def encode(row: dict[str, Any], t: float) -> bytes:
-            return serialize_message(LinkCounters(stamp=to_stamp(t), backend=backend, **row))
-
-        self.part = PartWriter(names.part_path(self.folder, "orchestrator"))
-        self.sampler = recording.CounterSampler(self.part, read, encode)
-        self.sampler.sample()  # one sample now: the counters at the nodes' start
-        self.sampler.start()
-
-    def stop_counters(self) -> None:
-        """Stop sampling (before the links go away), close the part, and add the profiles the
-        timeline left on each link to links.json (`final_profiles`)."""
-        if self.sampler is not None:
-            self.sampler.stop()
-            self.sampler.sample()  # and one at the end
-            self.sampler = None
-            self._final_profiles()
-        if self.part is not None:
-            self.part.close()
-
-    def _final_profiles(self) -> None:
-        ctl, path = self.net.control, self.folder / names.LINKS_CONFIG_FILE
-        if ctl is None:
-            return
-        try:
-            data = json.loads(path.read_text())
-            data["final_profiles"] = {
-                name: {d: ctl.profile(name, d).to_dict() for d in ("uplink", "downlink")}
-                for name in self.net.links
-            }
-            write_json(path, data)
-        except (OSError, ValueError) as err:
-            self.progress(f"  warning: links.json not updated: {err}")
-
-    def record_traffic(self, traffic: CrossTraffic, ros_ok: bool) -> None:
-        """Write the flows' samples as `/traffic/<flow>` (TrafficSample) into their own part."""
-        if not traffic:
-            return
-        if not ros_ok:
-            self.progress("  warning: /traffic/* not recorded: rclpy/edgeloc_interfaces missing")
-            return
-        from edgeloc_interfaces.msg import TrafficSample
-        from rclpy.serialization import serialize_message
-
-        from nodes.ros.common import to_stamp
-
-        def number(value: Any) -> float:
-            return math.nan if value is None else float(value)
-
-        part = PartWriter(names.part_path(self.folder, "traffic"))
-        try:
-            for flow, s in traffic.samples():
-                t_ns = int(s.get("time_ns") or time.time_ns())
-                msg = TrafficSample(
-                    stamp=to_stamp(t_ns / 1e9),
-                    flow=flow.name,
-                    kind=flow.kind,
-                    role=str(s.get("role", "")),
-                    t=number(s.get("t")),
-                    bytes=int(s.get("bytes") or 0),
-                    packets=int(s.get("packets") or 0),
-                    rate_bps=number(s.get("rate_bps")),
-                    goodput_bps=number(s.get("goodput_bps")),
-                    loss=number(s.get("loss")),
-                    delay_ms=number(s.get("delay_ms")),
-                    rtt_ms=number(s.get("rtt_ms")),
-                    late=int(s.get("late") or 0),
-                )
-                part.write(f"/traffic/{flow.name}", TRAFFIC_TYPE, serialize_message(msg), t_ns)
-        finally:
-            part.close()
-
-    def record_radio(self, started_epoch_s: float | None, ros_ok: bool) -> None:
-        """Write each vehicle's channel steps up to now as `/radio/<vehicle>` (RadioState),
-        stamped where the timeline placed them, into their own part."""
-        scenario = self.net.scenario
-        if scenario.channel is None or started_epoch_s is None:
-            return
-        if not ros_ok:
-            self.progress("  warning: /radio/* not recorded: rclpy/edgeloc_interfaces missing")
-            return
-        from edgeloc_interfaces.msg import RadioState
-        from rclpy.serialization import serialize_message
-
-        from nodes.recording.layout import radio_topic
-        from nodes.ros.common import to_stamp
-
-        played = min(scenario.duration_s, time.time() - started_epoch_s)
-        part = PartWriter(names.part_path(self.folder, "radio"))
-        try:
-            for plan in mobility.plans(scenario).values():
-                for s in plan.steps:
-                    if s.t > played:
-                        break
-                    t = started_epoch_s + s.t
-                    msg = RadioState(
-                        stamp=to_stamp(t),
-                        vehicle=plan.vehicle,
-                        cell=s.serving,
-                        x=s.x,
-                        y=s.y,
-                        rsrp_dbm=s.rsrp_dbm,
-                        sinr_db=s.sinr_db,
-                        cqi=s.cqi,
-                        mcs=s.mcs,
-                        bler=s.bler,
-                        ul_sinr_db=s.ul_sinr_db,
-                        ul_mcs=s.ul_mcs,
-                        ul_bler=s.ul_bler,
-                    )
-                    part.write(
-                        radio_topic(plan.vehicle), RADIO_TYPE, serialize_message(msg), int(t * 1e9)
-                    )
-        finally:
-            part.close()
-
-    def record_handovers(
-        self, started_epoch_s: float | None, handovers: list[dict[str, Any]], ros_ok: bool
-    ) -> None:
-        """Write the applied handovers (`handovers_applied`) as `/handover` (Handover),
-        stamped when each took effect, into their own part."""
-        if not handovers or started_epoch_s is None:
-            return
-        if not ros_ok:
-            self.progress("  warning: /handover not recorded: rclpy/edgeloc_interfaces missing")
-            return
-        from edgeloc_interfaces.msg import Handover
-        from rclpy.serialization import serialize_message
-
-        from nodes.recording.layout import HANDOVER_TOPIC
-        from nodes.ros.common import to_stamp
-
-        part = PartWriter(names.part_path(self.folder, "handover"))
-        try:
-            for h in handovers:
-                t = started_epoch_s + h["applied_s"]
-                msg = Handover(
-                    stamp=to_stamp(t),
-                    vehicle=h["vehicle"],
-                    source=h["source"],
-                    target=h["target"],
-                    scheduled_s=h["scheduled_s"],
-                    lateness_s=h["lateness_s"],
-                    interruption_s=h["interruption_s"],
-                    lossless=h["lossless"],
-                    error=h["error"] or "",
-                )
-                part.write(HANDOVER_TOPIC, HANDOVER_TYPE, serialize_message(msg), int(t * 1e9))
-        finally:
-            part.close()
-
-    def finish(self, status: str, nodes: dict[str, Any] | None) -> None:
-        """Merge the parts into run.mcap (raises RecordingError if that fails)."""
-        try:
-            self.stop_counters()
-        except RecordingError as err:
-            self.progress(f"  warning: {err}")
-        t = time.perf_counter()
-        notes = {"link_counters": self.counters_note} if self.counters_note else None
-        report = recording.finalise(self.folder, status, nodes=nodes, notes=notes)
-        size = report.path.stat().st_size
-        self.progress(
-            f"  recorded {report.messages} messages on {len(report.counts)} topics into "
-            f"{report.path} ({size / 1e6:.2f} MB) in {time.perf_counter() - t:.2f} s"
-            + (f"; link counters {self.counters_note}" if self.counters_note else "")
-        )
 
 
 def run_scenario(

@@ -243,7 +243,7 @@ class SynthRun:
         }
 
     def links(self, radios: dict[str, Radio | None], backend: str = "userspace") -> None:
-        """Attach links.json as `testbed.run.links_config` writes it: per link (name ->
+        """Attach links.json as `testbed.recording.links_config` writes it: per link (name ->
         its radio, None for a backhaul link) both directions' `LinkProfile.to_dict`, the radio
         serialised inside as the run serialises it."""
         config = {

@@ -292,3 +292,74 @@ def test_two_vehicles_on_two_sited_cells_each_get_their_own_radio() -> None:
     timed = mobility.with_channel(scenario, route)
     links = {e.link for e in timed.timeline}
     assert links == {"av1-gnb1", "av2-gnb2"}
+
+
+def _fake_ros(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Message classes and a serializer that stand in for ROS 2's: what the /radio/* part is
+    made of, without rclpy."""
+    import sys
+    import types
+
+    class Message:
+        def __init__(self, **fields: object) -> None:
+            self.__dict__.update(fields)
+
+    fakes = {
+        "edgeloc_interfaces.msg": {"RadioState": Message},
+        "builtin_interfaces.msg": {"Time": Message},
+        "rclpy.serialization": {"serialize_message": lambda msg: b"\0"},
+    }
+    for name, attrs in fakes.items():
+        module = types.ModuleType(name)
+        module.__dict__.update(attrs)
+        monkeypatch.setitem(sys.modules, name, module)
+
+
+def test_a_run_computes_its_channel_once(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """The channel (`mobility.plans`, the whole simulation) runs once per run, at load: the
+    timeline's start (coverage notes) and the /radio/* part use the plans the loaded scenario
+    carries."""
+    from mcap.reader import make_reader
+
+    from testbed import recording
+    from testbed.recording import Recording
+    from testbed.run import play_timeline
+    from testbed.topology import build
+
+    calls: list[str] = []
+    simulate = mobility.plans
+
+    def counted(scenario, route=None):  # type: ignore[no-untyped-def]
+        calls.append(scenario.name)
+        return simulate(scenario, route)
+
+    monkeypatch.setattr(mobility, "plans", counted)
+    monkeypatch.setattr(recording, "host_capabilities", lambda reason: {})
+    _fake_ros(monkeypatch)
+    scenario = _load(duration="1s")
+    assert calls == ["drive"]
+
+    class Links:  # the timeline's link changes land nowhere; nothing dies
+        def __getattr__(self, name: str) -> object:
+            return lambda *args, **kwargs: None
+
+    net = build(scenario, dry_run=True)
+    lines: list[str] = []
+    run = Recording(net, tmp_path, "userspace (test)", lines.append)
+    net.control = Links()  # type: ignore[assignment]
+    player = play_timeline(net, tmp_path, lines.append)
+    run.record_radio(player.started_epoch_s, ros_ok=True)
+    with open(tmp_path / "parts" / "radio.mcap", "rb") as f:
+        topics = {channel.topic for _, channel, _ in make_reader(f).iter_messages()}
+    assert topics == {"/radio/av1"}
+    assert calls == ["drive"]
+
+
+def test_a_loaded_scenario_carries_its_plans_and_one_made_from_it_does_not() -> None:
+    scenario = _load(duration="5s")
+    carried = scenario.radio_plans
+    assert carried is not None and mobility.plans_of(scenario) is carried
+    assert carried == mobility.plans(scenario)  # the radio the channel gave changes none
+    other = dataclasses.replace(scenario, seed=8)  # another seed, another channel
+    assert other.radio_plans is None
+    assert mobility.plans_of(other) == mobility.plans(other) != carried

@@ -487,7 +487,7 @@ def test_links_json_of_a_tc_run_lists_profiles_and_the_tc_commands() -> None:
     profile, plus the tc commands that realise them (rendered by a dry-run controller)."""
     import dataclasses
 
-    from testbed.run import links_config
+    from testbed.recording import links_config
     from testbed.topology import build, example_scenario
 
     scenario = example_scenario()

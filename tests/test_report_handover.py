@@ -264,7 +264,7 @@ def test_cell_changes_without_handover_settings_are_not_called_missing(tmp_path:
 @pytest.mark.ros
 def test_the_recorders_handover_bytes_read_in_the_report_and_in_rosbags(tmp_path: Path) -> None:
     """A Handover serialized by rclpy and written by the recorder's PartWriter, as
-    `testbed.run.Recording.record_handovers` does: the report's reader and rosbags' AnyReader
+    `testbed.recording.Recording.record_handovers` does: the report's reader and rosbags' AnyReader
     (an independent CDR reader) both read every field back."""
     from edgeloc_interfaces.msg import Handover
     from rclpy.serialization import serialize_message

@@ -95,7 +95,7 @@ def radio_bands(
     from testbed import mobility
 
     assert scenario.channel is not None, "radio bands need a channel"
-    plan = mobility.plans(scenario)[vehicle]
+    plan = mobility.plans_of(scenario)[vehicle]
     step = scenario.channel.step_s
     ul = [s.ul_mcs for s in plan.steps]
     decisions = summary["learner"]["decisions"]

@@ -615,6 +615,11 @@ class Scenario:
     channel: ChannelSpec | None = None  # None: the radios are what the file writes
     source: Path | None = None  # the file it was loaded from
     version: int = SCHEMA_VERSION
+    #: The channel's radio per vehicle (`testbed.mobility.plans_of`), computed once at load; a
+    #: scenario made from this one (`dataclasses.replace`) starts without, its inputs may differ.
+    radio_plans: dict[str, object] | None = field(
+        default=None, init=False, compare=False, repr=False
+    )
 
     @property
     def handover(self) -> HandoverSpec | None:

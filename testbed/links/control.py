@@ -1,19 +1,8 @@
-"""Link emulation for a run: which backend carries the links, how each link's two ends come to
-exist, and one controller that changes live links.
-
-Nouns:
-- `BackendChoice` / `choose_backend(scenario)`: `auto` is `tc` where the kernel takes a netem
-  qdisc (`testbed.check.netem_status`, the one probe, found by trying) and `userspace`
-  elsewhere. An explicit `tc` on a kernel without netem is refused (HostError, exit 3) only
-  when the scenario needs netem (delay, jitter, loss, outages); pure rate shaping is HTB.
-- `TunRelayEnds`: the userspace backend as a `LinkEnds`: each link's two interfaces are TUN
-  devices made by one relay process (`netem.userspace.UserspaceLink`), whose pid goes into the
-  run state and whose control socket lives in the run's state folder.
-- `LinkController`: what the timeline player and the link self-test call on live links:
-  `apply` (the scenario's profiles), `set` (profile fields in place), `shape`/`clear`
-  (Wondershaper-style caps on a node's interface), `outage`, `trace`. `TcController` does it
-  with qdiscs at the gNB end of each link (`netem.tc.shaping_end`); `UserspaceController` asks
-  each link's relay. Caps (`shape`) are HTB/IFB on both backends (HTB works on TUN devices).
+"""Live links: `LinkController`, what the timeline player and the link self-test call on a
+run's links: `apply` (the scenario's profiles), `set` (profile fields in place), `shape`/`clear`
+(Wondershaper-style caps on a node's interface), `outage`, `trace`. `TcController` does it with
+qdiscs at the gNB end of each link (`netem.tc.shaping_end`); `UserspaceController` asks each
+link's relay. Caps (`shape`) are HTB/IFB on both backends (HTB works on TUN devices).
 
 Trace replay on the tc backend (the relay replays traces itself): a csv trace's rows become
 HTB rate changes at their times; a mahimahi trace is turned into a rate per 100 ms window
@@ -24,351 +13,35 @@ window. A rate of 0 (no opportunity in a window) becomes 8 bit/s, HTB's smallest
 from __future__ import annotations
 
 import contextlib
-import json
-import os
-import re
-import shutil
 import threading
 import time
-from collections.abc import Callable, Iterator, Mapping, Sequence
-from dataclasses import dataclass
+from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
-from typing import Any, Literal, Protocol
+from typing import Any, Protocol
 
 from netem.nr import slot_s
 from netem.profile import HTB_MIN_RATE_BPS, LinkProfile
 from netem.shaping import NodeShaper, check_caps
 from netem.sniff import LinkSniffer, SniffConfig, SniffError
 from netem.tc import TcLinkBackend, shaping_end
-from netem.tc_plan import needs_netem
 from netem.traces import Trace, load_trace
 from netem.userspace import RelayError, UserspaceLink
-from nodes.recording.jsonfile import write_json
-from testbed import check
-from testbed import state as st
-from testbed.errors import BadInput, HostError, TestbedError
-from testbed.namespaces import EndNames, VethEnds
-from testbed.scenario.model import (
-    ClearEvent,
-    Event,
-    HandoverEvent,
-    LinkKind,
-    Links,
-    LinkSpec,
-    OutageEvent,
-    Scenario,
-    SetEvent,
-    ShapeEvent,
+from testbed.errors import BadInput, HostError
+from testbed.links.relay_ends import TunRelayEnds
+from testbed.links.views import (
+    DIRECTIONS,
+    BackendName,
+    Direction,
+    Directions,
+    LinkView,
+    NetView,
+    NodeView,
 )
-
-# ---- what the links need of the topology -------------------------------------------------------
-# Declared here, not imported: the topology builds on this module, so this module states the
-# little it reads of a built network (the topology's Node, Link and Net satisfy it).
-
-
-class Node(Protocol):
-    @property
-    def name(self) -> str: ...
-    @property
-    def role(self) -> str: ...
-    @property
-    def netns(self) -> str: ...
-
-
-class Link(Protocol):
-    @property
-    def name(self) -> str: ...
-    @property
-    def kind(self) -> LinkKind: ...
-    @property
-    def lower(self) -> Node: ...
-    @property
-    def upper(self) -> Node: ...
-    @property
-    def spec(self) -> LinkSpec | None: ...
-    @property
-    def ends(self) -> EndNames: ...
-
-
-class Net(Protocol):
-    """A built (or dry-run) network: its nodes and links by name, and how it was built."""
-
-    @property
-    def run_id(self) -> str: ...
-    @property
-    def mode(self) -> str: ...
-    @property
-    def dry_run(self) -> bool: ...
-    @property
-    def scenario(self) -> Scenario: ...
-    @property
-    def backend(self) -> object: ...
-    @property
-    def nodes(self) -> Mapping[str, Node]: ...
-    @property
-    def links(self) -> Mapping[str, Link]: ...
-
-    def record_pid(self, pid: int, what: str) -> None: ...
-
-    def emulates(self, link: str) -> bool:
-        """Whether this process applies `link`'s emulation (on one host of a topology across
-        hosts, only the links it holds the emulating end of)."""
-        ...
-
-    def prepare_handover(self, vehicle: str) -> None: ...
-
-    def hand_over(self, vehicle: str, target: str) -> None: ...
-
-
-BackendName = Literal["tc", "userspace"]
-Direction = Literal["uplink", "downlink"]
-Directions = Literal["uplink", "downlink", "both"]
-DIRECTIONS: tuple[Direction, Direction] = ("uplink", "downlink")
+from testbed.scenario.model import ClearEvent, Event, HandoverEvent, ShapeEvent
 
 #: Bytes a link carries per IP packet beyond the packet itself: HTB on a veth counts the
 #: 14-byte Ethernet header, the relay counts IP packets as read from the TUN device.
 FRAME_OVERHEAD = {"tc": 14, "userspace": 0}
-#: The netem fields a profile may change; `set` events naming any of them need netem on tc.
-NETEM_FIELDS = ("delay_s", "jitter_s", "loss", "gilbert_elliott")
-#: In a run's link-state folder (state dir, not the results folder): the backend, and each
-#: relay's pid and control socket (what `down`, `status` and `clean` read).
-LINK_STATE_FILE = "link-backend.json"
-
-
-# ---- which backend -------------------------------------------------------------------------
-
-
-@dataclass(frozen=True)
-class BackendChoice:
-    """The backend a run uses, and why (what run.json and `testbed up` print)."""
-
-    name: BackendName
-    reason: str
-
-    def describe(self) -> str:
-        return f"{self.name} ({self.reason})"
-
-
-def netem_needs(scenario: Scenario) -> list[str]:
-    """What in `scenario` only a netem qdisc can do on the tc backend, one phrase each."""
-    needs = []
-    for spec in scenario.links.links:
-        for direction in DIRECTIONS:
-            if needs_netem(spec.profile(direction)):
-                needs.append(f"{spec.name} {direction} (delay/jitter/loss)")
-    for event in scenario.timeline:
-        if isinstance(event, SetEvent) and any(
-            event.changes.get(f) not in (None, 0, 0.0) for f in NETEM_FIELDS
-        ):
-            needs.append(f"the `set` event on {event.link} at {event.at_s:g} s")
-        elif isinstance(event, OutageEvent):
-            needs.append(f"the outage of {event.link} at {event.at_s:g} s")
-    return needs
-
-
-def choose_backend(
-    scenario: Scenario, probe: Callable[[], tuple[bool, str]] = check.netem_status
-) -> BackendChoice:
-    """The backend for `scenario` on this kernel; HostError if it asks for one that cannot work."""
-    wanted = scenario.links.backend
-    if wanted == "userspace":
-        return BackendChoice("userspace", "asked for by the scenario")
-    radios = [s.name for s in scenario.links.links if s.uplink.radio or s.downlink.radio]
-    if wanted == "auto" and radios:
-        # The loader refuses `tc` with a radio; `auto` must not pick it either.
-        return BackendChoice(
-            "userspace", f"auto: {', '.join(radios)} have an NR radio, which only the relay models"
-        )
-    states = [s.name for s in scenario.links.links if s.uplink.rrc is not None]
-    if wanted == "auto" and states:
-        return BackendChoice(
-            "userspace", f"auto: {', '.join(states)} have RRC states, which only the relay models"
-        )
-    ok, detail = probe()
-    if wanted == "auto":
-        if ok:
-            return BackendChoice("tc", "auto: the kernel has sch_netem")
-        return BackendChoice("userspace", f"auto: {detail.split(';')[0]}")
-    if ok:
-        return BackendChoice("tc", "asked for by the scenario")
-    needs = netem_needs(scenario)
-    if needs:
-        shown = ", ".join(needs[:3]) + (f" and {len(needs) - 3} more" if len(needs) > 3 else "")
-        raise HostError(
-            f"links.backend is `tc`, but this kernel cannot add a netem qdisc "
-            f"({detail.split(';')[0]}), and the scenario needs netem for {shown}. "
-            "Use `backend: userspace` (the TUN relay) or `backend: auto`."
-        )
-    return BackendChoice("tc", "asked for; rate shaping only (HTB), the kernel has no sch_netem")
-
-
-def ends_for(choice: BackendChoice, mode: st.Mode, scenario: Scenario) -> VethEnds | TunRelayEnds:
-    """The `LinkEnds` of a backend: veth pairs for tc, relay-made TUN pairs for userspace."""
-    if choice.name == "tc":
-        return VethEnds()
-    # `up` leaves the network to outlive this process; a `run` owns it (its relays die with it).
-    return TunRelayEnds(scenario.links, die_with_parent=mode == "run", seed=scenario.seed)
-
-
-# ---- the userspace backend's link ends -----------------------------------------------------
-
-
-def link_state_dir(run_id: str) -> Path:
-    """Where a run keeps its relays' control sockets, logs and `link-backend.json`: in the
-    state dir, beside the run's state file (not the results folder under runs/)."""
-    return st.state_dir() / run_id
-
-
-class TunRelayEnds:
-    """A link's two interfaces as TUN devices made by one relay process per link.
-
-    The relay (`python -m netem.relay`) opens one TUN in each namespace, named as
-    `link.ends` says, and brings both up; it is started with the link's profiles (uplink =
-    lower -> upper), so the link shapes from its first packet. Addresses and routes are added
-    afterwards by the topology as for veth (the relay is given none, so nothing is done
-    twice). Each relay's pid is recorded in the run state right after it starts (`down` and
-    `clean` stop it; `clean` also finds relays by the namespaces on their command line, for a
-    crash between start and record). `relays` maps link names to their `UserspaceLink`.
-
-    The air links of one gNB whose profiles have an NR radio share one relay, attached to the
-    first of them, and its slots (`netem.cell`): a cell serves all its UEs, by the cell's
-    `scheduler`.
-    """
-
-    name = "userspace"
-
-    def __init__(self, links: Links, die_with_parent: bool = True, seed: int = 0) -> None:
-        self.specs = {spec.name: spec for spec in links.links}
-        self.die_with_parent = die_with_parent
-        self.seed = seed
-        self.relays: dict[str, UserspaceLink] = {}
-        self.cell_hosts: dict[str, UserspaceLink] = {}  # gNB -> the relay its cell lives in
-
-    def _relay(
-        self,
-        ends: EndNames,
-        control: str | None = None,
-        log_dir: Path | None = None,
-        **cell: Any,
-    ) -> UserspaceLink:
-        # ends are named after the peers: the lower node's interface is the upper's name
-        spec = self.specs.get(f"{ends.upper_ifname}-{ends.lower_ifname}")
-        up = spec.uplink if spec is not None else LinkProfile()
-        down = spec.downlink if spec is not None else LinkProfile()
-        return UserspaceLink(
-            ends.lower_netns,
-            ends.upper_netns,
-            dev_a=ends.lower_ifname,
-            dev_b=ends.upper_ifname,
-            uplink=up,
-            downlink=down,
-            seed=f"{self.seed}:{ends.lower_ifname}-{ends.upper_ifname}",
-            control_path=control,
-            log_dir=log_dir,
-            die_with_parent=self.die_with_parent,
-            **cell,
-        )
-
-    def _cell_of(self, link: Link, net: Net) -> dict[str, Any]:
-        """How `link` joins its gNB's cell: nothing (no radio), as the cell's host, or
-        attached to the host's relay."""
-        spec = self.specs.get(link.name)
-        if link.kind != "air" or spec is None:
-            return {}
-        if spec.uplink.radio is None and spec.downlink.radio is None:
-            return {}
-        gnb = link.upper.name
-        cells = {c.gnb: c for c in net.scenario.topology.cells}
-        scheduler = cells[gnb].scheduler if gnb in cells else "rr"
-        host = self.cell_hosts.get(gnb)
-        joined: dict[str, Any] = {"name": link.name, "cell": gnb, "scheduler": scheduler}
-        return joined if host is None else {**joined, "host": host}
-
-    def commands(self, ends: EndNames) -> list[str]:
-        relay = self._relay(ends, control="<state dir>/<run id>/<n>.sock")
-        return [" ".join(_shell_word(w) for w in relay.command()) + " &"]
-
-    def create(self, link: Link, net: Net) -> None:
-        folder = link_state_dir(net.run_id)
-        folder.mkdir(parents=True, exist_ok=True)
-        n = len(self.relays)
-        control = folder / f"{n}.sock"  # short: unix socket paths are <108 B
-        logs = folder / f"{n}.log.d"  # the relay's log lives with the run, not in /tmp
-        logs.mkdir(exist_ok=True)
-        cell = self._cell_of(link, net)
-        relay = self._relay(link.ends, control=str(control), log_dir=logs, **cell)
-        try:
-            relay.start()
-        except RelayError as err:
-            raise TestbedError(f"link {link.name}: {err}") from None
-        self.relays[link.name] = relay
-        if cell and "host" not in cell:
-            self.cell_hosts[cell["cell"]] = relay
-        net.record_pid(relay.pid or 0, f"relay {link.name}")
-        _write_relay_file(folder, self.relays)
-
-
-def _shell_word(word: str) -> str:
-    return (
-        word if re.fullmatch(r"[\w@%+=:,./<>-]+", word) else "'" + word.replace("'", "'\\''") + "'"
-    )
-
-
-def _write_relay_file(folder: Path, relays: dict[str, UserspaceLink]) -> None:
-    """`link-backend.json`: each relay's pid and control socket (for `down`/`clean`)."""
-    data = {
-        "backend": "userspace",
-        "relays": [
-            {
-                "link": name,
-                "pid": relay.pid,
-                "control": relay.control_path,
-            }
-            for name, relay in relays.items()
-        ],
-    }
-    write_json(folder / LINK_STATE_FILE, data)
-
-
-def write_backend(run_id: str, choice: BackendChoice) -> None:
-    """Record the run's backend in its `link-backend.json` (what `down`/`status` read)."""
-    folder = link_state_dir(run_id)
-    folder.mkdir(parents=True, exist_ok=True)
-    path = folder / LINK_STATE_FILE
-    try:
-        data = json.loads(path.read_text())
-    except (OSError, ValueError):
-        data = {}
-    data.update(backend=choice.name, reason=choice.reason)
-    write_json(path, data)
-
-
-def remove_link_state(run_id: str) -> None:
-    """Remove a run's link-state folder: relay sockets, relay logs, `link-backend.json` (after
-    the relays stopped)."""
-    shutil.rmtree(link_state_dir(run_id), ignore_errors=True)
-
-
-def relay_pids(namespaces: list[str]) -> list[int]:
-    """Relay processes whose command line names one of `namespaces` (found in /proc)."""
-    wanted = {ns.encode() for ns in namespaces}
-    found = []
-    for entry in os.listdir("/proc"):
-        if not entry.isdigit():
-            continue
-        try:
-            argv = Path(f"/proc/{entry}/cmdline").read_bytes().split(b"\0")
-        except OSError:
-            continue
-        if b"netem.relay" in argv and any(
-            a == b"--netns-a" and i + 1 < len(argv) and argv[i + 1] in wanted
-            for i, a in enumerate(argv)
-        ):
-            found.append(int(entry))
-    return found
-
-
-# ---- live links ------------------------------------------------------------------------------
 
 
 class LinkController(Protocol):
@@ -416,7 +89,7 @@ class LinkController(Protocol):
     def handover(self, event: HandoverEvent) -> None:
         """Hand a vehicle over: its two air links stop for the interruption (the source's
         packets held, or dropped when lossy; the target's held), then its routes switch to
-        the target (`Net.hand_over`)."""
+        the target (`NetView.hand_over`)."""
         ...
 
     def failure(self) -> str | None:
@@ -456,7 +129,7 @@ class LinkController(Protocol):
         ...
 
 
-def shaped_interface(net: Net, node_name: str) -> tuple[Node, str]:
+def shaped_interface(net: NetView, node_name: str) -> tuple[NodeView, str]:
     """The node and its interface that `shape` caps: a vehicle's or core's interface towards its
     gNB, a gNB's towards its core or UPF, a UPF's towards its (first) gNB, an edge server's
     N6."""
@@ -483,7 +156,7 @@ class _Base:
 
     backend: BackendName
 
-    def __init__(self, net: Net) -> None:
+    def __init__(self, net: NetView) -> None:
         self.net = net
         self.frame_overhead = FRAME_OVERHEAD[self.backend]
         self.profiles: dict[tuple[str, Direction], LinkProfile] = {}
@@ -497,7 +170,7 @@ class _Base:
         # Per shaped node: its caps' sockets, held open.
         self._caps: dict[str, NodeShaper] = {}
 
-    def _link(self, name: str) -> Link:
+    def _link(self, name: str) -> LinkView:
         if name not in self.net.links:
             raise BadInput(f"no link {name!r} in this run ({', '.join(self.net.links)})")
         if not self.net.emulates(name):
@@ -559,7 +232,7 @@ class UserspaceController(_Base):
     backend: BackendName = "userspace"
     counts = True
 
-    def __init__(self, net: Net, ends: TunRelayEnds) -> None:
+    def __init__(self, net: NetView, ends: TunRelayEnds) -> None:
         super().__init__(net)
         self.relays = ends.relays
         self._failure: str | None = None
@@ -655,7 +328,7 @@ class TcController(_Base):
     backend: BackendName = "tc"
     counts = False
 
-    def __init__(self, net: Net, dry_run: bool = False) -> None:
+    def __init__(self, net: NetView, dry_run: bool = False) -> None:
         super().__init__(net)
         self.dry_run = dry_run
         self.shapers: dict[str, TcLinkBackend] = {}
@@ -802,7 +475,7 @@ def _steps_forever(
         offset += period
 
 
-def controller_for(net: Net) -> LinkController:
+def controller_for(net: NetView) -> LinkController:
     """The controller of a built (or dry-run) net, by the backend its links were made with."""
     if isinstance(net.backend, TunRelayEnds):
         return UserspaceController(net, net.backend)

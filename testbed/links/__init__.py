@@ -1,0 +1,76 @@
+"""Link emulation for a run: which backend carries the links, how each link's two ends come to
+exist, and one controller that changes live links.
+
+Nouns:
+- `BackendChoice` / `choose_backend(scenario)` (`choice`): `tc` (qdiscs on veth pairs) or
+  `userspace` (a relay per link), per run, and why.
+- `TunRelayEnds` (`relay_ends`): the userspace backend as a `LinkEnds`, its relays' pids and
+  control sockets on record in the run's link-state folder.
+- `LinkController` (`control`): what the timeline player and the link self-test call on live
+  links; `TcController` and `UserspaceController` do it on each backend.
+- `NodeView`, `LinkView`, `NetView` (`views`): what the links read of a built network.
+"""
+
+from testbed.links.choice import (
+    NETEM_FIELDS,
+    BackendChoice,
+    choose_backend,
+    ends_for,
+    netem_needs,
+    write_backend,
+)
+from testbed.links.control import (
+    FRAME_OVERHEAD,
+    LinkController,
+    TcController,
+    UserspaceController,
+    controller_for,
+    neutral,
+    shaped_interface,
+    trace_rate_steps,
+)
+from testbed.links.relay_ends import (
+    LINK_STATE_FILE,
+    TunRelayEnds,
+    link_state_dir,
+    relay_pids,
+    remove_link_state,
+)
+from testbed.links.views import (
+    DIRECTIONS,
+    BackendName,
+    Direction,
+    Directions,
+    LinkView,
+    NetView,
+    NodeView,
+)
+
+__all__ = [
+    "DIRECTIONS",
+    "FRAME_OVERHEAD",
+    "LINK_STATE_FILE",
+    "NETEM_FIELDS",
+    "BackendChoice",
+    "BackendName",
+    "Direction",
+    "Directions",
+    "LinkController",
+    "LinkView",
+    "NetView",
+    "NodeView",
+    "TcController",
+    "TunRelayEnds",
+    "UserspaceController",
+    "choose_backend",
+    "controller_for",
+    "ends_for",
+    "link_state_dir",
+    "netem_needs",
+    "neutral",
+    "relay_pids",
+    "remove_link_state",
+    "shaped_interface",
+    "trace_rate_steps",
+    "write_backend",
+]
