@@ -5,8 +5,11 @@ both formats always say the same thing."""
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
-from reports.plots import Plot
+# Only a type here: the sections that build documents are imported by `reports.plots`.
+if TYPE_CHECKING:
+    from reports.plots import Plot
 
 
 @dataclass(frozen=True)

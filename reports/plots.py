@@ -21,7 +21,10 @@ from matplotlib.ticker import FuncFormatter, LogLocator, NullFormatter
 from nodes.recording import linktable
 from reports.labels import place
 from reports.mcapread import RunData, VehicleData
-from reports.summary import FrameErrors, fused_method, radio_capacity, split_order
+from reports.sections.accuracy import FrameErrors
+from reports.sections.learner import split_order
+from reports.sections.radio import radio_capacity
+from reports.sections.timing import fused_method
 
 #: Per-vehicle figures are drawn for at most this many vehicles (the tables cover all).
 MAX_VEHICLE_FIGURES = 6

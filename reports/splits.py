@@ -87,8 +87,8 @@ def split_comparison(
 ) -> dict[str, Any]:
     """The learned run, every fixed split the run measured and the oracle, replayed on the
     run's drive under its measured latencies (module doc); `{"skipped": why}` when it cannot
-    be done. `real_totals`: per vehicle, the recorded EdgeLoc total (`reports.summary`'s
-    per-vehicle figure), reported beside the replays."""
+    be done. `real_totals`: per vehicle, the recorded EdgeLoc total
+    (`reports.sections.accuracy`'s per-vehicle figure), reported beside the replays."""
     config = run_config(data)
     if isinstance(config, str):
         return {"skipped": config}

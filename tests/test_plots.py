@@ -13,9 +13,10 @@ from report_synth import stamp
 from test_report import T0, small_run, write_run
 
 import reports.plots
+from reports.build import summarize
 from reports.mcapread import read_run
 from reports.plots import ERROR_FLOOR_M, RATE_FLOOR_MBIT, draw_all
-from reports.summary import method_errors, summarize
+from reports.sections.accuracy import method_errors
 
 
 @pytest.fixture(scope="module")

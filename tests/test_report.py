@@ -15,9 +15,8 @@ from mcap.writer import Writer
 from report_synth import SynthRun, stamp
 from typer.testing import CliRunner
 
-from reports.build import build_report
+from reports.build import build_report, summarize
 from reports.mcapread import ReportInputError, read_run
-from reports.summary import summarize
 from testbed.cli import app
 
 T0 = 1_700_000_000.0
@@ -575,13 +574,22 @@ def test_interrupted_run_gets_a_partial_report_and_exits_130(
 
 
 def test_every_summary_key_is_documented(tmp_path: Path) -> None:
-    import reports.summary
+    import importlib
+    import pkgutil
+
+    import reports.build
+    import reports.sections
 
     s = summarize(read_run(write_run(tmp_path, small_run())))
-    doc = reports.summary.__doc__ or ""
+    names = [m.name for m in pkgutil.iter_modules(reports.sections.__path__)]
+    docs = [reports.build.__doc__] + [
+        importlib.import_module(f"reports.sections.{n}").__doc__ for n in names
+    ]
+    doc = "\n".join(d or "" for d in docs)
     undocumented = [k for k in s if f"`{k}`" not in doc]
     assert not undocumented, (
-        f"document these summary.json keys in reports/summary.py: {undocumented}"
+        "document these summary.json keys in the reports/sections/ module that computes "
+        f"them (or reports/build.py): {undocumented}"
     )
 
 
@@ -747,8 +755,8 @@ def _folder(path: Path) -> SimpleNamespace:
 def test_the_recording_section_lists_the_runs_captures(tmp_path: Path) -> None:
     import json
 
-    from reports.build import _captures
     from reports.document import Section, Table
+    from reports.sections.run import _captures
 
     (tmp_path / "pcap").mkdir()
     (tmp_path / "pcap" / "av1-gnb1.pcapng").write_bytes(b"\0" * 2000)
@@ -773,8 +781,8 @@ def test_the_recording_section_lists_the_runs_captures(tmp_path: Path) -> None:
 def test_the_path_section_shows_each_vehicles_tunnel_edge_and_hops(tmp_path: Path) -> None:
     import json
 
-    from reports.build import _paths
     from reports.document import Para, Table
+    from reports.sections.core_path import paths_section
 
     hops = [
         {"link": "av1-gnb1", "kind": "air", "uplink_delay_ms": 8.0, "downlink_delay_ms": 8.0},
@@ -790,11 +798,11 @@ def test_the_path_section_shows_each_vehicles_tunnel_edge_and_hops(tmp_path: Pat
             "qos_flows": "QFI 2 for DDS discovery; QFI 1 for the rest",
             "endpoints": {"gnb1": {"qfi_sent": {"1": 900, "2": 40}},
                           "upf1/gnb1": {"qfi_sent": {"1": 800, "2": 38}}}}  # fmt: skip
-    assert _paths(_folder(tmp_path)) is None  # no run.json: no section
+    assert paths_section(_folder(tmp_path)) is None  # no run.json: no section
     (tmp_path / "run.json").write_text(json.dumps({"paths": [path], "core_path": core}))
     per_vehicle = {"av1": {"requests": 40, "answers": 38, "latency_s": {"median": 0.0623},
                            "methods": {"edgeloc": {"position_m": {"mean": 1.234}}}}}  # fmt: skip
-    sec = _paths(_folder(tmp_path), per_vehicle)
+    sec = paths_section(_folder(tmp_path), per_vehicle)
     assert sec is not None
     (table,) = [b for b in sec.blocks if isinstance(b, Table)]
     (row,) = table.rows
@@ -808,7 +816,7 @@ def test_the_path_section_shows_each_vehicles_tunnel_edge_and_hops(tmp_path: Pat
     linktest = {"links": [{"link": "gnb1-upf1", "directions": [
         {"direction": "uplink", "owd_median_ms": 1.154, "baseline_ms": 0.084},
         {"direction": "downlink", "owd_median_ms": 1.212, "baseline_ms": 0.1}]}]}  # fmt: skip
-    measured = _paths(_folder(tmp_path), per_vehicle, linktest)
+    measured = paths_section(_folder(tmp_path), per_vehicle, linktest)
     assert measured is not None
     (table,) = [b for b in measured.blocks if isinstance(b, Table)]
     assert table.rows[0][6] == (
@@ -825,7 +833,7 @@ def test_the_path_section_shows_each_vehicles_tunnel_edge_and_hops(tmp_path: Pat
 def test_run_json_is_read_from_the_folder_or_else_from_run_mcap(tmp_path: Path) -> None:
     """What the orchestrator wrote (run.json) comes with the recording: a report rebuilt from
     run.mcap alone shows it; without it anywhere, the report says what is left out."""
-    from reports.build import NO_RUN_JSON
+    from reports.sections.run import NO_RUN_JSON
 
     bare = write_run(tmp_path, small_run(), "bare")
     build_report(bare, formats=("md",), plots=False, splits=False)

@@ -19,9 +19,9 @@ from report_synth import SynthRun
 
 from netem.nr import RADIO_PROFILES, Radio
 from nodes.recording.layout import LINKS_CONFIG_FILE
-from reports.build import build_report
+from reports.build import build_report, summarize
 from reports.mcapread import read_run
-from reports.summary import radio_capacity, summarize
+from reports.sections.radio import radio_capacity
 
 T0 = 1_700_000_000.0
 STEPS = 40

@@ -17,9 +17,9 @@ import pytest
 from report_synth import SynthRun
 
 from nodes.recording.layout import HANDOVER_TOPIC
-from reports.build import build_report
+from reports.build import build_report, summarize
 from reports.mcapread import HandoverRec, read_run
-from reports.summary import HANDOVER_WINDOW_S, summarize
+from reports.sections.radio import HANDOVER_WINDOW_S
 
 T0 = 1_700_000_000.0
 H = T0 + 6.0  # the handover takes effect here, in the middle of a 12 s drive

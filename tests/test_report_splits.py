@@ -15,10 +15,9 @@ from report_synth import SynthRun
 from nodes.edgeloc.dataset import open_dataset
 from nodes.edgeloc.settings import LearnerSettings, ReplayConfig, config_to_dict
 from nodes.recording.layout import NODE_CONFIG_FILE
-from reports.build import build_report, report_after_run
+from reports.build import build_report, report_after_run, summarize
 from reports.mcapread import Decision, Inference, VehicleData, read_run
 from reports.splits import measured_requests, split_comparison
-from reports.summary import summarize
 
 T0 = 1_700_000_000.0
 ARMS = ["image", "conv3", "vehicle"]

@@ -7,7 +7,8 @@ says how the learner chose: plays, the share of each split, and the mean payload
 learner that follows the radio sends less where the MCS is low). Around each handover
 (`around`), the same figures in the `AROUND_S` before and after it, with EdgeLoc's error and
 the uplink MCS there: what the cell edge and the interruption did to the learner and to the
-fused pose. Pure: numbers in, a table out; `testbed.replay` and `reports.summary` both use it.
+fused pose. Pure: numbers in, a table out; `testbed.replay` and `reports.sections.radio` both
+use it.
 """
 
 from __future__ import annotations
