@@ -2,9 +2,9 @@
 
 A `LinkProfile` is pure data: rate, delay, jitter and its distribution, loss (random or
 Gilbert-Elliott), queue limit, whether reordering is allowed, an optional NR air interface
-(`netem.nr.Radio`) and optional RRC timers (`netem.rrc.RrcSettings`), both userspace backend
-only. Backends (`tc`, `userspace`) turn a profile into qdiscs or relay stages; the timeline
-changes a live link by handing the backend a new profile, which it applies in place.
+(`netem.nr.radio.Radio`) and optional RRC timers (`netem.nr.rrc.RrcSettings`), both userspace
+backend only. Backends (`tc`, `userspace`) turn a profile into qdiscs or relay stages; the
+timeline changes a live link by handing the backend a new profile, which it applies in place.
 
 RRC states are the UE's, not a direction's: one state machine serves both directions of a
 link, so the two profiles of a link carry the same `rrc` (`check_link`).
@@ -18,8 +18,9 @@ from dataclasses import dataclass
 from typing import Any, Literal
 
 from netem.errors import ProfileError
-from netem.nr import NrError, Radio
-from netem.rrc import RrcError, RrcSettings
+from netem.nr.phy import NrError
+from netem.nr.radio import Radio
+from netem.nr.rrc import RrcError, RrcSettings
 
 JitterDistribution = Literal["normal", "uniform", "pareto"]
 JITTER_DISTRIBUTIONS: tuple[str, ...] = ("normal", "uniform", "pareto")

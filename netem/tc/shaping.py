@@ -4,7 +4,7 @@
 (HTB on its egress) and what it receives there (HTB on an IFB fed by an ingress mirred
 redirect), as Wondershaper's `-u`/`-d` do. `clear(node_ns, ifname)` lifts both caps.
 
-How a cap composes with a link profile already on the same interface (`netem.tc`): they
+How a cap composes with a link profile already on the same interface (`netem.tc.link`): they
 share one HTB tree. The cap lives in class 1:1, the profile in class 1:10 below it, and
 class 1:10 sends at min(profile rate, cap). `shape` changes only class 1:1 (and 1:10's
 effective rate) in place; `clear` puts 1:1 back to unlimited, which restores the profile rate
@@ -22,8 +22,8 @@ from __future__ import annotations
 
 from netem.errors import ProfileError
 from netem.profile import HTB_MIN_RATE_BPS
-from netem.tc import IngressShaper, ShapedInterface
-from netem.tc_plan import UNLIMITED_BPS
+from netem.tc.link import IngressShaper, ShapedInterface
+from netem.tc.plan import UNLIMITED_BPS
 
 
 def check_caps(uplink_bps: float | None, downlink_bps: float | None) -> None:

@@ -14,7 +14,7 @@ check each end may send.
 
 `encode_gpdu`/`echo_request`/`echo_response` build datagrams, `decode` reads any of them back
 into a `GtpMessage`, raising `GtpError` (with what is wrong) for anything else. Pure bytes, no
-sockets: `netem.gtp` is the endpoint that moves them.
+sockets: `netem.gtpu.endpoint` is the endpoint that moves them.
 """
 
 from __future__ import annotations

@@ -2,8 +2,8 @@
 
 Pure computation (no clock, no packets; only `RadioTrace.load` reads a file): a route's
 positions go in, the radio a link would have at each of them comes out, ready to set a
-`netem.nr.Radio`'s `mcs` and `bler`. Everything random is seeded, so the same seed and the same
-positions give the same samples.
+`netem.nr.radio.Radio`'s `mcs` and `bler`. Everything random is seeded, so the same seed and the
+same positions give the same samples.
 
 Nouns:
 - `Site`: one gNB cell, where it stands (world frame, metres), its antenna height, transmit
@@ -35,7 +35,7 @@ from types import MappingProxyType
 from typing import Literal
 
 from netem.errors import NetemError
-from netem.nr import MCS_TABLE_1, SUBCARRIERS_PER_PRB
+from netem.nr.phy import MCS_TABLE_1, SUBCARRIERS_PER_PRB
 
 Model = Literal["uma", "umi"]
 LosMode = Literal["los", "nlos", "auto"]
@@ -386,7 +386,7 @@ class RadioSample:
     """One step of a `Channel`: where the UE was, what it received, what the link runs at.
 
     `rsrp_dbm` and `los` have one entry per site; `sinr_db`, `cqi`, `mcs` and `bler` are the
-    serving cell's downlink (`mcs` and `bler` are what a `netem.nr.Radio` takes), the `ul_`
+    serving cell's downlink (`mcs` and `bler` are what a `netem.nr.radio.Radio` takes), the `ul_`
     fields its uplink's.
     """
 

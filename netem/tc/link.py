@@ -3,7 +3,7 @@
 Nouns, as a user imagines them:
 
 - `ShapedInterface` — the qdisc tree on one device in one namespace (root HTB 1:, cap class
-  1:1, profile class 1:10, leaf netem/pfifo; see `netem.tc_plan`). `apply`, `change` (in
+  1:1, profile class 1:10, leaf netem/pfifo; see `netem.tc.plan`). `apply`, `change` (in
   place), `set_cap` (Wondershaper's knob) and `clear` (only what it added).
 - `IngressShaper` — shapes what a device *receives*: an IFB device in the same namespace, an
   ingress qdisc with a u32 match-all filter that mirred-redirects everything to the IFB, and
@@ -17,7 +17,7 @@ back-pressures its socket (TCP small queues) and nothing is ever dropped. With b
 directions at the router end, uplink (UE -> gNB) is shaped on the gNB's IFB (after the veth,
 before routing) and downlink (gNB -> UE) on the gNB's egress.
 
-Every operation is planned first (a list of `netem.tc_plan` operations) and then either sent
+Every operation is planned first (a list of `netem.tc.plan` operations) and then either sent
 (`NetlinkExecutor`) or rendered as `tc`/`ip` command lines (`dry_run=True`): both from the
 same plan. After sending, the tree is read back from the kernel and compared with the plan.
 """
@@ -31,7 +31,7 @@ from pyroute2 import IPRoute
 
 from netem.errors import LinkStateError, NetlinkError, ProfileError
 from netem.profile import LinkProfile
-from netem.tc_netlink import (
+from netem.tc.netlink import (
     NetlinkExecutor,
     QdiscCounters,
     TextExecutor,
@@ -40,7 +40,7 @@ from netem.tc_netlink import (
     percent_u32,
     read_tree,
 )
-from netem.tc_plan import (
+from netem.tc.plan import (
     INGRESS_HANDLE,
     LEAF_HANDLES,
     NEUTRAL_PROFILE,

@@ -1,6 +1,6 @@
 """The netlink side of the `tc` backend: plan operations -> rtnetlink messages -> kernel.
 
-`build_message(op, ifindex)` turns one `netem.tc_plan` operation into the pyroute2 `tcmsg`
+`build_message(op, ifindex)` turns one `netem.tc.plan` operation into the pyroute2 `tcmsg`
 that `tc` would send for the same command line, so it can be inspected without sending.
 `NetlinkExecutor` sends a plan inside one namespace and turns every refusal into a
 `netem.errors.NetlinkError` that names the namespace, the command and what to do.
@@ -40,7 +40,7 @@ from pyroute2.netlink.rtnl import (
 from pyroute2.netlink.rtnl.tcmsg import cls_u32, sched_htb, tcmsg
 
 from netem.errors import NetlinkError
-from netem.tc_plan import (
+from netem.tc.plan import (
     CAP_CLASSID,
     ETH_P_ALL,
     LEAF_HANDLES,

@@ -70,7 +70,7 @@ class UserspaceLink:
     workload, a relay that waits for a CPU adds milliseconds of delay the profile never asked
     for; it takes no more CPU for it). Use 0 when not running as root.
     `name` is the link's name in its relay; `cell` the NR cell whose slots it shares with the
-    relay's other links of that cell (`netem.cell`, `scheduler` "rr" or "pf"); `host` a
+    relay's other links of that cell (`netem.nr.cell`, `scheduler` "rr" or "pf"); `host` a
     started link whose relay carries this one too.
     """
 

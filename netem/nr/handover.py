@@ -1,7 +1,7 @@
 """Handover between cells: the A3 event with time-to-trigger and L3 filtering, and what a
 handover costs the data path.
 
-Pure: RSRP measurements go in (from `netem.channel.Channel` or a recorded trace), handover
+Pure: RSRP measurements go in (from `netem.nr.channel.Channel` or a recorded trace), handover
 decisions come out; nothing here knows about links or packets.
 
 Nouns:

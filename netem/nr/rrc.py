@@ -13,7 +13,7 @@ Nouns:
   its end, and later ones pay nothing until the next quiet spell.
 - `Promotion`: one such promotion, for logs and reports.
 - `RrcSettings`: the four timers as plain data, what a `netem.profile.LinkProfile` carries
-  (`rrc`) to the relay, whose `netem.stages.RrcStage` holds packets back by them.
+  (`rrc`) to the relay, whose `netem.nr.rrc_stage.RrcStage` holds packets back by them.
 
 Only the packets given to `on_packet` count as traffic (both directions of the UE's link
 should be fed to one `Rrc`), and paging (a downlink packet to an idle UE) costs the same as

@@ -2,13 +2,13 @@
 
 A plan is a list of small operations (`IfbDevice`, `QdiscOp`, `ClassOp`, `RedirectFilter`).
 Each operation renders itself as the `tc`/`ip` command line a person would type
-(`command(netns)`), and `netem.tc_netlink` turns the very same operation into the netlink
+(`command(netns)`), and `netem.tc.netlink` turns the very same operation into the netlink
 message it sends. One description, two executors: the dry-run text is what gets applied.
 
 The tree put on every shaped interface (egress of a veth end, or egress of an IFB device):
 
     root 1: htb default 10
-      class 1:1  htb rate=ceil=<cap>                 the Wondershaper cap (`netem.shaping`)
+      class 1:1  htb rate=ceil=<cap>                 the Wondershaper cap (`netem.tc.shaping`)
         class 1:10 htb rate=min(<profile>, <cap>) ceil=<profile rate>   the link profile
           leaf 10: (or 11:) netem … | pfifo limit N   delay/jitter/loss, or just the queue
 

@@ -13,7 +13,7 @@ the upper end is the uplink, at the lower end the downlink; what an end sends it
   without its Ethernet header (raw-IP interfaces, as the relays' captures): the sockets read
   a virtio-net header (PACKET_VNET_HDR), so a TCP super-packet that crossed
   the veth whole is written segment by segment with its checksums done (`netem.gso`).
-- `LinkSniffer`: the process (`python -m netem.sniff CONFIG.json`), a context manager;
+- `LinkSniffer`: the process (`python -m netem.tc.sniff CONFIG.json`), a context manager;
   `close()` finishes the file and returns what it holds, as a relay's capture does. The
   link's own drops are not counted here (`dropped` is None): netem's qdisc has them.
 """
@@ -244,7 +244,7 @@ class LinkSniffer:
     def start(self, timeout_s: float = 10.0) -> LinkSniffer:
         cfg = Path(self._dir) / "config.json"
         cfg.write_text(self.config.to_json())
-        cmd = [sys.executable, "-m", "netem.sniff", str(cfg), "--die-with-parent",
+        cmd = [sys.executable, "-m", "netem.tc.sniff", str(cfg), "--die-with-parent",
                "--link", self.config.link]  # fmt: skip
         self.proc, why = spawn_ready(cmd, Path(self._dir) / "sniff.log", timeout_s)
         if self.proc is None:
@@ -270,7 +270,9 @@ class LinkSniffer:
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(prog="python -m netem.sniff", description=__doc__.splitlines()[0])
+    p = argparse.ArgumentParser(
+        prog="python -m netem.tc.sniff", description=__doc__.splitlines()[0]
+    )
     p.add_argument("config", help="the capture's SniffConfig as JSON (a file)")
     p.add_argument("--die-with-parent", action="store_true", help="exit when the parent dies")
     p.add_argument("--link", help="the link's name (for ps and `testbed clean`)")

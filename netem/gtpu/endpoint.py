@@ -20,8 +20,8 @@ the node's N3 address, port 2152.
   the routes take it over N6. Echo Requests are answered. Outer packets are sent with the
   don't-fragment bit (IP_PMTUDISC_DO): a packet that would need fragmenting on N3 is dropped
   and counted, never fragmented.
-- `GtpEndpoint`: the process (`python -m netem.gtp CONFIG.json`), started and stopped by a
-  context manager; it writes its counters to a JSON file twice a second and on exit.
+- `GtpEndpoint`: the process (`python -m netem.gtpu.endpoint CONFIG.json`), started and stopped
+  by a context manager; it writes its counters to a JSON file twice a second and on exit.
 """
 
 from __future__ import annotations
@@ -49,7 +49,7 @@ from typing import Any, Literal
 
 from netem.errors import NetemError
 from netem.gso import VNET_LEN, coalesce, ip_packets
-from netem.gtpu import (
+from netem.gtpu.wire import (
     ECHO_REQUEST,
     ECHO_RESPONSE,
     G_PDU,
@@ -641,7 +641,7 @@ class GtpEndpoint:
     def start(self, timeout_s: float = 10.0) -> GtpEndpoint:
         path = Path(self._dir) / "config.json"
         path.write_text(self.config.to_json())
-        cmd = [sys.executable, "-m", "netem.gtp", str(path)]
+        cmd = [sys.executable, "-m", "netem.gtpu.endpoint", str(path)]
         if self.echo_interval_s > 0:
             cmd += ["--echo-interval", str(self.echo_interval_s)]
         if self.die_with_parent:
@@ -682,7 +682,9 @@ class GtpEndpoint:
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(prog="python -m netem.gtp", description=__doc__.splitlines()[0])
+    p = argparse.ArgumentParser(
+        prog="python -m netem.gtpu.endpoint", description=__doc__.splitlines()[0]
+    )
     p.add_argument("config", help="the endpoint's EndpointConfig as JSON (a file)")
     p.add_argument("--echo-interval", type=float, default=0.0, help="s between Echo Requests")
     p.add_argument("--die-with-parent", action="store_true", help="exit when the parent dies")

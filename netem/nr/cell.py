@@ -1,6 +1,6 @@
 """A shared NR cell: the UEs attached to one gNB take turns in the same slots.
 
-Each UE's direction is a `netem.stages.Slots` stage with its own buffer, grants and HARQ; a
+Each UE's direction is a `netem.nr.ue.Slots` stage with its own buffer, grants and HARQ; a
 `Cell` joins those of one gNB and direction and serves them occasion by occasion, in time
 order, whichever of them the relay happens to advance. In each occasion the cell:
 
@@ -11,11 +11,8 @@ order, whichever of them the relay happens to advance. In each occasion the cell
    occasion, so the retransmissions of several UEs never overbook an occasion;
 2. asks each UE what it would send (its demand: what arrived in time and, with a scheduling
    request, what it was granted);
-3. splits the rest of the occasion's PRBs among the UEs that have data, by `scheduler`:
-   - `rr`: equal shares, a share a UE does not need going to the others (water filling);
-   - `pf`: proportional fair in time, the UE with the best ratio of what it could send now
-     to what it has been getting (an average over ~100 occasions) takes what it needs, then
-     the next (what OpenAirInterface's and srsRAN's default schedulers do).
+3. splits the rest of the occasion's PRBs among the UEs that have data, by its scheduler's
+   policy (`netem.nr.policy`: `rr` or `pf`);
 4. Each UE sends its share of the PRBs at its own MCS.
 
 PRBs are shared as fractions of the occasion and a UE's bytes are that fraction of its full
@@ -27,11 +24,8 @@ from __future__ import annotations
 
 import math
 
-from netem.stages import Slots, _ns
-
-SCHEDULERS = ("rr", "pf")
-#: Occasions the proportional-fair average spans (its forgetting factor is 1/this).
-PF_WINDOW = 100
+from netem.nr.policy import POLICIES, SCHEDULERS, Policy
+from netem.nr.ue import Slots, _ns
 
 
 class CellError(ValueError):
@@ -45,8 +39,8 @@ class Cell:
         if scheduler not in SCHEDULERS:
             raise CellError(f"scheduler must be one of {', '.join(SCHEDULERS)}, got {scheduler!r}")
         self.scheduler = scheduler
+        self.policy: Policy = POLICIES[scheduler]()
         self.members: list[Slots] = []
-        self._average: dict[int, float] = {}  # PF: bytes per occasion each UE has been getting
         #: Occasions whose retransmissions wanted more than all of their PRBs (stays 0).
         self.overbooked = 0
 
@@ -63,13 +57,13 @@ class Cell:
                     f"{first.tdd_period_s * 1000:g} ms)"
                 )
         self.members.append(stage)
-        self._average[id(stage)] = 1.0
+        self.policy.join(stage)
         stage.cell = self
 
     def leave(self, stage: Slots) -> None:
         if stage in self.members:
             self.members.remove(stage)
-            self._average.pop(id(stage), None)
+            self.policy.leave(stage)
             stage.cell = None
 
     def _next(self) -> tuple[float, float] | None:
@@ -129,18 +123,10 @@ class Cell:
             else:
                 m._serve(start, end, 0)
         free = max(0.0, 1.0 - taken)
-        shares = self._split(wants, free)
+        shares = self.policy.split(wants, free)
         for (m, capacity, _), share in zip(wants, shares, strict=True):
             m._serve(start, end, int(share * capacity + 1e-9))
-        if self.scheduler == "pf":
-            served = {
-                id(m): share * capacity
-                for (m, capacity, _), share in zip(wants, shares, strict=True)
-            }
-            for m in self.members:
-                average = self._average.get(id(m), 1.0)
-                got = served.get(id(m), 0.0)
-                self._average[id(m)] = average + (got - average) / PF_WINDOW
+        self.policy.served(self.members, wants, shares)
 
     def free_share(self, start: float) -> float:
         """The share of the PRBs of the occasion at `start` that no UE's retransmission has
@@ -153,38 +139,6 @@ class Cell:
                 capacity = _capacity_at(m, start)
                 taken += reserved / capacity if capacity else 0.0
         return max(0.0, 1.0 - taken)
-
-    def _split(self, wants: list[tuple[Slots, int, float]], free: float) -> list[float]:
-        """The share of the occasion each UE that wants some gets."""
-        if not wants:
-            return []
-        if self.scheduler == "pf":
-            order = sorted(
-                range(len(wants)),
-                key=lambda i: -wants[i][1] / max(self._average.get(id(wants[i][0]), 1.0), 1e-9),
-            )
-            shares = [0.0] * len(wants)
-            left = free
-            for i in order:
-                shares[i] = min(wants[i][2], left)
-                left -= shares[i]
-            return shares
-        # Water filling: equal shares; what a UE does not need goes to the others.
-        shares = [0.0] * len(wants)
-        open_ = set(range(len(wants)))
-        left = free
-        while open_ and left > 1e-12:
-            each = left / len(open_)
-            done = {i for i in open_ if wants[i][2] - shares[i] <= each}
-            if not done:
-                for i in open_:
-                    shares[i] += each
-                break
-            for i in done:
-                left -= wants[i][2] - shares[i]
-                shares[i] = wants[i][2]
-            open_ -= done
-        return shares
 
 
 def _capacity_at(stage: Slots, start: float) -> int:
