@@ -32,7 +32,7 @@ from mcap.stream_reader import StreamReader
 from mcap_ros2.decoder import DecoderFactory
 from numpy.typing import NDArray
 
-from netem.nr import Radio
+from netem.nr.radio import Radio
 from nodes.recording.layout import (
     HANDOVER_TOPIC,
     LINK_COUNTERS_TOPIC,

@@ -42,8 +42,8 @@ from typing import Any, Literal
 
 import netem
 from netem.netns import delete_netns
+from netem.relay.client import UserspaceLink
 from netem.traces import load_trace
-from netem.userspace import UserspaceLink
 from nodes.recording.jsonfile import write_json
 from testbed import links as lk
 from testbed import state as st

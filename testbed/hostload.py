@@ -96,7 +96,7 @@ def cpu_load_between(before: CpuSample, after: CpuSample) -> CpuLoad:
     return CpuLoad(1.0 - free / total, delta["steal"] / total, max(0.0, after.at - before.at))
 
 
-#: prctl(2) option: the timer slack the relay sets too (netem/relay.py).
+#: prctl(2) option: the timer slack the relay sets too (netem/relay/).
 PR_SET_TIMERSLACK = 29
 
 

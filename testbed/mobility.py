@@ -2,7 +2,7 @@
 
 The workload already knows where each vehicle is at every frame (its dataset's ground-truth
 poses); with a scenario `channel:`, this module makes the network know it too. Every `step`
-it places the vehicle on its route, samples `netem.channel.Channel` against the cells' sites
+it places the vehicle on its route, samples `netem.nr.channel.Channel` against the cells' sites
 (TR 38.901 path loss, LOS and shadowing, SINR with the other sites as interference, CQI,
 MCS and BLER, TS 38.214) and turns the samples into `set` events on the vehicle's air link,
 one wherever link adaptation would change what the radio runs at. Those events join the
@@ -24,7 +24,7 @@ same sites and same route give the same plans: every random stream of the channe
 from the scenario's seed and the vehicle's name.
 
 Without `channel.handover` a vehicle is served by the cell it attaches to all run long and
-the other sites only interfere. With it, `netem.handover.A3Handover` measures every site's
+the other sites only interfere. With it, `netem.nr.handover.A3Handover` measures every site's
 RSRP at each step and decides when the vehicle changes cell; each decision becomes a
 `HandoverEvent` (the timeline's handover: interruption, routes, N3 path switch), and the
 radio changes go to the air link of the cell serving at that step (`<vehicle>-<gnb>`).
@@ -42,7 +42,7 @@ from typing import cast
 
 import numpy as np
 
-from netem.channel import (
+from netem.nr.channel import (
     CQI_SINR_DB,
     N_PRB_30KHZ,
     Channel,
@@ -53,8 +53,8 @@ from netem.channel import (
     cqi_from_sinr,
     mcs_from_cqi,
 )
-from netem.handover import A3Handover, HandoverDecision, HandoverError
-from netem.nr import Radio
+from netem.nr.handover import A3Handover, HandoverDecision, HandoverError
+from netem.nr.radio import Radio
 from testbed.errors import BadInput
 from testbed.scenario.model import (
     Cell,
@@ -74,7 +74,7 @@ from testbed.scenario.model import (
 #: vehicle passes at (k + 1/2) / N of the run for the k-th of N cells: a mast at the kerb of
 #: the next block, not in the lane.
 AUTO_OFFSET_M = 25.0
-#: The largest BLER a radio is given: `netem.nr.Radio` takes BLER < 1, and at 99% with HARQ's
+#: The largest BLER a radio is given: `netem.nr.radio.Radio` takes BLER < 1, and at 99% with HARQ's
 #: retransmissions a UE out of coverage loses nearly everything, as one would before a radio
 #: link failure (which is not modelled).
 MAX_BLER = 0.99
@@ -282,7 +282,7 @@ def _cell_radio(scenario: Scenario, cell: Cell) -> Radio:
             radio = link.downlink.radio
             if radio is not None:
                 return radio
-    from netem.nr import RADIO_PROFILES
+    from netem.nr.radio import RADIO_PROFILES
     from testbed.scenario.radios import DEFAULT_PROFILE
 
     return RADIO_PROFILES[DEFAULT_PROFILE]  # a cell without vehicles only interferes

@@ -29,7 +29,7 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any, Protocol
 
-from netem.nr import Radio
+from netem.nr.radio import Radio
 from testbed.links import LinkController
 from testbed.scenario.model import (
     ClearEvent,

@@ -13,7 +13,7 @@ from typing import Any
 from mcap.writer import CompressionType
 from mcap_ros2.writer import Writer
 
-from netem.nr import Radio
+from netem.nr.radio import Radio
 from netem.profile import LinkProfile
 from nodes.recording.layout import LINKS_CONFIG_FILE
 

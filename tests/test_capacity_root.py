@@ -13,7 +13,7 @@ from typing import Any
 import pytest
 
 from netem.netns import list_netns
-from netem.userspace import UserspaceLink
+from netem.relay.client import UserspaceLink
 from testbed import capacity
 from testbed.capacity import CACHE_FILE, measure_data_plane
 from testbed.check.sandbox import PROBE_PREFIX

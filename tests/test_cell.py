@@ -1,4 +1,5 @@
-"""A shared NR cell (`netem.cell`): UEs of one gNB take turns in its slots (fake clock, no root)."""
+"""A shared NR cell (`netem.nr.cell`): UEs of one gNB take turns in its slots (fake clock, no
+root)."""
 
 from __future__ import annotations
 
@@ -6,14 +7,15 @@ import itertools
 
 import pytest
 
-from netem.cell import Cell, CellError
-from netem.nr import Radio
+from netem.nr.cell import Cell, CellError
+from netem.nr.radio import Radio
+from netem.nr.ue import Slots
 from netem.profile import LinkProfile
-from netem.stages import Pipeline, Slots
+from netem.relay.direction import build_pipeline
 
 
 def ue(radio: Radio, cell: Cell, seed: int) -> Slots:
-    pipeline = Pipeline.from_profile(LinkProfile(radio=radio, queue_packets=None), seed=seed)
+    pipeline = build_pipeline(LinkProfile(radio=radio, queue_packets=None), seed=seed)
     slots = pipeline.stage("slots")
     assert isinstance(slots, Slots)
     cell.join(slots)
@@ -123,7 +125,7 @@ def test_rlc_retransmissions_go_ahead_of_new_data() -> None:
     # for the buffer to drain: every packet leaves, with no long gap (at the back
     # of the buffer, nothing left for the rest of the drive after the first residual loss).
     radio = Radio(ul_access="ideal", bler=0.3, max_retx=2)
-    pipeline = Pipeline.from_profile(LinkProfile(radio=radio, queue_packets=None), seed=4)
+    pipeline = build_pipeline(LinkProfile(radio=radio, queue_packets=None), seed=4)
     slots = pipeline.stage("slots")
     assert isinstance(slots, Slots)
     packets = [(0.0, i.to_bytes(4, "big") + bytes(1496)) for i in range(2500)]

@@ -1,4 +1,4 @@
-"""The per-UE channel model (`netem.channel`) against the spec's formulas written out here.
+"""The per-UE channel model (`netem.nr.channel`) against the spec's formulas written out here.
 
 The reference path loss below is TR 38.901 Table 7.4.1-1 typed again from the table, not
 imported from the module; numbers are checked against hand-computed values at a few points and
@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from netem.channel import (
+from netem.nr.channel import (
     CQI_SINR_DB,
     CQI_TABLE_1,
     Channel,
@@ -35,7 +35,7 @@ from netem.channel import (
     mcs_threshold_db,
     path_loss_db,
 )
-from netem.nr import MCS_TABLE_1
+from netem.nr.phy import MCS_TABLE_1
 
 FC = 3.5  # GHz
 H_UT = 1.5

@@ -13,9 +13,9 @@ import pytest
 from typer.testing import CliRunner
 
 from netem.errors import NetemError, NetlinkError, ProfileError
+from netem.relay.client import RelayError
 from netem.traces import TraceError
 from netem.tun import TunError
-from netem.userspace import RelayError
 from nodes.edgeloc.errors import EdgeLocError
 from nodes.recording import RecordingError
 from nodes.ros.env import RosEnvError

@@ -350,7 +350,7 @@ def test_the_core_path_on_the_tc_backend_and_its_n3_capture(
     state_dir: Path, tmp_path: Path
 ) -> None:
     # Rates only (HTB), so it runs on a kernel without sch_netem too: the GTP-U ends do not
-    # care which backend carries N3, and the capture is netem.sniff's, not a relay's.
+    # care which backend carries N3, and the capture is netem.tc.sniff's, not a relay's.
     (tmp_path / "tc.yaml").write_text(TC_SCENARIO)
     scenario = load(tmp_path / "tc.yaml")
     path = tmp_path / "pcap" / "gnb1-upf1.pcapng"

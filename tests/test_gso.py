@@ -38,6 +38,7 @@ from netem.gso import (  # noqa: E402
     split,
 )
 from netem.profile import GilbertElliott, LinkProfile  # noqa: E402
+from netem.relay.direction import build_pipeline  # noqa: E402
 from netem.stages import Pipeline, Rate, Segment, wire_packets  # noqa: E402
 
 PAYLOAD = bytes(range(256)) * 20 + b"tail"  # 5124 bytes: 3 full segments of 1448 and a rest
@@ -264,7 +265,7 @@ def run(pipeline: Pipeline, frames: list, until: float = 10.0) -> list:
 
 
 def test_a_plain_link_moves_super_packets_whole_and_counts_wire_packets() -> None:
-    pipeline = Pipeline.from_profile(LinkProfile(delay_s=0.005))
+    pipeline = build_pipeline(LinkProfile(delay_s=0.005))
     out = run(pipeline, [tcp4(), tcp4()])
     assert [type(p) for p in out] == [Frame, Frame] and all(p.segments == 4 for p in out)
     total = pipeline.snapshot()["total"]
@@ -274,7 +275,7 @@ def test_a_plain_link_moves_super_packets_whole_and_counts_wire_packets() -> Non
 
 def test_a_slow_link_gets_wire_packets() -> None:
     # 5.3 kB take 42 ms at 1 Mbit/s: moved whole, the first segment would wait for the last.
-    out = run(Pipeline.from_profile(LinkProfile(rate_bps=1e6)), [tcp4() for _ in range(5)])
+    out = run(build_pipeline(LinkProfile(rate_bps=1e6)), [tcp4() for _ in range(5)])
     assert len(out) == 20 and all(type(p) is Frame and p.segments == 1 for p in out)
 
 
@@ -286,7 +287,7 @@ def test_a_slow_link_gets_wire_packets() -> None:
 def test_a_lossy_link_splits_only_the_super_packets_that_lose_packets(
     profile: LinkProfile,
 ) -> None:
-    pipeline = Pipeline.from_profile(profile, seed=2)
+    pipeline = build_pipeline(profile, seed=2)
     out = run(pipeline, [tcp4() for _ in range(2000)])
     whole = [p for p in out if p.segments == 4]
     lost = pipeline.snapshot()["total"]["dropped_packets"]["loss"]
@@ -300,14 +301,14 @@ def test_a_lossy_link_splits_only_the_super_packets_that_lose_packets(
 
 
 def test_a_fast_rate_keeps_super_packets_whole() -> None:
-    out = run(Pipeline.from_profile(LinkProfile(rate_bps=1e9)), [tcp4()])
+    out = run(build_pipeline(LinkProfile(rate_bps=1e9)), [tcp4()])
     assert len(out) == 1 and out[0].segments == 4
 
 
 def test_a_trace_gets_wire_packets_and_gives_them_back_when_it_stops() -> None:
     from netem.traces import Trace
 
-    pipeline = Pipeline.from_profile(LinkProfile())
+    pipeline = build_pipeline(LinkProfile())
     segment = pipeline.stage("segment")
     assert isinstance(segment, Segment)
     trace = Trace(format="csv", duration_s=1.0, steps=((0.0, 12e6),))
@@ -318,7 +319,7 @@ def test_a_trace_gets_wire_packets_and_gives_them_back_when_it_stops() -> None:
 
 
 def test_loss_is_drawn_per_wire_packet() -> None:
-    pipeline = Pipeline.from_profile(LinkProfile(loss=0.25), seed=3)
+    pipeline = build_pipeline(LinkProfile(loss=0.25), seed=3)
     out = run(pipeline, [tcp4() for _ in range(500)])
     lost = pipeline.snapshot()["total"]["dropped_packets"]["loss"]
     assert lost + sum(p.segments for p in out) == 2000

@@ -1,6 +1,6 @@
 """The N3 path for real: UE -> gNB -> GTP-U over N3 -> UPF -> N6 -> edge, in four namespaces.
 
-Each link is a userspace link (TUN ends, the relay); the gNB and the UPF run `netem.gtp`
+Each link is a userspace link (TUN ends, the relay); the gNB and the UPF run `netem.gtpu.endpoint`
 endpoints. tshark, capturing on the gNB's N3 device, is the oracle for what crosses N3: every
 UDP/2152 packet must dissect as GTP-U with the session's TEID per direction, the PDU type of
 its direction and the QFI its rule gives, no outer fragment, and an inner source in the UE
@@ -22,9 +22,9 @@ from pathlib import Path
 
 import pytest
 
-from netem.gtp import EndpointConfig, GtpEndpoint, QosRule, Session
+from netem.gtpu.endpoint import EndpointConfig, GtpEndpoint, QosRule, Session
 from netem.netns import in_netns
-from netem.userspace import UserspaceLink
+from netem.relay.client import UserspaceLink
 from tests.tshark import TSHARK, Capture
 
 pytestmark = pytest.mark.root

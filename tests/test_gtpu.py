@@ -14,10 +14,10 @@ from pathlib import Path
 
 import pytest
 
-from netem import gtpu
 from netem.gso import checksum
-from netem.gtp import Endpoint, EndpointConfig, QosRule, Session
-from netem.gtpu import GtpError, decode, echo_request, echo_response, encode_gpdu
+from netem.gtpu import wire as gtpu
+from netem.gtpu.endpoint import Endpoint, EndpointConfig, QosRule, Session
+from netem.gtpu.wire import GtpError, decode, echo_request, echo_response, encode_gpdu
 from netem.pcap import PcapngWriter
 from tests.tshark import TSHARK
 from tests.tshark import fields as tshark_fields
@@ -131,7 +131,7 @@ def test_tshark_dissects_our_gpdus_echoes_and_capture_file(tmp_path: Path) -> No
 
 
 def test_qos_rules_pick_the_flow_by_dscp_or_port_first_match_wins() -> None:
-    from netem.gtp import QosRule, classify
+    from netem.gtpu.endpoint import QosRule, classify
 
     rules = (QosRule(qfi=5, ports=(7400,)), QosRule(qfi=7, dscp=46), QosRule(qfi=8, ports=(53,)))
     assert classify(ipv4_udp("10.45.0.2", "10.46.0.2", 40000, 7400, b""), rules, 1) == 5
@@ -142,7 +142,7 @@ def test_qos_rules_pick_the_flow_by_dscp_or_port_first_match_wins() -> None:
 
 
 def test_a_datagrams_later_fragments_follow_its_first_into_its_flow() -> None:
-    from netem.gtp import Classifier, QosRule
+    from netem.gtpu.endpoint import Classifier, QosRule
 
     def fragment(packet: bytes, ident: int, offset_8: int, more: bool) -> bytes:
         flags = (0x2000 if more else 0) | offset_8
@@ -197,14 +197,14 @@ def test_a_datagrams_later_fragments_follow_its_first_into_its_flow() -> None:
     ],
 )
 def test_bad_endpoint_settings_are_refused_with_the_reason(make, message: str) -> None:  # type: ignore[no-untyped-def]
-    from netem import gtp
+    from netem.gtpu import endpoint as gtp
 
     with pytest.raises(ValueError, match=re.escape(message)):
         make(gtp)
 
 
 def test_endpoint_config_survives_its_json() -> None:
-    from netem.gtp import EndpointConfig, QosRule, Session
+    from netem.gtpu.endpoint import EndpointConfig, QosRule, Session
 
     cfg = EndpointConfig(
         "upf", "ns", "upf0", "10.0.0.2", (Session("10.45.0.2", 1, 2, "10.0.0.1", "10.0.0.2"),),

@@ -1,4 +1,4 @@
-"""Event-A3 handover (`netem.handover`): where a drive past two cells hands over, against a
+"""Event-A3 handover (`netem.nr.handover`): where a drive past two cells hands over, against a
 geometric oracle computed here, and the time-to-trigger, L3 filter and settings one by one.
 
 The oracle: a UE drives at constant speed along a straight road past two sites with the same
@@ -15,13 +15,8 @@ import math
 
 import pytest
 
-from netem.channel import Channel, Site
-from netem.handover import (
-    A3Handover,
-    HandoverDecision,
-    HandoverError,
-    Interruption,
-)
+from netem.nr.channel import Channel, Site
+from netem.nr.handover import A3Handover, HandoverDecision, HandoverError, Interruption
 
 H_UT = 1.5
 FC = 3.5

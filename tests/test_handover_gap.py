@@ -1,4 +1,4 @@
-"""A handover's interruption in the relay's pipelines (`netem.stages.HandoverGap`), with a
+"""A handover's interruption in the relay's pipelines (`netem.nr.handover_gap.HandoverGap`), with a
 fake clock (no root), and the relay's `interrupt` op over SEQPACKET socket pairs.
 
 "hold" (a lossless handover: PDCP forwarding, TS 38.300 §9.2.3.2) keeps what would leave the
@@ -20,9 +20,11 @@ import pytest
 
 from netem.errors import ProfileError
 from netem.gso import Frame
+from netem.nr.handover_gap import HandoverGap
 from netem.profile import LinkProfile
-from netem.relay import Relay
-from netem.stages import Delay, HandoverGap, Pipeline
+from netem.relay.direction import build_pipeline
+from netem.relay.process import Relay
+from netem.stages import Delay, Pipeline
 from tests.test_stages import ask
 
 
@@ -48,7 +50,7 @@ def drain(pipe: Pipeline, until: float) -> list[tuple[float, int]]:
 
 
 def test_the_gap_is_the_last_stage_and_transparent_without_a_gap() -> None:
-    pipe = Pipeline.from_profile(LinkProfile(delay_s=0.010))
+    pipe = build_pipeline(LinkProfile(delay_s=0.010))
     # Last, after the delay: it cuts the link where packets leave it.
     assert [s.name for s in pipe.stages[-2:]] == ["delay", "handover"]
     pipe.push(packet(1), 0.0)
@@ -59,7 +61,7 @@ def test_the_gap_is_the_last_stage_and_transparent_without_a_gap() -> None:
 
 
 def test_hold_releases_everything_at_the_end_in_the_order_it_came() -> None:
-    pipe = Pipeline.from_profile(LinkProfile())
+    pipe = build_pipeline(LinkProfile())
     pipe.push(packet(0), 0.5)
     assert [seq_of(p) for p in pipe.pop_ready(0.5)] == [0]
     pipe.interrupt(1.0, 0.04, "hold")
@@ -85,7 +87,7 @@ def test_hold_releases_everything_at_the_end_in_the_order_it_came() -> None:
 def test_packets_after_the_gap_never_overtake_the_held_ones() -> None:
     # A 10 ms delay, one packet every ms; a relay that wakes late (once, 30 ms after the gap
     # ended) must still deliver in sending order, the held ones at the gap's end.
-    pipe = Pipeline.from_profile(LinkProfile(delay_s=0.010))
+    pipe = build_pipeline(LinkProfile(delay_s=0.010))
     t0, gap_s = 0.1005, 0.040
     out: list[tuple[float, int]] = []
     interrupted = False
@@ -112,7 +114,7 @@ def test_packets_after_the_gap_never_overtake_the_held_ones() -> None:
 
 
 def test_drop_loses_exactly_what_reaches_the_exit_during_the_gap() -> None:
-    pipe = Pipeline.from_profile(LinkProfile(delay_s=0.010))
+    pipe = build_pipeline(LinkProfile(delay_s=0.010))
     t0, gap_s = 0.1005, 0.040  # between two packets' exits: no float ties at the edges
     out: list[tuple[float, int]] = []
     for i in range(200):
@@ -153,7 +155,7 @@ def test_the_window_is_half_open() -> None:
 
 
 def test_a_gap_started_during_another_makes_one_gap_of_their_union() -> None:
-    pipe = Pipeline.from_profile(LinkProfile())
+    pipe = build_pipeline(LinkProfile())
     pipe.interrupt(1.0, 0.040, "hold")
     pipe.push(packet(1), 1.01)
     assert pipe.pop_ready(1.01) == []
@@ -191,7 +193,7 @@ def test_a_new_gap_after_the_last_one_ended_releases_its_packets_at_its_end() ->
 
 
 def test_super_packets_are_held_whole_and_counted_as_their_wire_packets() -> None:
-    pipe = Pipeline.from_profile(LinkProfile())  # no rate, no radio: frames stay whole
+    pipe = build_pipeline(LinkProfile())  # no rate, no radio: frames stay whole
     frame = Frame(b"\0" * 5800, segments=4, wire_len=5800)
     pipe.interrupt(0.0, 0.010, "hold")
     pipe.push(frame, 0.001)
@@ -213,7 +215,7 @@ def test_super_packets_are_held_whole_and_counted_as_their_wire_packets() -> Non
 def test_the_relay_sleeps_until_the_end_of_a_hold_even_behind_a_delay() -> None:
     # A packet still in the delay stage may reach the gap before its end: the next exit is
     # its hand-off (it might leave), then, once held, the gap's end.
-    pipe = Pipeline.from_profile(LinkProfile(delay_s=0.010))
+    pipe = build_pipeline(LinkProfile(delay_s=0.010))
     pipe.push(packet(1), 0.0)
     pipe.interrupt(0.005, 0.040, "hold")
     assert pipe.next_exit() == pytest.approx(0.010, abs=1e-12)
@@ -237,7 +239,7 @@ def test_the_relay_sleeps_until_the_end_of_a_hold_even_behind_a_delay() -> None:
     ],
 )
 def test_a_bad_gap_is_refused_and_changes_nothing(seconds, mode, error: str) -> None:
-    pipe = Pipeline.from_profile(LinkProfile())
+    pipe = build_pipeline(LinkProfile())
     with pytest.raises(ProfileError, match=error) as info:
         pipe.interrupt(1.0, seconds, mode)
     assert isinstance(info.value, ValueError)
@@ -247,7 +249,7 @@ def test_a_bad_gap_is_refused_and_changes_nothing(seconds, mode, error: str) -> 
 
 
 def test_a_gap_of_zero_seconds_holds_nothing() -> None:
-    pipe = Pipeline.from_profile(LinkProfile())
+    pipe = build_pipeline(LinkProfile())
     pipe.interrupt(1.0, 0, "hold")
     pipe.push(packet(1), 1.0)
     assert len(pipe.pop_ready(1.0)) == 1
@@ -292,8 +294,8 @@ def socket_relay(
 
 
 def test_the_relay_wakes_at_the_end_of_a_hold_to_deliver_what_it_held(tmp_path: Path) -> None:
-    uplink = Pipeline.from_profile(LinkProfile(delay_s=0.005))
-    with socket_relay(tmp_path, uplink, Pipeline.from_profile(LinkProfile())) as ends:
+    uplink = build_pipeline(LinkProfile(delay_s=0.005))
+    with socket_relay(tmp_path, uplink, build_pipeline(LinkProfile())) as ends:
         a_app, b_app, control = ends
         a_app.send(b"\0\0\0\0before")
         assert b_app.recv(100) == b"\0\0\0\0before"
@@ -317,7 +319,7 @@ def test_the_relay_wakes_at_the_end_of_a_hold_to_deliver_what_it_held(tmp_path: 
 
 
 def test_interrupt_requests_are_checked(tmp_path: Path) -> None:
-    pipes = Pipeline.from_profile(LinkProfile()), Pipeline.from_profile(LinkProfile())
+    pipes = build_pipeline(LinkProfile()), build_pipeline(LinkProfile())
     with socket_relay(tmp_path, *pipes) as (_, _, control):
         cases = [
             ({"op": "interrupt", "seconds": 0.04, "mode": "pause"}, "interrupt: handover gap"),

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 from scipy import stats
 
-from netem.nr import RADIO_PROFILES
+from netem.nr.radio import RADIO_PROFILES
 from nodes.recording import linktable
 from testbed.hostload import lateness_floor, timer_floor
 from testbed.linktest import (

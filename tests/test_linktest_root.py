@@ -91,7 +91,7 @@ def test_a_radio_link_is_measured_against_its_oracle(
 ) -> None:
     import dataclasses
 
-    from netem.nr import Radio
+    from netem.nr.radio import Radio
 
     path = tmp_path / "radio.yaml"
     path.write_text(RADIO_SCENARIO)

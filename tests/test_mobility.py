@@ -14,8 +14,8 @@ import numpy as np
 import pytest
 from typer.testing import CliRunner
 
-from netem.channel import CQI_SINR_DB, bler, cqi_from_sinr, mcs_from_cqi
-from netem.nr import RADIO_PROFILES
+from netem.nr.channel import CQI_SINR_DB, bler, cqi_from_sinr, mcs_from_cqi
+from netem.nr.radio import RADIO_PROFILES
 from testbed import mobility
 from testbed.cli import app
 from testbed.scenario import load, loads

@@ -11,7 +11,7 @@ from pathlib import Path
 
 import pytest
 
-from netem.nr import RADIO_PROFILES
+from netem.nr.radio import RADIO_PROFILES
 from testbed.scenario import load
 from testbed.scenario.model import HandoverEvent, SetEvent
 from testbed.timeline import TimelinePlayer

@@ -164,7 +164,7 @@ def test_on_tc_both_ends_are_tunnels_and_the_shaping_end_emulates(tmp_path: Path
         None,
     )
     assert b.tunnels["gnb1-core1"].netns == "el-abc123-core1"
-    # A backhaul is shaped at the gNB's end (netem.tc.shaping_end): host a's.
+    # A backhaul is shaped at the gNB's end (netem.tc.link.shaping_end): host a's.
     assert a.emulates("gnb1-core1") and not b.emulates("gnb1-core1")
 
 

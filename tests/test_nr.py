@@ -14,16 +14,10 @@ import random
 import numpy as np
 import pytest
 
-from netem.nr import (
-    Carrier,
-    DelayOracle,
-    NrError,
-    TddPattern,
-    occasions,
-    rate_bps,
-    tbs_bits,
-)
-from netem.stages import Slots
+from netem.nr.oracle import DelayOracle
+from netem.nr.phy import Carrier, NrError, TddPattern, occasions, rate_bps, tbs_bits
+from netem.nr.ue import Slots
+from netem.relay.direction import build_pipeline
 
 stats = pytest.importorskip("scipy.stats", reason="scipy (in .[test]) runs the KS tests")
 
@@ -225,14 +219,13 @@ def test_a_200_kb_message_completes_when_the_occasions_have_carried_it() -> None
 def test_a_profile_with_a_radio_gates_its_pipeline_and_round_trips_as_json() -> None:
     import json
 
-    from netem.nr import Radio
+    from netem.nr.radio import Radio
     from netem.profile import LinkProfile, check_profile
-    from netem.stages import Pipeline
 
     radio = Radio(mcs=9, k2_slots=2)
     profile = LinkProfile(radio=radio, delay_s=0.001)
     assert LinkProfile.from_dict(json.loads(json.dumps(profile.to_dict()))) == profile
-    pipeline = Pipeline.from_profile(profile)
+    pipeline = build_pipeline(profile)
     got = run(pipeline, sparse_probes(600, 200, seed=4))  # type: ignore[arg-type]
     oracle = radio.oracle("uplink", fixed_s=0.001, size_bytes=200)
     delays = [left - arrived for arrived, left, _ in got]
@@ -259,12 +252,11 @@ def test_a_radio_switched_off_with_packets_waiting_lets_them_go_and_the_next_rad
     """The link test's neutral moment switches a radio off while packets wait for slots,
     for HARQ and for PDCP's order; they leave at once, in order, and the radio that comes
     back delivers every packet after them (it once kept each in `_reorder` for good)."""
-    from netem.nr import Radio
+    from netem.nr.radio import Radio
     from netem.profile import LinkProfile
-    from netem.stages import Pipeline
 
     profile = LinkProfile(radio=Radio(bler=0.5, mcs=9))
-    slots = Pipeline.from_profile(profile).stage("slots")
+    slots = build_pipeline(profile).stage("slots")
     assert isinstance(slots, Slots) and slots.in_order
     burst = [(0.0002 * i, i.to_bytes(4, "big") + bytes(196)) for i in range(60)]
     for t, packet in burst:
@@ -282,12 +274,11 @@ def test_a_radio_switched_off_with_packets_waiting_lets_them_go_and_the_next_rad
 
 
 def test_a_downlink_pipeline_sends_in_the_downlink_windows() -> None:
-    from netem.nr import Radio
+    from netem.nr.radio import Radio
     from netem.profile import LinkProfile
-    from netem.stages import Pipeline
 
     radio = Radio(k2_slots=1)
-    pipeline = Pipeline.from_profile(LinkProfile(radio=radio), direction="downlink")
+    pipeline = build_pipeline(LinkProfile(radio=radio), direction="downlink")
     got = run(pipeline, poisson_probes(400, 0.007, 300, seed=5))  # type: ignore[arg-type]
     ends = [o.end_s for o in radio.occasions("downlink")]
     period = radio.pattern().period_s
@@ -307,12 +298,11 @@ def test_a_downlink_pipeline_sends_in_the_downlink_windows() -> None:
 
 def radio_stage(seed: int = 5, **fields: object) -> tuple[Slots, object]:
     """The `Slots` stage of a pipeline whose radio has `fields`, and that radio."""
-    from netem.nr import Radio
+    from netem.nr.radio import Radio
     from netem.profile import LinkProfile
-    from netem.stages import Pipeline
 
     radio = Radio(**fields)  # type: ignore[arg-type]
-    pipeline = Pipeline.from_profile(LinkProfile(radio=radio), seed=seed)
+    pipeline = build_pipeline(LinkProfile(radio=radio), seed=seed)
     slots = pipeline.stage("slots")
     assert isinstance(slots, Slots)
     return slots, radio
@@ -457,19 +447,18 @@ def test_a_saturating_ue_that_asks_still_gets_the_sum_of_its_transport_blocks() 
     ],
 )
 def test_uplink_access_fields_out_of_range_are_refused(fields: dict, message: str) -> None:
-    from netem.nr import Radio
+    from netem.nr.radio import Radio
 
     with pytest.raises(NrError, match=message):
         Radio(**fields).check()
 
 
 def test_uplink_access_changes_in_place_and_keeps_what_waits() -> None:
-    from netem.nr import Radio
+    from netem.nr.radio import Radio
     from netem.profile import LinkProfile
-    from netem.stages import Pipeline
 
     profile = LinkProfile(radio=Radio())
-    pipeline = Pipeline.from_profile(profile)
+    pipeline = build_pipeline(profile)
     out: list[bytes] = []
     t, seq = 0.0, 0
     # Each change comes while packets wait: an SR every 20 ms, a configured grant, the
@@ -543,14 +532,13 @@ def test_the_buffer_of_a_ue_is_drop_tail_in_bytes() -> None:
 
 
 def test_a_radio_pipelines_counters_say_what_the_air_interface_did() -> None:
-    from netem.nr import Radio
+    from netem.nr.radio import Radio
     from netem.profile import LinkProfile
-    from netem.stages import Pipeline
 
-    pipeline = Pipeline.from_profile(LinkProfile(radio=Radio(bler=0.1)), seed=3)
+    pipeline = build_pipeline(LinkProfile(radio=Radio(bler=0.1)), seed=3)
     got = run(pipeline, sparse_probes(400, 92, seed=31))  # type: ignore[arg-type]
     radio = pipeline.snapshot()["radio"]
     assert len(got) == 400 and radio["scheduling_requests"] == 400
     assert radio["blocks"] == sum(radio["retransmissions"]) >= 800  # 72 B, then the rest
     assert 0.05 < sum(radio["retransmissions"][1:]) / radio["blocks"] < 0.15
-    assert "radio" not in Pipeline.from_profile(LinkProfile()).snapshot()
+    assert "radio" not in build_pipeline(LinkProfile()).snapshot()

@@ -22,7 +22,7 @@ import pytest
 
 from netem.netns import in_netns
 from netem.profile import LinkProfile
-from netem.userspace import RelayError, UserspaceLink
+from netem.relay.client import RelayError, UserspaceLink
 
 pytestmark = pytest.mark.root
 
@@ -474,7 +474,7 @@ class PlainPath:
 def test_a_radio_uplink_sends_in_uplink_slots_with_the_oracles_delays(pair) -> None:
     import random
 
-    from netem.nr import Radio
+    from netem.nr.radio import Radio
 
     # OAI's band-78 pattern, DDDDDDDSUU, with a gNB that sees the buffer (no SR round).
     radio = Radio(k2_slots=2, ul_access="ideal")
@@ -513,7 +513,7 @@ def test_a_radio_uplink_sends_in_uplink_slots_with_the_oracles_delays(pair) -> N
 def test_a_radio_uplink_that_asks_for_grants_has_the_oracles_delays(pair) -> None:
     import random
 
-    from netem.nr import Radio
+    from netem.nr.radio import Radio
 
     radio = Radio()  # OAI: an SR in the special slot, a 72-byte first grant, then the rest
     rng = random.Random(8)
@@ -562,7 +562,7 @@ def _flood(
 
 @pytest.mark.parametrize("scheduler", ["rr", "pf"])
 def test_two_ues_of_one_cell_share_its_uplink_slots(cell_namespaces, scheduler: str) -> None:
-    from netem.nr import Radio
+    from netem.nr.radio import Radio
 
     ue1, ue2, gnb = cell_namespaces
     radio = Radio(ul_access="ideal")  # a saturated UE always has a grant

@@ -1,7 +1,7 @@
 """The replay under cross-traffic (issues #16 and #18): `traffic:` flows of other UEs in a
 vehicle's NR cell take their share of its PRBs, flows on its path take rate off the wired hops.
 
-The share is checked against the shared cell a real run plays (`netem.cell.Cell` with the
+The share is checked against the shared cell a real run plays (`netem.nr.cell.Cell` with the
 other UEs' `Slots` stages saturated), and `loaded_cell.yaml`'s replay against its phases.
 """
 
@@ -12,10 +12,11 @@ import math
 import numpy as np
 import pytest
 
-from netem.cell import Cell
-from netem.nr import RADIO_PROFILES
+from netem.nr.cell import Cell
+from netem.nr.radio import RADIO_PROFILES
+from netem.nr.ue import Slots
 from netem.profile import LinkProfile
-from netem.stages import Pipeline, Slots
+from netem.relay.direction import build_pipeline
 from testbed.replay import RadioHop, cell_share, latency_model, wire_bps
 from testbed.scenario import load
 from testbed.scenario.model import Traffic
@@ -40,9 +41,7 @@ def test_wire_rate_counts_headers_and_the_on_off_duty_cycle() -> None:
 
 def _stage(cell: Cell, seed: int) -> Slots:
     radio = RADIO_PROFILES["oai-tdd-30k"]
-    slots = Pipeline.from_profile(LinkProfile(radio=radio, queue_packets=None), seed=seed).stage(
-        "slots"
-    )
+    slots = build_pipeline(LinkProfile(radio=radio, queue_packets=None), seed=seed).stage("slots")
     assert isinstance(slots, Slots)
     cell.join(slots)
     return slots

@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from netem.nr import Radio
+from netem.nr.radio import Radio
 from testbed.replay import ACTION_EXCHANGE, RadioHop, latency_model
 from testbed.scenario import load
 
@@ -70,7 +70,7 @@ def test_against_a_run_the_other_vehicles_requests_share_the_cell(tmp_path: Path
     radio hops of its path are shared."""
     from types import SimpleNamespace
 
-    from netem.nr import RADIO_PROFILES
+    from netem.nr.radio import RADIO_PROFILES
     from reports.mcapread import Inference, VehicleData
     from testbed.replay import ContendedHop, compute_profile
     from testbed.replay.against import _cell_neighbours, _contended

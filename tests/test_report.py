@@ -700,7 +700,7 @@ def test_a_radio_link_test_shows_its_cdfs_beside_the_oracle(tmp_path: Path) -> N
     import copy
     import random
 
-    from netem.nr import RADIO_PROFILES
+    from netem.nr.radio import RADIO_PROFILES
     from testbed.linktest import harq_shares, oracle_comparison
 
     oracle = RADIO_PROFILES["oai-tdd-30k"].oracle("uplink", size_bytes=92)

@@ -1,7 +1,7 @@
 """The air link's capacity along the route (issue #19: "SINR/MCS/capacity over time"), from
 synthetic run.mcap files written like the recorder's: /radio/av1 steps with known MCS and
 BLER in each direction, links.json attached with each cell's air link radio. The expected
-capacities are worked out here from `netem.nr.RADIO_PROFILES` with `dataclasses.replace`, not
+capacities are worked out here from `netem.nr.radio.RADIO_PROFILES` with `dataclasses.replace`, not
 through the report's code; two cells with different radios show that each step counts on its
 serving cell's link. A run without links.json (older runs) still reports, without capacity.
 """
@@ -17,7 +17,7 @@ import numpy as np
 import pytest
 from report_synth import SynthRun
 
-from netem.nr import RADIO_PROFILES, Radio
+from netem.nr.radio import RADIO_PROFILES, Radio
 from nodes.recording.layout import LINKS_CONFIG_FILE
 from reports.build import build_report, summarize
 from reports.mcapread import read_run

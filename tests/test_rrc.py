@@ -1,4 +1,4 @@
-"""The RRC state machine (`netem.rrc`): what the first packet after a quiet spell pays.
+"""The RRC state machine (`netem.nr.rrc`): what the first packet after a quiet spell pays.
 
 The must-show: with a 10 s inactivity timer, a packet after 12 s of silence pays the resume
 (the UE went INACTIVE at 10 s) and the packets after it nothing; after 8 s nothing at all.
@@ -10,7 +10,7 @@ import math
 
 import pytest
 
-from netem.rrc import Promotion, Rrc, RrcError, RrcState
+from netem.nr.rrc import Promotion, Rrc, RrcError, RrcState
 
 
 def test_idle_12_s_pays_the_resume_once_idle_8_s_pays_nothing() -> None:

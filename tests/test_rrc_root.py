@@ -21,8 +21,8 @@ from typing import Any
 
 import pytest
 
+from netem.nr.rrc import RrcSettings
 from netem.profile import LinkProfile
-from netem.rrc import RrcSettings
 from tests.test_relay_root import ADDR_A, ADDR_B, PORT, link_for, namespaces, udp_socket
 
 pytestmark = pytest.mark.root

@@ -1,4 +1,4 @@
-"""RRC states in the relay's pipelines (`netem.stages.RrcStage`), with a fake clock (no root).
+"""RRC states in the relay's pipelines (`netem.nr.rrc_stage.RrcStage`), with a fake clock (no root).
 
 The must-show of issue #19: with a 10 s inactivity timer, the first packet after 12 s of quiet
 leaves `resume_s` later than the link's own delay, the ones after it not at all; after 8 s of
@@ -21,11 +21,14 @@ from pathlib import Path
 import pytest
 
 from netem.errors import ProfileError
+from netem.nr.rrc import RrcError, RrcSettings, RrcState
+from netem.nr.rrc_stage import RrcStage, share_rrc
 from netem.profile import LinkProfile, check_link, check_profile
-from netem.relay import ControlError, Relay
-from netem.rrc import RrcError, RrcSettings, RrcState
-from netem.stages import Pipeline, RrcStage, share_rrc
-from netem.userspace import UserspaceLink
+from netem.relay.client import UserspaceLink
+from netem.relay.control import ControlError
+from netem.relay.direction import build_pipeline
+from netem.relay.process import Relay
+from netem.stages import Pipeline
 from tests.test_stages import ask, socket_relay
 
 DELAY_S = 0.010
@@ -43,8 +46,8 @@ def seq_of(p: bytes) -> int:
 
 def link(profile: LinkProfile) -> tuple[Pipeline, Pipeline]:
     """The two directions of one link, sharing their RRC state as the relay makes them."""
-    uplink = Pipeline.from_profile(profile, seed=1, direction="uplink")
-    downlink = Pipeline.from_profile(profile, seed=1, direction="downlink")
+    uplink = build_pipeline(profile, seed=1, direction="uplink")
+    downlink = build_pipeline(profile, seed=1, direction="downlink")
     share_rrc(uplink, downlink)
     return uplink, downlink
 
@@ -137,8 +140,8 @@ def test_a_downlink_packet_pages_the_ue_and_the_uplink_waits_only_for_the_rest()
 def test_without_sharing_each_direction_would_be_its_own_ue() -> None:
     """What `share_rrc` is for: unshared, a downlink packet does not wake the uplink."""
     profile = LinkProfile(delay_s=DELAY_S, rrc=RRC)
-    uplink = Pipeline.from_profile(profile)
-    downlink = Pipeline.from_profile(profile, direction="downlink")
+    uplink = build_pipeline(profile)
+    downlink = build_pipeline(profile, direction="downlink")
     uplink.push(packet(0), 0.0)
     downlink.push(packet(1), 0.0)
     downlink.push(packet(2), 5.0)  # downlink traffic only ...
@@ -260,7 +263,7 @@ def test_the_two_directions_must_agree_on_rrc() -> None:
         check_link(LinkProfile(rrc=RRC), LinkProfile())
     check_link(LinkProfile(rrc=RRC, delay_s=0.1), LinkProfile(rrc=RRC))
     with pytest.raises(ProfileError, match="differs between uplink"):
-        share_rrc(Pipeline.from_profile(LinkProfile(rrc=RRC)), Pipeline.from_profile(LinkProfile()))
+        share_rrc(build_pipeline(LinkProfile(rrc=RRC)), build_pipeline(LinkProfile()))
     a_app, a_relay = socket.socketpair(socket.AF_UNIX, socket.SOCK_SEQPACKET)
     b_app, b_relay = socket.socketpair(socket.AF_UNIX, socket.SOCK_SEQPACKET)
     try:
@@ -268,8 +271,8 @@ def test_the_two_directions_must_agree_on_rrc() -> None:
             Relay(
                 a_relay.fileno(),
                 b_relay.fileno(),
-                Pipeline.from_profile(LinkProfile(rrc=RRC)),
-                Pipeline.from_profile(LinkProfile()),
+                build_pipeline(LinkProfile(rrc=RRC)),
+                build_pipeline(LinkProfile()),
             )
     finally:
         for s in (a_app, a_relay, b_app, b_relay):
@@ -288,8 +291,8 @@ def rrc_relay(tmp_path: Path) -> Iterator[tuple[Relay, socket.socket, socket.soc
     rrc = RrcSettings(inactivity_s=0.3, idle_after_s=60.0, resume_s=0.050, setup_s=0.150)
     with socket_relay(
         tmp_path,
-        Pipeline.from_profile(LinkProfile(rrc=rrc), direction="uplink"),
-        Pipeline.from_profile(LinkProfile(rrc=rrc), direction="downlink"),
+        build_pipeline(LinkProfile(rrc=rrc), direction="uplink"),
+        build_pipeline(LinkProfile(rrc=rrc), direction="downlink"),
         timeout_s=2,
     ) as ends:
         yield ends

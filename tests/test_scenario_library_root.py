@@ -55,8 +55,8 @@ def test_up_and_down_of_every_library_scenario(file: Path, state_dir: Path) -> N
         backend = r"link backend: (userspace|tc) \((auto: |asked for by)"
         assert re.search(backend, up.stdout), up.stdout
         assert os.listdir("/sys/class/net") == links_before  # nothing in the host namespace
-        # The GTP-U ends (`python -m netem.gtp <state>/<id>/gtp-*/config.json`): one per gNB
-        # with a UPF and one per N3 link at the UPF.
+        # The GTP-U ends (`python -m netem.gtpu.endpoint <state>/<id>/gtp-*/config.json`): one per
+        # gNB with a UPF and one per N3 link at the UPF.
         tunnelled = sum(1 for c in scenario.topology.cells if c.tunnelled)
         assert len(processes_mentioning(f"{state_dir / run_id}/gtp-")) == 2 * tunnelled
     finally:

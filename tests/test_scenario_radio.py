@@ -8,7 +8,7 @@ import random
 
 import pytest
 
-from netem.nr import RADIO_PROFILES
+from netem.nr.radio import RADIO_PROFILES
 from netem.profile import LinkProfile
 from netem.stages import Delay
 from testbed import links
@@ -126,7 +126,7 @@ def test_commercial_midband_has_the_round_trip_measured_on_commercial_cells() ->
 def test_rrc_of_the_air_links_reaches_both_directions_and_an_override_drops_it() -> None:
     import math
 
-    from netem.rrc import RrcSettings
+    from netem.nr.rrc import RrcSettings
 
     scenario, specs = _load(
         "  air:\n"

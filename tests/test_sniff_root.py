@@ -1,4 +1,4 @@
-"""Captures of a tc-backend link (`netem.sniff`) on a real veth pair, read back by tshark.
+"""Captures of a tc-backend link (`netem.tc.sniff`) on a real veth pair, read back by tshark.
 
 Two namespaces (`els-<hex>-a|b`) joined by a veth pair, as the tc backend joins two nodes
 (no qdisc is needed to test what a capture sees: netem sits on the sending side, the capture
@@ -20,7 +20,7 @@ from pathlib import Path
 import pytest
 
 from netem.netns import in_netns
-from netem.sniff import LinkSniffer, SniffConfig, SniffError
+from netem.tc.sniff import LinkSniffer, SniffConfig, SniffError
 from tests.realrun import processes_mentioning
 from tests.tshark import TSHARK
 from tests.tshark import fields as tshark_fields

@@ -20,7 +20,8 @@ from pathlib import Path
 import pytest
 
 from netem.profile import GilbertElliott, LinkProfile
-from netem.relay import Relay
+from netem.relay.direction import build_pipeline
+from netem.relay.process import Relay
 from netem.stages import (
     Delay,
     GilbertElliottLoss,
@@ -65,7 +66,7 @@ def test_delay_is_exact() -> None:
 
 
 def test_pipeline_hands_packets_on_at_their_due_time_not_when_polled() -> None:
-    pipe = Pipeline.from_profile(LinkProfile(rate_bps=1e6, delay_s=0.020))
+    pipe = build_pipeline(LinkProfile(rate_bps=1e6, delay_s=0.020))
     pipe.push(packet(1, 1250), 0.0)  # 10 ms on the wire at 1 Mbit/s
     assert pipe.pop_ready(0.0) == []
     assert pipe.next_due() == pytest.approx(0.010)
@@ -80,7 +81,7 @@ def test_pipeline_hands_packets_on_at_their_due_time_not_when_polled() -> None:
 
 
 def test_a_delayed_packet_s_departure_is_a_deadline_from_the_moment_it_arrives() -> None:
-    pipe = Pipeline.from_profile(LinkProfile(delay_s=0.010))
+    pipe = build_pipeline(LinkProfile(delay_s=0.010))
     pipe.push(packet(1), 1.0)
     assert pipe.next_exit() == pytest.approx(1.010, abs=1e-12)
     assert pipe.deadlines()[1] == pytest.approx(1.010, abs=1e-12)
@@ -162,7 +163,7 @@ def test_rate_drop_tail_by_time() -> None:
 
 
 def test_rate_goodput_over_a_second() -> None:
-    pipe = Pipeline.from_profile(LinkProfile(rate_bps=10e6, queue_packets=10_000))
+    pipe = build_pipeline(LinkProfile(rate_bps=10e6, queue_packets=10_000))
     t, sent = 0.0, 0
     while t < 1.0:  # offer 20 Mbit/s
         pipe.push(packet(sent, 1250), t)
@@ -203,7 +204,7 @@ def test_gilbert_elliott_stationary_loss_and_bursts() -> None:
 
 
 def test_loss_model_from_profile_replaces_random_loss() -> None:
-    pipe = Pipeline.from_profile(
+    pipe = build_pipeline(
         LinkProfile(loss=0.5, gilbert_elliott=GilbertElliott(p=0.0, r=1.0)), seed=1
     )
     for i in range(1000):
@@ -244,7 +245,7 @@ def test_mahimahi_small_and_large_packets() -> None:
 
 
 def test_trace_end_gives_the_rate_back_to_the_profile() -> None:
-    pipe = Pipeline.from_profile(LinkProfile(rate_bps=12e6))  # 1 ms per 1500 B
+    pipe = build_pipeline(LinkProfile(rate_bps=12e6))  # 1 ms per 1500 B
     pipe.play_trace(parse_mahimahi("10\n20\n"), 0.0, loop=False)
     for i in range(4):
         pipe.push(packet(i, 1500), 0.0)
@@ -296,7 +297,7 @@ def test_load_trace_reports_the_bad_line(tmp_path: Path) -> None:
 
 
 def test_apply_keeps_queued_packets_and_order() -> None:
-    pipe = Pipeline.from_profile(LinkProfile(delay_s=0.100))
+    pipe = build_pipeline(LinkProfile(delay_s=0.100))
     for i in range(5):
         pipe.push(packet(i), i * 0.001)
         assert pipe.pop_ready(i * 0.001) == []
@@ -308,7 +309,7 @@ def test_apply_keeps_queued_packets_and_order() -> None:
 
 
 def test_apply_changes_rate_of_the_queue_in_place() -> None:
-    pipe = Pipeline.from_profile(LinkProfile(rate_bps=8e6))
+    pipe = build_pipeline(LinkProfile(rate_bps=8e6))
     for i in range(4):
         pipe.push(packet(i, 1000), 0.0)
     pipe.apply(LinkProfile(rate_bps=16e6))  # head keeps its start; the rest go twice as fast
@@ -319,16 +320,16 @@ def test_apply_changes_rate_of_the_queue_in_place() -> None:
 
 def test_bad_profile_is_named() -> None:
     with pytest.raises(ValueError, match=r"`loss` = 1.5: must be a fraction"):
-        Pipeline.from_profile(LinkProfile(loss=1.5))
+        build_pipeline(LinkProfile(loss=1.5))
     with pytest.raises(ValueError, match="jitter_distribution"):
-        Pipeline.from_profile(LinkProfile(jitter_distribution="gamma"))  # type: ignore[arg-type]
+        build_pipeline(LinkProfile(jitter_distribution="gamma"))  # type: ignore[arg-type]
     with pytest.raises(ValueError, match="queue_packets"):
-        Pipeline.from_profile(LinkProfile(queue_packets=0))
+        build_pipeline(LinkProfile(queue_packets=0))
 
 
 def test_same_seed_same_draws() -> None:
     def drops(seed: int) -> list[int]:
-        pipe = Pipeline.from_profile(LinkProfile(loss=0.3), seed=seed)
+        pipe = build_pipeline(LinkProfile(loss=0.3), seed=seed)
         for i in range(200):
             pipe.push(packet(i), 0.0)
         return [seq_of(p) for p in pipe.pop_ready(0.0)]
@@ -370,8 +371,8 @@ def socket_relay(
 def fake_relay(tmp_path: Path) -> Iterator[tuple[Relay, socket.socket, socket.socket, str]]:
     with socket_relay(
         tmp_path,
-        Pipeline.from_profile(LinkProfile(delay_s=0.020)),
-        Pipeline.from_profile(LinkProfile()),
+        build_pipeline(LinkProfile(delay_s=0.020)),
+        build_pipeline(LinkProfile()),
     ) as ends:
         yield ends
 
@@ -438,7 +439,7 @@ def test_one_profile_check_for_both_backends() -> None:
     planner all run; the backends differ only in the smallest rate they can keep."""
     from netem.errors import ProfileError
     from netem.profile import check_profile
-    from netem.tc_plan import leaf_for
+    from netem.tc.plan import leaf_for
 
     slow = LinkProfile(rate_bps=4.0)
     check_profile(slow)  # the relay's rate stage keeps 4 bit/s
@@ -460,7 +461,7 @@ def test_one_profile_check_for_both_backends() -> None:
 
 
 def test_wake_timer_learns_a_slow_guest_timer_and_sleeps_short_of_the_departure() -> None:
-    from netem.relay import EARLY_MAX_S, WakeTimer
+    from netem.relay.timer import EARLY_MAX_S, WakeTimer
 
     timer = WakeTimer()
 

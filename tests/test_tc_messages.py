@@ -15,16 +15,15 @@ import pytest
 
 from netem.errors import ProfileError
 from netem.profile import GilbertElliott, LinkProfile
-from netem.shaping import render_clear, shape
-from netem.tc import render_commands, shaping_end
-from netem.tc_netlink import (
+from netem.tc.link import render_commands, shaping_end
+from netem.tc.netlink import (
     NETEM_DIST_SCALE,
     TcMessage,
     build_message,
     distribution_table,
     percent_u32,
 )
-from netem.tc_plan import (
+from netem.tc.plan import (
     LEAF_HANDLES,
     PROFILE_CLASSID,
     HtbClass,
@@ -41,6 +40,7 @@ from netem.tc_plan import (
     rate_text,
     ticks_per_us,
 )
+from netem.tc.shaping import render_clear, shape
 
 U32_MAX = 2**32 - 1
 
@@ -141,7 +141,7 @@ def test_normal_table_is_a_standard_normal() -> None:
 
 
 def test_htb_class_message() -> None:
-    from netem.tc_plan import ClassOp
+    from netem.tc.plan import ClassOp
 
     op = ClassOp("add", "v0", 0x10001, PROFILE_CLASSID, HtbClass(rate=6_250_000, ceil=6_250_000))
     message = build_message(op, ifindex=3)
@@ -309,8 +309,8 @@ plain = tcmsg()
 plain["attrs"] = [["TCA_KIND", "htb"]]
 plain.encode()  # compiles tcmsg's table first, as `testbed check`'s htb probe does
 from netem.profile import LinkProfile
-from netem.tc_netlink import TcMessage, build_message
-from netem.tc_plan import LEAF_HANDLES, PROFILE_CLASSID, QdiscOp, leaf_for
+from netem.tc.netlink import TcMessage, build_message
+from netem.tc.plan import LEAF_HANDLES, PROFILE_CLASSID, QdiscOp, leaf_for
 op = QdiscOp("add", "v0", PROFILE_CLASSID, LEAF_HANDLES[0], leaf_for(LinkProfile(delay_s=0.02)))
 message = build_message(op, ifindex=7)
 message.msg.encode()

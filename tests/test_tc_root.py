@@ -22,10 +22,10 @@ from pyroute2 import IPRoute, netns
 
 from netem.errors import NetlinkError
 from netem.profile import GilbertElliott, LinkProfile
-from netem.shaping import clear as clear_shape
-from netem.shaping import shape
-from netem.tc import IngressShaper, ShapedInterface, TcLinkBackend
-from netem.tc_netlink import dump_htb_classes, dump_qdiscs
+from netem.tc.link import IngressShaper, ShapedInterface, TcLinkBackend
+from netem.tc.netlink import dump_htb_classes, dump_qdiscs
+from netem.tc.shaping import clear as clear_shape
+from netem.tc.shaping import shape
 from testbed.check import netem_status
 from tests.machine import CpuTimes, tcp_retransmits
 

@@ -281,7 +281,7 @@ def test_both_link_controllers_are_complete() -> None:
 
 
 def test_auto_picks_the_relay_for_a_radio_and_says_why() -> None:
-    from netem.nr import RADIO_PROFILES
+    from netem.nr.radio import RADIO_PROFILES
 
     scenario = _with("auto", LinkProfile(radio=RADIO_PROFILES["oai-tdd-30k"]))
     choice = choose_backend(scenario, lambda: (True, "ok"))

@@ -371,7 +371,7 @@ def test_the_ue_mtu_and_the_qos_flows_reach_the_plan_and_the_gtp_u_ends(tmp_path
 
 
 def test_qos_defaults_put_dds_discovery_in_its_own_flow(tmp_path: Path) -> None:
-    from netem.gtp import classify
+    from netem.gtpu.endpoint import classify
     from testbed.scenario import load
     from testbed.topology.corepath import CorePath
 

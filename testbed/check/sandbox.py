@@ -207,12 +207,12 @@ class Sandbox:
         return "added, read back and deleted"
 
     def _add_netem(self, index: int) -> None:
-        """Add a netem qdisc with the tc backend's own message (`netem.tc_netlink`), the one a
+        """Add a netem qdisc with the tc backend's own message (`netem.tc.netlink`), the one a
         run would send: pyroute2's `tc("add", "netem")` would also rewrite pyroute2's netem
         option classes for the rest of the process, changing how netem messages encode."""
         from netem.profile import LinkProfile
-        from netem.tc_netlink import build_message
-        from netem.tc_plan import QdiscOp, leaf_for
+        from netem.tc.netlink import build_message
+        from netem.tc.plan import QdiscOp, leaf_for
 
         op = QdiscOp("add", "probe", TC_H_ROOT, 0x10000, leaf_for(LinkProfile(delay_s=0.005)))
         message = build_message(op, index)

@@ -13,7 +13,7 @@ import json
 from collections.abc import Callable
 from dataclasses import dataclass
 
-from netem.tc_plan import needs_netem
+from netem.tc.plan import needs_netem
 from nodes.recording.jsonfile import write_json
 from testbed import check
 from testbed import state as st

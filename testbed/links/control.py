@@ -1,7 +1,7 @@
 """Live links: `LinkController`, what the timeline player and the link self-test call on a
 run's links: `apply` (the scenario's profiles), `set` (profile fields in place), `shape`/`clear`
 (Wondershaper-style caps on a node's interface), `outage`, `trace`. `TcController` does it with
-qdiscs at the gNB end of each link (`netem.tc.shaping_end`); `UserspaceController` asks each
+qdiscs at the gNB end of each link (`netem.tc.link.shaping_end`); `UserspaceController` asks each
 link's relay. Caps (`shape`) are HTB/IFB on both backends (HTB works on TUN devices).
 
 Trace replay on the tc backend (the relay replays traces itself): a csv trace's rows become
@@ -19,13 +19,13 @@ from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
 from typing import Any, Protocol
 
-from netem.nr import slot_s
+from netem.nr.phy import slot_s
 from netem.profile import HTB_MIN_RATE_BPS, LinkProfile
-from netem.shaping import NodeShaper, check_caps
-from netem.sniff import LinkSniffer, SniffConfig, SniffError
-from netem.tc import TcLinkBackend, shaping_end
+from netem.relay.client import RelayError, UserspaceLink
+from netem.tc.link import TcLinkBackend, shaping_end
+from netem.tc.shaping import NodeShaper, check_caps
+from netem.tc.sniff import LinkSniffer, SniffConfig, SniffError
 from netem.traces import Trace, load_trace
-from netem.userspace import RelayError, UserspaceLink
 from testbed.errors import BadInput, HostError
 from testbed.links.relay_ends import TunRelayEnds
 from testbed.links.views import (
@@ -371,7 +371,7 @@ class TcController(_Base):
 
     def capture(self, link: str, path: Path) -> None:
         # No relay sees these packets: a capture process listens on both ends' interfaces
-        # for what arrives there, after the far end's qdiscs (`netem.sniff`).
+        # for what arrives there, after the far end's qdiscs (`netem.tc.sniff`).
         ln = self._link(link)
         if link in self._sniffers:
             raise BadInput(f"record.pcap: link {link} is captured already")

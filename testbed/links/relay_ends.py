@@ -1,5 +1,5 @@
 """The userspace backend's link ends and their state: `TunRelayEnds` makes each link's two
-interfaces as TUN devices of one relay process (`netem.userspace.UserspaceLink`), whose pid goes
+interfaces as TUN devices of one relay process (`netem.relay.client.UserspaceLink`), whose pid goes
 into the run state and whose control socket lives in the run's link-state folder
 (`link_state_dir`, with `link-backend.json`: what `down`, `status` and `clean` read).
 """
@@ -13,7 +13,7 @@ from pathlib import Path
 from typing import Any
 
 from netem.profile import LinkProfile
-from netem.userspace import RelayError, UserspaceLink
+from netem.relay.client import RelayError, UserspaceLink
 from nodes.recording.jsonfile import write_json
 from testbed import state as st
 from testbed.errors import TestbedError
@@ -44,7 +44,7 @@ class TunRelayEnds:
     crash between start and record). `relays` maps link names to their `UserspaceLink`.
 
     The air links of one gNB whose profiles have an NR radio share one relay, attached to the
-    first of them, and its slots (`netem.cell`): a cell serves all its UEs, by the cell's
+    first of them, and its slots (`netem.nr.cell`): a cell serves all its UEs, by the cell's
     `scheduler`.
     """
 

@@ -1,6 +1,6 @@
 """Judging a radio link against its oracle: the closed-form delay distribution and the BLER.
 
-A radio direction's measured one-way delays are compared with `netem.nr.DelayOracle`
+A radio direction's measured one-way delays are compared with `netem.nr.oracle.DelayOracle`
 (`oracle_comparison`: Wasserstein-1 and Kolmogorov-Smirnov), beside how far that many probes
 of the oracle fall from it by chance (`sampling_chance`); the relay's counters give the HARQ
 shares against the BLER (`harq_shares`) and what a slot carried while saturated
@@ -21,7 +21,8 @@ from testbed.links import Direction
 from testbed.linktest.measure import percentile
 
 if TYPE_CHECKING:
-    from netem.nr import DelayOracle, Grid
+    from netem.nr.oracle import DelayOracle
+    from netem.nr.radio import Grid
 
 #: A radio direction's delay distribution may be this far from the oracle (Wasserstein-1),
 #: the sum of two parts (W1 obeys the triangle inequality). The host's: the relay's timer

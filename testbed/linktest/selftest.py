@@ -55,7 +55,7 @@ from testbed.linktest.report import (
 )
 
 if TYPE_CHECKING:
-    from netem.nr import Radio
+    from netem.nr.radio import Radio
     from testbed.topology import Link, Net, Node
 
 #: Spacing of a radio direction's delay probes, in grid periods, beyond the oracle's 99th

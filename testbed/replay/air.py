@@ -15,11 +15,12 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from netem.nr import Direction, Radio
+from netem.nr.phy import Direction
+from netem.nr.radio import Radio
 from nodes.edgeloc.latency import PACKET_OVERHEAD, PACKET_PAYLOAD
 
 if TYPE_CHECKING:
-    from netem.stages import Slots
+    from netem.nr.ue import Slots
 
 
 @dataclass(frozen=True)
@@ -31,7 +32,7 @@ class RadioHop:
     asks ~10 times a second, so requests seldom queue behind each other. `share` is the part
     of the cell's PRBs the UE gets while other UEs of its cell carry `traffic:`
     (`cell_share`): its radio then has that part of its PRBs (a transport block is close to
-    linear in PRBs at a fixed MCS, as `netem.cell` shares them).
+    linear in PRBs at a fixed MCS, as `netem.nr.cell` shares them).
     """
 
     radio: Radio
@@ -77,7 +78,7 @@ class OtherMessage:
 class ContendedHop:
     """The air hop of one UE whose cell's other UEs sent known messages (a real run's
     requests of the other EdgeLoc vehicles, `others`, by start): each message of this UE
-    goes through one `netem.cell.Cell` on a virtual clock beside the others' messages that
+    goes through one `netem.nr.cell.Cell` on a virtual clock beside the others' messages that
     start within `window_s` of it, each UE with its own `Slots` (SR, grants, HARQ) and MCS,
     the cell's PRBs split by `scheduler` as a real run's relay splits them. Without such a
     message it is `own`'s idle UE."""
@@ -93,7 +94,7 @@ class ContendedHop:
 
     def deliver(self, start_s: float, nbytes: int, rng: np.random.Generator) -> float:
         """When this UE's message's last packet leaves (inf: one was lost)."""
-        from netem.cell import Cell
+        from netem.nr.cell import Cell
 
         def start(o: OtherMessage) -> float:
             return o.start_s
@@ -133,9 +134,9 @@ class ContendedHop:
 
 
 def _ue_stage(direction: Direction, radio: Radio, rng: np.random.Generator) -> Slots:
-    """A fresh (idle) `netem.stages.Slots` of one UE's `direction` over `radio`."""
+    """A fresh (idle) `netem.nr.ue.Slots` of one UE's `direction` over `radio`."""
+    from netem.nr.ue import Slots
     from netem.profile import LinkProfile
-    from netem.stages import Slots
 
     stage = Slots(direction=direction, seed=int(rng.integers(1 << 31)))
     stage.configure(LinkProfile(radio=radio, queue_packets=None))

@@ -7,7 +7,7 @@ in the file:
 - no two sites stand within `MIN_SITE_SPACING_M` of each other (one mast, two cells would be
   one cell to the channel, and auto placement never does it);
 - the timeline does not write an air link's `mcs` or `bler` (the channel does);
-- a `trace` file exists and parses (`netem.channel.RadioTrace`, errors at its own lines);
+- a `trace` file exists and parses (`netem.nr.channel.RadioTrace`, errors at its own lines);
 - the radios the channel drives are ones it can model (30 kHz, a standard bandwidth);
 - `handover` comes with the model (not a trace), two or more cells, all behind one UPF with
   their edge servers behind it (one or one per cell: `edge: stay | follow`), A3 settings
@@ -21,8 +21,8 @@ import math
 from pathlib import Path
 from typing import Literal
 
-from netem.channel import RadioTrace, RadioTraceError
-from netem.handover import FILTER_COEFFICIENTS, TTT_MS
+from netem.nr.channel import RadioTrace, RadioTraceError
+from netem.nr.handover import FILTER_COEFFICIENTS, TTT_MS
 from testbed.scenario import model, schema_v1
 from testbed.scenario.kinds import Context, Items, Section
 

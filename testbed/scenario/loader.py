@@ -24,9 +24,9 @@ from typing import Any
 import yaml
 from yaml.nodes import Node
 
-from netem.nr import RADIO_PROFILES, Radio
+from netem.nr.radio import RADIO_PROFILES, Radio
+from netem.nr.rrc import RrcSettings
 from netem.profile import GilbertElliott, LinkProfile
-from netem.rrc import RrcSettings
 from netem.traces import TraceError, TraceProblem, default_format
 from testbed import units
 from testbed.scenario import channel, model, radios, schema_v1

@@ -32,7 +32,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Literal
 
-from netem.gtpu import N3_OVERHEAD
+from netem.gtpu.wire import N3_OVERHEAD
 from netem.profile import LinkProfile
 
 SCHEMA_VERSION = 1
@@ -94,7 +94,7 @@ class Vehicle:
 class CellSite:
     """Where a cell's antenna stands in the workload's world frame (metres, the frame of the
     dataset's ground-truth poses), how high, and its total transmit power and carrier
-    (defaults: `netem.channel.Site`'s, a 3.5 GHz macro cell on a 25 m mast at 46 dBm)."""
+    (defaults: `netem.nr.channel.Site`'s, a 3.5 GHz macro cell on a 25 m mast at 46 dBm)."""
 
     x: float
     y: float
@@ -112,7 +112,7 @@ class Cell:
     gnb: str
     core: str | None = None
     core_cpu: float | None = None  # CPU cores of the edge server; None = unlimited
-    #: How the gNB shares its air links' NR slots among its UEs (`netem.cell.SCHEDULERS`).
+    #: How the gNB shares its air links' NR slots among its UEs (`netem.nr.policy.SCHEDULERS`).
     scheduler: str = "rr"
     upf: str | None = None
     edge: str | None = None
@@ -565,7 +565,7 @@ class Traffic:
 
 @dataclass(frozen=True)
 class ChannelSpec:
-    """How the vehicles' routes become their radio (`testbed.mobility`, `netem.channel`):
+    """How the vehicles' routes become their radio (`testbed.mobility`, `netem.nr.channel`):
     a TR 38.901 model and LOS mode, the sampling step (link adaptation's period), shadowing,
     the UE's height, power and noise figure and the gNBs' noise figure; or `trace`, a
     recorded radio (`time_s,ue,rsrp_dbm,sinr_db,mcs[,cell]` rows) instead of the model."""
@@ -584,7 +584,7 @@ class ChannelSpec:
 
 @dataclass(frozen=True)
 class HandoverSpec:
-    """`channel.handover`: event A3 (`netem.handover.A3Handover`: a3-Offset, hysteresis,
+    """`channel.handover`: event A3 (`netem.nr.handover.A3Handover`: a3-Offset, hysteresis,
     time-to-trigger, L3 filter coefficient) on the route's per-cell RSRP decides when a
     vehicle changes cell; the user plane then stops for `interruption_s`, its packets
     delivered late (`lossless`, PDCP forwarding) or lost. The cells share one UPF; `edge`:

@@ -1,4 +1,4 @@
-"""How a scenario's `radio` keys become `netem.nr.Radio`s: pure functions, no positions.
+"""How a scenario's `radio` keys become `netem.nr.radio.Radio`s: pure functions, no positions.
 
 A radio is written in layers, each changing the one below it: `links.air.radio` (every air
 link, both directions), a direction's `radio` under `links.air`, a link's override, the
@@ -13,7 +13,8 @@ from __future__ import annotations
 import dataclasses
 from typing import Any
 
-from netem.nr import RADIO_PROFILES, SYMBOLS_PER_SLOT, NrError, Radio
+from netem.nr.phy import SYMBOLS_PER_SLOT, NrError
+from netem.nr.radio import RADIO_PROFILES, Radio
 
 DEFAULT_PROFILE = "oai-tdd-30k"
 #: YAML key -> `Radio` attribute (special_dl/special_ul make up `special` together).

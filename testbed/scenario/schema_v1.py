@@ -14,11 +14,11 @@ from __future__ import annotations
 
 from typing import Any
 
-from netem.cell import SCHEDULERS
-from netem.channel import CARRIER_RANGE_GHZ, LOS_MODES, MODELS, UE_HEIGHT_RANGE_M
-from netem.nr import RADIO_PROFILES, UL_ACCESS
+from netem.nr.channel import CARRIER_RANGE_GHZ, LOS_MODES, MODELS, UE_HEIGHT_RANGE_M
+from netem.nr.policy import SCHEDULERS
+from netem.nr.radio import RADIO_PROFILES, UL_ACCESS
+from netem.nr.rrc import RrcSettings
 from netem.profile import JITTER_DISTRIBUTIONS, GilbertElliott, LinkProfile
-from netem.rrc import RrcSettings
 from testbed.scenario import model
 from testbed.scenario.kinds import (
     Argv,

@@ -2,11 +2,11 @@
 each UE's packets through them (cells with `upf:`; see `testbed.scenario.model`).
 
 - `PduSession`: one vehicle's session: its UE address, its gNB and UPF, the TEID of each
-  direction and the two N3 addresses (`netem.gtp.Session` plus who is who).
+  direction and the two N3 addresses (`netem.gtpu.endpoint.Session` plus who is who).
 - `sessions(net)`: the sessions a planned network has, TEIDs numbered as a UPF and a gNB would
   hand them out (uplink 0x1001.., allocated by the UPF; downlink 0x2001.., by the gNB).
-- `CorePath`: started once the links are up. Per gNB an endpoint (`netem.gtp`, TUN `gtp0`) and
-  per N3 link an endpoint at the UPF (TUN `gtp-<gnb>`), then the routes: at the gNB, what comes
+- `CorePath`: started once the links are up. Per gNB an endpoint (`netem.gtpu.endpoint`, TUN `gtp0`)
+  and per N3 link an endpoint at the UPF (TUN `gtp-<gnb>`), then the routes: at the gNB, what comes
   from the UE pool goes into `gtp0` (a rule to table `UE_TABLE`; an edge at the cell is reached
   directly, before the tunnel); at the UPF, each UE's address goes into its gNB's tunnel. Its
   processes are the run's (recorded, so `testbed clean` stops them); its TUN devices go with
@@ -28,8 +28,8 @@ from typing import Any
 from pyroute2.netlink.exceptions import NetlinkError as PyNetlinkError
 
 from netem.errors import NetlinkError
-from netem.gtp import EndpointConfig, GtpEndpoint, GtpEndpointError, QosRule, Session
-from netem.gtpu import N3_OVERHEAD
+from netem.gtpu.endpoint import EndpointConfig, GtpEndpoint, GtpEndpointError, QosRule, Session
+from netem.gtpu.wire import N3_OVERHEAD
 from nodes.ros.env import domain_id_for, rtps_ports
 from testbed import state as st
 from testbed.errors import TestbedError
@@ -283,11 +283,15 @@ class CorePath:
             if self.net.here(gnb):
                 out.append(f"# GTP-U gNB {cell.gnb} on {n3.lower.ip}:2152 (TUN {GNB_TUN}): {teids}")
                 out.append(qos)
-                out.append(f"ip netns exec {gnb.netns} python -m netem.gtp <gnb config> &")
+                out.append(
+                    f"ip netns exec {gnb.netns} python -m netem.gtpu.endpoint <gnb config> &"
+                )
             if self.net.here(upf):
                 tun = upf_tun(cell.gnb)
                 out.append(f"# GTP-U UPF {upf.name} on {n3.upper.ip}:2152 (TUN {tun})")
-                out.append(f"ip netns exec {upf.netns} python -m netem.gtp <upf config> &")
+                out.append(
+                    f"ip netns exec {upf.netns} python -m netem.gtpu.endpoint <upf config> &"
+                )
             out += [
                 r.command(self.net[r.node].netns)
                 for r in self._routes(cell)

@@ -18,7 +18,7 @@ from pyroute2.netlink.exceptions import NetlinkError as PyNetlinkError
 
 from netem.errors import NetlinkError
 from netem.netns import netns_path
-from netem.tc import shaping_end
+from netem.tc.link import shaping_end
 from testbed import links
 from testbed import state as st
 from testbed.addressing import LinkAddresses

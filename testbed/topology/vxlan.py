@@ -23,7 +23,7 @@ Nouns (Mininet-like):
   relay (proxy ARP), so the upper node finds its peer on the link as on one host. It has no
   address of its own. On the upper node's host the tunnel is the node's interface itself,
   addressed with the upper /30. On the tc backend both ends are tunnels in the nodes'
-  namespaces, and the host of the link's shaping end (`netem.tc.shaping_end`) puts the
+  namespaces, and the host of the link's shaping end (`netem.tc.link.shaping_end`) puts the
   qdiscs on its tunnel.
 
 A packet of the link's MTU (1500) is 1550 bytes on the underlay: the tunnels send without DF,

@@ -3,8 +3,8 @@
     sudo .venv/bin/python tests/bench/bench_gtp.py [--seconds 4]
 
 Four namespaces (`elb-<hex>-ue|gnb|upf|edge`) joined by plain veth pairs (air, N3, N6), so the
-only userspace hops are the two GTP-U endpoints (`netem.gtp`, one process and so at most one
-core each). The same namespaces are routed two ways in turn:
+only userspace hops are the two GTP-U endpoints (`netem.gtpu.endpoint`, one process and so at most
+one core each). The same namespaces are routed two ways in turn:
 - `plain`: IP forwarding gNB -> UPF -> edge, no tunnel (the kernel's limit here);
 - `gtp`: the gNB's air traffic into its GTP-U endpoint, G-PDUs over N3, the UPF's endpoint.
 Figures: TCP goodput UE -> edge at MTU 1500 on N3 (UE MTU 1456), the endpoints' CPU, and the
@@ -33,7 +33,7 @@ from typing import Any
 if __package__ in (None, ""):  # run as a script: make the repo importable
     sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 
-from netem.gtp import EndpointConfig, GtpEndpoint, Session
+from netem.gtpu.endpoint import EndpointConfig, GtpEndpoint, Session
 from netem.netns import in_netns
 from testbed.linktest import in_namespace, tcp_goodput
 

@@ -32,9 +32,9 @@ from typing import Any
 from pyroute2 import netns
 
 from netem.netns import in_netns
-from netem.nr import Radio
+from netem.nr.radio import Radio
 from netem.profile import LinkProfile
-from netem.userspace import UserspaceLink
+from netem.relay.client import UserspaceLink
 from testbed.linktest import CTX, PORT, in_namespace, tcp_receive, tcp_send, udp_receive, udp_send
 
 #: A radio no relay can fill: 273 PRBs, 4 layers, MCS 27, an uplink slot every slot but one.

@@ -35,8 +35,8 @@ from pyroute2 import IPRoute, netns
 
 from netem.netns import in_netns
 from netem.profile import LinkProfile
+from netem.relay.client import UserspaceLink
 from netem.stages import jitter_sd
-from netem.userspace import UserspaceLink
 from testbed.linktest import (
     CTX,
     PORT,

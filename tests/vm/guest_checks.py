@@ -8,7 +8,7 @@ sch_netem it can be run directly: `sudo .venv/bin/python -m pytest tests/vm/gues
   state the netlink backend builds (netem's own options included, not only the HTB tree);
 - netem's jitter has the configured standard deviation;
 - a Wondershaper-style cap on top of a netem profile caps the rate and keeps the delay;
-- a link capture (`netem.sniff`, the tc backend's `record.pcap`) holds what netem delivered.
+- a link capture (`netem.tc.sniff`, the tc backend's `record.pcap`) holds what netem delivered.
 """
 
 from __future__ import annotations
@@ -25,11 +25,11 @@ import pytest
 from pyroute2 import IPRoute
 
 from netem.profile import LinkProfile
-from netem.shaping import clear as clear_shape
-from netem.shaping import shape
 from netem.stages import jitter_sd
-from netem.tc import ShapedInterface, TcLinkBackend
-from netem.tc_netlink import dump_qdiscs
+from netem.tc.link import ShapedInterface, TcLinkBackend
+from netem.tc.netlink import dump_qdiscs
+from netem.tc.shaping import clear as clear_shape
+from netem.tc.shaping import shape
 from tests.test_tc_root import (
     TCP_PAYLOAD_RATIO,
     Pair,
@@ -150,10 +150,10 @@ def test_shape_caps_a_netem_link(pair: Pair) -> None:
 
 
 def test_a_capture_holds_what_netem_delivered(pair: Pair, tmp_path: Path) -> None:
-    """The tc backend's capture (`netem.sniff`) on a link with netem: 30% loss and 20 ms on
+    """The tc backend's capture (`netem.tc.sniff`) on a link with netem: 30% loss and 20 ms on
     a's egress. The file must hold exactly the datagrams b received."""
     from netem.netns import in_netns
-    from netem.sniff import LinkSniffer, SniffConfig
+    from netem.tc.sniff import LinkSniffer, SniffConfig
     from tests.tshark import TSHARK
     from tests.tshark import fields as tshark_fields
 
