@@ -43,10 +43,10 @@ import numpy as np
 
 from nodes.edgeloc.metrics import write_tum
 from nodes.recording.layout import PARTS_DIR, RUN_MCAP, SUMMARY_FILE
-from reports.document import Document, to_markdown
+from reports.document import Document, Plot, to_markdown
 from reports.html import to_html
 from reports.mcapread import ReportInputError, RunData, read_run
-from reports.plots import Plot, draw_all, safe
+from reports.plots import draw_all, safe
 from reports.sections.accuracy import (
     accuracy_section,
     accuracy_summary,

@@ -5,11 +5,15 @@ both formats always say the same thing."""
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING
 
-# Only a type here: the sections that build documents are imported by `reports.plots`.
-if TYPE_CHECKING:
-    from reports.plots import Plot
+
+@dataclass(frozen=True)
+class Plot:
+    """A figure `reports.plots` drew: the document names it, the renderers embed it."""
+
+    file: str  # name inside the plots folder
+    title: str
+    caption: str
 
 
 @dataclass(frozen=True)

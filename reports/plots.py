@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import itertools
 import re
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -19,6 +18,7 @@ from matplotlib.figure import Figure
 from matplotlib.ticker import FuncFormatter, LogLocator, NullFormatter
 
 from nodes.recording import linktable
+from reports.document import Plot
 from reports.labels import place
 from reports.mcapread import RunData, VehicleData
 from reports.sections.accuracy import FrameErrors
@@ -48,13 +48,6 @@ RATE_FLOOR_MBIT = 0.001
 #: at MCS 0 in its uplink slots, so only a narrow carrier's cell edge comes near it, and a
 #: step whose blocks all fail (BLER 1) sits on the bottom line.
 CAPACITY_FLOOR_MBIT = 0.1
-
-
-@dataclass(frozen=True)
-class Plot:
-    file: str  # name inside the plots folder
-    title: str
-    caption: str
 
 
 def color(method: str, order: list[str]) -> str:

@@ -19,7 +19,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -31,13 +31,9 @@ from nodes.edgeloc.metrics import (
     paper_comparison,
     position_errors,
 )
-from reports.document import Image, Para, Section, Table
+from reports.document import Image, Para, Plot, Section, Table
 from reports.mcapread import RunData, VehicleData
 from reports.sections.fmt import cell, not_recorded_note, series_stats
-
-if TYPE_CHECKING:
-    from reports.plots import Plot
-
 
 PAPER_ORDER = ("vo", "dnn", "kalman", "edgeloc")
 

@@ -24,17 +24,14 @@ from __future__ import annotations
 import itertools
 import math
 from collections import Counter
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import numpy as np
 
-from reports.document import Image, Para, Section, Table
+from reports.document import Image, Para, Plot, Section, Table
 from reports.mcapread import RunData
 from reports.sections.fmt import cell, ms, not_recorded_note, pct, rounded
 from reports.splits import split_comparison
-
-if TYPE_CHECKING:
-    from reports.plots import Plot
 
 
 def split_order(data: RunData) -> list[str]:

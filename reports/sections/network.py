@@ -16,16 +16,12 @@ Its key of summary.json:
 from __future__ import annotations
 
 import re
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 from nodes.recording import linktable
-from reports.document import Image, Para, Section, Table
+from reports.document import Image, Para, Plot, Section, Table
 from reports.mcapread import RunData
 from reports.sections.fmt import cell, ms, not_recorded_note, rounded
-
-if TYPE_CHECKING:
-    from reports.plots import Plot
-
 
 #: A rate in a timeline event's text, as `testbed.timeline.describe` writes it for `shape`.
 _CAP_RE = re.compile(r"\b(uplink|downlink)\s+([0-9.]+(?:e[+-]?\d+)?)\s*([kMG]?)bit/s")

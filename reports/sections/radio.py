@@ -35,7 +35,7 @@ import dataclasses
 import math
 from collections import Counter
 from collections.abc import Callable, Mapping
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -43,13 +43,10 @@ from numpy.typing import NDArray
 from netem.nr.phy import Direction
 from nodes.edgeloc import bands
 from nodes.recording.layout import HANDOVER_TOPIC, radio_topic
-from reports.document import Image, Para, Section, Table
+from reports.document import Image, Para, Plot, Section, Table
 from reports.mcapread import RadioSeries, RunData, VehicleData
 from reports.sections.accuracy import FrameErrors
 from reports.sections.fmt import cell, ms, not_recorded_note, pct, rounded
-
-if TYPE_CHECKING:
-    from reports.plots import Plot
 
 
 def _spread(x: NDArray[np.float64]) -> dict[str, float | None]:

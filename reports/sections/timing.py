@@ -23,20 +23,17 @@ from __future__ import annotations
 
 import itertools
 import math
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import numpy as np
 import yaml
 
-from reports.document import Image, Para, Section, Table
+from reports.document import Image, Para, Plot, Section, Table
 from reports.mcapread import PoseTrack, RunData, VehicleData
 from reports.sections.accuracy import FrameErrors
 from reports.sections.fmt import cell, ms, not_recorded_note, rounded, series_stats
 from reports.sections.learner import split_order
 from reports.sections.run import topics_of
-
-if TYPE_CHECKING:
-    from reports.plots import Plot
 
 #: A DNN-answer gap is reported when longer than this, or 10x the median answer interval.
 GAP_MIN_S = 1.0
