@@ -18,7 +18,7 @@ Circle = tuple[float, float, float]
 #: Gaps between a point and the nearest corner or edge of its label, tried in this order.
 RADII_PX = (3.0, 8.0, 14.0, 22.0, 32.0, 44.0)
 #: Directions from the point (right-up first: where a reader looks for a point's name).
-DIRECTIONS = ((1, 1), (1, -1), (-1, 1), (-1, -1), (1, 0), (-1, 0), (0, 1), (0, -1))
+HEADINGS = ((1, 1), (1, -1), (-1, 1), (-1, -1), (1, 0), (-1, 0), (0, 1), (0, -1))
 
 
 def overlaps(a: Box, b: Box) -> bool:
@@ -47,12 +47,12 @@ def place(
     frame: Box | None = None,
 ) -> list[Box]:
     """A box per label (anchors[i] is its point, sizes[i] its width and height): the first
-    spot in `RADII_PX` x `DIRECTIONS` that covers no marker and no label placed before it,
+    spot in `RADII_PX` x `HEADINGS` that covers no marker and no label placed before it,
     inside `frame` (anywhere when no spot fits inside). A label with no free spot left gets the
     first spot: it overlaps, but is still drawn."""
     boxes: list[Box] = []
     for (x, y), (w, h) in zip(anchors, sizes, strict=True):
-        spots = [_box(x, y, w, h, dx, dy, r) for r in RADII_PX for dx, dy in DIRECTIONS]
+        spots = [_box(x, y, w, h, dx, dy, r) for r in RADII_PX for dx, dy in HEADINGS]
         inside = [b for b in spots if frame is None or _within(b, frame)] or spots
         free = (
             b

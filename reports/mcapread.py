@@ -32,6 +32,7 @@ from mcap.stream_reader import StreamReader
 from mcap_ros2.decoder import DecoderFactory
 from numpy.typing import NDArray
 
+from netem.directions import DIRECTIONS
 from netem.nr.radio import Radio
 from nodes.recording.layout import (
     HANDOVER_TOPIC,
@@ -543,7 +544,7 @@ def _link_radios(
         return out
     for link, entry in sorted(links.items()):
         profiles = entry.get("profiles") if isinstance(entry, dict) else None
-        for direction in ("uplink", "downlink"):
+        for direction in DIRECTIONS:
             profile = profiles.get(direction) if isinstance(profiles, dict) else None
             radio = profile.get("radio") if isinstance(profile, dict) else None
             if not isinstance(radio, dict):

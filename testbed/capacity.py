@@ -41,6 +41,7 @@ from pathlib import Path
 from typing import Any, Literal
 
 import netem
+from netem.directions import DIRECTIONS, directions
 from netem.netns import delete_netns
 from netem.relay.client import UserspaceLink
 from netem.traces import load_trace
@@ -413,14 +414,13 @@ def _asks(
     fixed: dict[tuple[str, lk.Direction], list[_Ask]] = {}
     traced: dict[tuple[str, lk.Direction], list[_Ask]] = {}
     for spec in specs:
-        for d in lk.DIRECTIONS:
+        for d in DIRECTIONS:
             rate = spec.profile(d).rate_bps
             fixed[spec.name, d] = [] if rate is None else [_Ask(rate, "")]
             traced[spec.name, d] = []
     for event in events:
         if isinstance(event, SetEvent) and event.changes.get("rate_bps") is not None:
-            directions = lk.DIRECTIONS if event.direction == "both" else (event.direction,)
-            for d in directions:
+            for d in directions(event.direction):
                 ask = _Ask(float(event.changes["rate_bps"]), f"the `set` at {event.at_s:g} s")
                 fixed.setdefault((event.link, d), []).append(ask)
         elif isinstance(event, TraceEvent):

@@ -42,6 +42,7 @@ from typing import cast
 
 import numpy as np
 
+from netem.directions import DIRECTIONS
 from netem.nr.channel import (
     CQI_SINR_DB,
     N_PRB_30KHZ,
@@ -454,7 +455,7 @@ def with_channel(scenario: Scenario, route: Route | None = None) -> Scenario:
         for gnb in gnbs:
             name = f"{plan.vehicle}-{gnb}"
             spec = links[name]
-            for direction in ("uplink", "downlink"):
+            for direction in DIRECTIONS:
                 radio = spec.profile(direction).radio  # type: ignore[arg-type]
                 if radio is None:
                     raise MobilityError(

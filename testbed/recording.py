@@ -39,6 +39,7 @@ from collections.abc import Callable, Iterable, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+from netem.directions import DIRECTIONS
 from nodes.recording import RecordingError
 from nodes.recording import layout as names
 from nodes.recording.jsonfile import dumps, write_json
@@ -388,7 +389,7 @@ def links_config(net: Net, backend: str) -> dict[str, Any]:
             "kind": link.kind,
             "lower": link.lower.name,
             "upper": link.upper.name,
-            "profiles": {d: ctl.profile(name, d).to_dict() for d in ("uplink", "downlink")},
+            "profiles": {d: ctl.profile(name, d).to_dict() for d in DIRECTIONS},
         }
         entry.update(ctl.realisation(name))
         out["links"][name] = entry
@@ -489,7 +490,7 @@ class Recording:
         try:
             data = json.loads(path.read_text())
             data["final_profiles"] = {
-                name: {d: ctl.profile(name, d).to_dict() for d in ("uplink", "downlink")}
+                name: {d: ctl.profile(name, d).to_dict() for d in DIRECTIONS}
                 for name in self.net.links
             }
             write_json(path, data)

@@ -30,6 +30,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from netem.directions import DIRECTIONS
 from netem.errors import NetemError
 from nodes.recording import RecordingError
 from nodes.recording import layout as names
@@ -209,7 +210,7 @@ def link_counters(net: Net) -> dict[str, Any]:
         except Exception as err:  # a dead relay must not hide the run's own result
             out[name] = {"error": str(err)}
             continue
-        out[name] = {d: c[d]["total"] for d in ("uplink", "downlink") if d in c}
+        out[name] = {d: c[d]["total"] for d in DIRECTIONS if d in c}
     return out
 
 

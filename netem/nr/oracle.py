@@ -11,7 +11,8 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 
-from netem.nr.phy import Carrier, Direction, NrError, Occasion, TddPattern, occasions
+from netem.directions import Direction
+from netem.nr.phy import Carrier, NrError, Occasion, TddPattern, occasions
 
 
 class DelayOracle:

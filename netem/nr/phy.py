@@ -18,9 +18,8 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Literal
 
-Direction = Literal["uplink", "downlink"]
+from netem.directions import Direction
 
 #: OFDM symbols per slot with the normal cyclic prefix (TS 38.211 §4.3.2).
 SYMBOLS_PER_SLOT = 14

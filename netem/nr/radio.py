@@ -8,11 +8,11 @@ import math
 from collections.abc import Sequence
 from dataclasses import dataclass
 
+from netem.directions import DIRECTIONS, Direction
 from netem.nr.oracle import DelayOracle
 from netem.nr.phy import (
     MCS_TABLE_1,
     Carrier,
-    Direction,
     NrError,
     Occasion,
     TddPattern,
@@ -241,7 +241,7 @@ class Radio:
         if self.ul_access not in UL_ACCESS:
             allowed = ", ".join(UL_ACCESS)
             raise NrError(f"ul_access must be one of {allowed}, got {self.ul_access!r}")
-        for direction in ("uplink", "downlink"):
+        for direction in DIRECTIONS:
             if not occasions(pattern, direction, self.carrier()):  # type: ignore[arg-type]
                 raise NrError(
                     f"{direction} has no window that carries data in {self.slots} "

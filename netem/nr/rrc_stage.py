@@ -12,8 +12,8 @@ import math
 from collections import deque
 from typing import Any
 
+from netem.directions import Direction
 from netem.errors import ProfileError
-from netem.nr.phy import Direction
 from netem.nr.rrc import Promotion, Rrc, RrcSettings, RrcState
 from netem.profile import LinkProfile, check_link
 from netem.stages.base import Stage, pop_timed, wire_packets

@@ -16,7 +16,8 @@ from collections import deque
 from collections.abc import Sequence
 from typing import Any, Protocol
 
-from netem.nr.phy import Direction, Occasion
+from netem.directions import Direction
+from netem.nr.phy import Occasion
 from netem.profile import LinkProfile
 from netem.stages.base import Stage, pop_timed, wire_packets
 

@@ -6,8 +6,8 @@ import time
 from collections.abc import Mapping
 from typing import Any
 
+from netem.directions import DIRECTIONS
 from netem.pcap import PcapngWriter
-from netem.relay.direction import DIRECTIONS
 from netem.stages import Pipeline
 
 

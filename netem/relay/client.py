@@ -36,13 +36,12 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Literal
+from typing import Any
 
 import netem
+from netem.directions import Directions
 from netem.errors import NetemError
 from netem.profile import LinkProfile, check_link, check_profile
-
-Direction = Literal["uplink", "downlink", "both"]
 
 
 class RelayError(NetemError, RuntimeError):
@@ -399,7 +398,7 @@ class UserspaceLink:
         self.request({"op": "ping"})
         return time.monotonic() - t0
 
-    def set(self, direction: Direction, profile: LinkProfile | dict[str, Any]) -> None:
+    def set(self, direction: Directions, profile: LinkProfile | dict[str, Any]) -> None:
         """Change one direction (or both) in place: a `LinkProfile` replaces it whole, a
         dict changes only the fields it names. `rrc` is the link's, not a direction's: the
         relay changes it in both directions, and `profiles` shows both."""
@@ -420,11 +419,11 @@ class UserspaceLink:
         for d, data in reply.get("profiles", {}).items():
             self.profiles[d] = LinkProfile.from_dict(data)
 
-    def outage(self, seconds: float, direction: Direction = "both") -> None:
+    def outage(self, seconds: float, direction: Directions = "both") -> None:
         """Drop every packet on the link for `seconds` from now."""
         self.request({"op": "outage", "seconds": seconds, "direction": direction})
 
-    def interrupt(self, seconds: float, mode: str = "hold", direction: Direction = "both") -> None:
+    def interrupt(self, seconds: float, mode: str = "hold", direction: Directions = "both") -> None:
         """A handover's interruption of `seconds` from now: packets that would leave the link
         meanwhile wait for its end and then leave in order (`mode` "hold", a lossless
         handover) or are lost ("drop"). Unlike `outage`, it cuts what is in flight too."""
@@ -432,7 +431,7 @@ class UserspaceLink:
 
     def play_trace(
         self,
-        direction: Direction,
+        direction: Directions,
         path: str | os.PathLike[str] | None,
         format: str | None = None,
         loop: bool = False,

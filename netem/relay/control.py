@@ -35,11 +35,11 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
+from netem.directions import DIRECTIONS
 from netem.errors import NetemError, ProfileError
 from netem.nr.handover_gap import check_gap
 from netem.profile import PROFILE_FIELDS, LinkProfile, check_profile
 from netem.relay.capture import Capture
-from netem.relay.direction import DIRECTIONS
 from netem.traces import TRACE_FORMATS, load_trace
 
 

@@ -13,8 +13,8 @@ both `netem.stages` and `netem.nr`, because it is the one place that names them 
 
 from __future__ import annotations
 
+from netem.directions import Direction
 from netem.nr.handover_gap import HandoverGap
-from netem.nr.phy import Direction
 from netem.nr.rrc_stage import RrcStage
 from netem.nr.ue import Slots
 from netem.profile import LinkProfile, check_profile
@@ -28,8 +28,6 @@ from netem.stages import (
     Segment,
     TraceLink,
 )
-
-DIRECTIONS = ("uplink", "downlink")
 
 
 def build_pipeline(

@@ -29,6 +29,7 @@ from collections import deque
 from collections.abc import Callable
 from typing import Any
 
+from netem.directions import DIRECTIONS
 from netem.errors import ProfileError
 from netem.gso import VNET_LEN, Frame, ip_packets, rejoin
 from netem.nr.cell import Cell, CellError
@@ -37,7 +38,7 @@ from netem.nr.ue import Slots
 from netem.profile import LinkProfile, check_link, check_profile
 from netem.relay.capture import Capture
 from netem.relay.control import Control, ControlError
-from netem.relay.direction import DIRECTIONS, build_pipeline
+from netem.relay.direction import build_pipeline
 from netem.relay.timer import WakeTimer
 from netem.stages import Pipeline
 from netem.tun import MAX_MTU, TunConfig, TunError, open_tun_in

@@ -29,6 +29,7 @@ from typing import Literal
 
 from pyroute2 import IPRoute
 
+from netem.directions import DIRECTIONS, Direction
 from netem.errors import LinkStateError, NetlinkError, ProfileError
 from netem.profile import LinkProfile
 from netem.tc.netlink import (
@@ -62,8 +63,6 @@ from netem.tc.plan import (
     planned_state,
     rate_bytes,
 )
-
-Direction = Literal["uplink", "downlink"]
 
 
 class ShapedInterface:
@@ -416,7 +415,7 @@ class TcLinkBackend:
         *,
         dry_run: bool = False,
     ) -> None:
-        if sends not in ("uplink", "downlink"):
+        if sends not in DIRECTIONS:
             raise ProfileError(f"`sends` must be 'uplink' or 'downlink', not {sends!r}")
         self.netns = netns
         self.ifname = ifname
@@ -441,7 +440,7 @@ class TcLinkBackend:
 
     def side(self, direction: Direction) -> ShapedInterface | IngressShaper:
         """Where `direction` is shaped: this end's egress, or its IFB."""
-        if direction not in ("uplink", "downlink"):
+        if direction not in DIRECTIONS:
             raise ProfileError(f"direction must be 'uplink' or 'downlink', not {direction!r}")
         return self.egress if direction == self.sends else self.ingress
 

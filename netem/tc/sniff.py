@@ -36,6 +36,7 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
 
+from netem.directions import DIRECTIONS
 from netem.errors import NetemError
 from netem.gso import VNET, VNET_LEN, ip_packets
 from netem.netns import in_netns
@@ -105,9 +106,7 @@ class Sniffer:
         self.cfg = config
         self.writer = PcapngWriter(config.path)
         self.sockets = {"lower": lower, "upper": upper}
-        self.interfaces = {
-            d: self.writer.interface(f"{config.link} {d}") for d in ("uplink", "downlink")
-        }
+        self.interfaces = {d: self.writer.interface(f"{config.link} {d}") for d in DIRECTIONS}
         self.packets = {"uplink": 0, "downlink": 0}
         self._held: list[tuple[int, str, bytes]] = []  # (arrival ns, direction, data)
         self.unstamped = 0  # reads the kernel gave no arrival time (stamped when read)

@@ -40,7 +40,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from netem.nr.phy import Direction
+from netem.directions import Direction
 from nodes.edgeloc import bands
 from nodes.recording.layout import HANDOVER_TOPIC, radio_topic
 from reports.document import Image, Para, Plot, Section, Table

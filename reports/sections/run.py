@@ -20,6 +20,7 @@ from __future__ import annotations
 
 from typing import Any
 
+from netem.directions import DIRECTIONS
 from nodes.recording.layout import HANDOVER_TOPIC, PCAP_DIR
 from reports.document import Code, Para, Section, Table
 from reports.mcapread import RunData
@@ -245,7 +246,7 @@ def _captures(sec: Section, data: RunData) -> None:
             [
                 f"{PCAP_DIR}/{f.name}",
                 f"{f.stat().st_size / 1e6:.2f}",
-                *[f"{packets.get(d, '-')} / {dropped.get(d, '-')}" for d in ("uplink", "downlink")],
+                *[f"{packets.get(d, '-')} / {dropped.get(d, '-')}" for d in DIRECTIONS],
             ]
         )
     sec.add(

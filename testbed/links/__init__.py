@@ -37,24 +37,18 @@ from testbed.links.relay_ends import (
     remove_link_state,
 )
 from testbed.links.views import (
-    DIRECTIONS,
     BackendName,
-    Direction,
-    Directions,
     LinkView,
     NetView,
     NodeView,
 )
 
 __all__ = [
-    "DIRECTIONS",
     "FRAME_OVERHEAD",
     "LINK_STATE_FILE",
     "NETEM_FIELDS",
     "BackendChoice",
     "BackendName",
-    "Direction",
-    "Directions",
     "LinkController",
     "LinkView",
     "NetView",

@@ -13,13 +13,14 @@ import json
 from collections.abc import Callable
 from dataclasses import dataclass
 
+from netem.directions import DIRECTIONS
 from netem.tc.plan import needs_netem
 from nodes.recording.jsonfile import write_json
 from testbed import check
 from testbed import state as st
 from testbed.errors import HostError
 from testbed.links.relay_ends import LINK_STATE_FILE, TunRelayEnds, link_state_dir
-from testbed.links.views import DIRECTIONS, BackendName
+from testbed.links.views import BackendName
 from testbed.namespaces import VethEnds
 from testbed.scenario.model import OutageEvent, Scenario, SetEvent
 

@@ -19,6 +19,7 @@ from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
 from typing import Any, Protocol
 
+from netem.directions import DIRECTIONS, Direction, Directions, directions
 from netem.nr.phy import slot_s
 from netem.profile import HTB_MIN_RATE_BPS, LinkProfile
 from netem.relay.client import RelayError, UserspaceLink
@@ -29,10 +30,7 @@ from netem.traces import Trace, load_trace
 from testbed.errors import BadInput, HostError
 from testbed.links.relay_ends import TunRelayEnds
 from testbed.links.views import (
-    DIRECTIONS,
     BackendName,
-    Direction,
-    Directions,
     LinkView,
     NetView,
     NodeView,
@@ -177,10 +175,6 @@ class _Base:
             raise BadInput(f"link {name} is emulated on another host of the topology, not here")
         return self.net.links[name]
 
-    @staticmethod
-    def _directions(direction: Directions) -> tuple[Direction, ...]:
-        return DIRECTIONS if direction == "both" else (direction,)
-
     def profile(self, link: str, direction: Direction) -> LinkProfile:
         self._link(link)
         return self.profiles[link, direction]
@@ -271,7 +265,7 @@ class UserspaceController(_Base):
         with self._lock:
             relay.set(direction, dict(changes))
             # RRC states are the UE's: a change of `rrc` reaches both directions.
-            for d in DIRECTIONS if "rrc" in changes else self._directions(direction):
+            for d in DIRECTIONS if "rrc" in changes else directions(direction):
                 self.profiles[link, d] = relay.profiles[d]
 
     def outage(self, link: str, seconds: float) -> None:
@@ -401,7 +395,7 @@ class TcController(_Base):
     def set(self, link: str, direction: Directions, changes: dict[str, Any]) -> None:
         self._link(link)
         with self._lock:
-            for d in self._directions(direction):
+            for d in directions(direction):
                 # via a dict, so a Gilbert-Elliott model given as a mapping becomes one again
                 profile = LinkProfile.from_dict({**self.profiles[link, d].to_dict(), **changes})
                 if self._outage_until.get(link, 0) <= time.monotonic():

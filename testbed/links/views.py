@@ -2,8 +2,8 @@
 
 The topology builds on `testbed.links`, so the links do not import it: `NodeView`, `LinkView`
 and `NetView` state the little they read of a built (or dry-run) network, and the topology's
-`Node`, `Link` and `Net` satisfy them. `BackendName`, `Direction` and `Directions` name a
-backend and a link's directions (uplink = lower -> upper).
+`Node`, `Link` and `Net` satisfy them. `BackendName` names a backend;
+a link's directions are `netem.directions`'.
 """
 
 from __future__ import annotations
@@ -70,6 +70,3 @@ class NetView(Protocol):
 
 
 BackendName = Literal["tc", "userspace"]
-Direction = Literal["uplink", "downlink"]
-Directions = Literal["uplink", "downlink", "both"]
-DIRECTIONS: tuple[Direction, Direction] = ("uplink", "downlink")

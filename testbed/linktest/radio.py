@@ -16,8 +16,8 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from netem.directions import Direction
 from netem.profile import LinkProfile
-from testbed.links import Direction
 from testbed.linktest.measure import percentile
 
 if TYPE_CHECKING:

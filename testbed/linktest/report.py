@@ -14,10 +14,10 @@ from __future__ import annotations
 from dataclasses import asdict, dataclass, field
 from typing import Any
 
+from netem.directions import Direction
 from netem.profile import LinkProfile
 from nodes.recording import linktable
 from testbed.hostload import CpuLoad, TimerFloor
-from testbed.links import Direction
 
 DELAY_TOL_S = 0.0005
 RATE_TOL = 0.05

@@ -15,11 +15,12 @@ import time
 from collections.abc import Sequence
 from typing import TYPE_CHECKING, Any, Protocol
 
+from netem.directions import DIRECTIONS, Direction
 from netem.profile import LinkProfile
 from testbed.connectivity import echo_rtts
 from testbed.errors import BadInput, TestbedError
 from testbed.hostload import CpuSample, TimerFloor, cpu_load_between, timer_floor
-from testbed.links import DIRECTIONS, Direction, LinkController, neutral
+from testbed.links import LinkController, neutral
 from testbed.linktest.measure import (
     IP_PACKET,
     PORT,

@@ -15,7 +15,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from netem.nr.phy import Direction
+from netem.directions import Direction
 from netem.nr.radio import Radio
 from nodes.edgeloc.latency import PACKET_OVERHEAD, PACKET_PAYLOAD
 

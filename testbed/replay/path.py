@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import math
 
+from netem.directions import directions
 from netem.profile import LinkProfile
 from netem.traces import Trace, load_trace
 from nodes.edgeloc.latency import (
@@ -155,7 +156,7 @@ class _PathPlan:
             if e.at_s > t:
                 break
             if isinstance(e, SetEvent):
-                dirs = ("uplink", "downlink") if e.direction == "both" else (e.direction,)
+                dirs = directions(e.direction)
                 for d in dirs:
                     if (e.link, d) in prof:
                         prof[(e.link, d)] = prof[(e.link, d)].replace(**dict(e.changes))

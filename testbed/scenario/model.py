@@ -32,13 +32,13 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Literal
 
+from netem.directions import Direction
 from netem.gtpu.wire import N3_OVERHEAD
 from netem.profile import LinkProfile
 
 SCHEMA_VERSION = 1
 
 Role = Literal["vehicle", "gnb", "core", "upf", "edge"]
-Direction = Literal["uplink", "downlink"]
 Backend = Literal["auto", "tc", "userspace"]
 LinkKind = Literal["air", "backhaul", "n3", "n6"]
 Placement = Literal["core", "cell"]
