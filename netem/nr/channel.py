@@ -38,7 +38,6 @@ from netem.errors import NetemError
 from netem.nr.phy import MCS_TABLE_1, SUBCARRIERS_PER_PRB
 
 Model = Literal["uma", "umi"]
-LosMode = Literal["los", "nlos", "auto"]
 LOS_MODES: tuple[str, ...] = ("los", "nlos", "auto")
 
 #: Speed of light as TR 38.901 Table 7.4.1-1 note 1 takes it for the breakpoint distance.

@@ -392,12 +392,6 @@ class UserspaceLink:
             raise RelayError(f"relay refused {message.get('op')!r}: {reply.get('error')}")
         return reply
 
-    def ping(self) -> float:
-        """Round-trip time of a control request, in seconds."""
-        t0 = time.monotonic()
-        self.request({"op": "ping"})
-        return time.monotonic() - t0
-
     def set(self, direction: Directions, profile: LinkProfile | dict[str, Any]) -> None:
         """Change one direction (or both) in place: a `LinkProfile` replaces it whole, a
         dict changes only the fields it names. `rrc` is the link's, not a direction's: the
