@@ -486,3 +486,19 @@ def test_wake_timer_learns_a_slow_guest_timer_and_sleeps_short_of_the_departure(
     plain = WakeTimer()
     assert plain.timeout(None, 1.010, 1.0) == pytest.approx(0.010 - plain.early_s)
     assert plain.early_s <= EARLY_MAX_S
+
+
+def test_the_relay_s_operations_table_makes_its_docstring_and_its_unknown_op_error(
+    fake_relay,
+) -> None:
+    """One table (`netem.relay.control.OPS`): each entry's usage is a line of the module's
+    docstring, and the error for an unknown op lists exactly its keys, in its order."""
+    from netem.relay import control as protocol
+
+    assert list(protocol.OPS)[:3] == ["ping", "set", "outage"]  # the table is the real one
+    for name, op in protocol.OPS.items():
+        assert f'{{"op": "{name}"' in op.usage
+        assert op.usage.splitlines()[0] in (protocol.__doc__ or "")
+    _, _, _, control = fake_relay
+    reply = ask(control, {"op": "jump"})
+    assert reply["error"].endswith("allowed: " + ", ".join(protocol.OPS))
