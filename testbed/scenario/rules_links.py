@@ -123,6 +123,8 @@ def _rrc(value: Section | None) -> RrcSettings | None:
 
 
 def build(b: Builder) -> model.Links | None:
+    """The `Links`, or None when one is wrong (reported); their specs also go to
+    `b.link_specs`, over which the timeline lays its radios."""
     links: Section | None = b.root.get("links")
     defaults: dict[str, dict[str, dict[str, object]]] = {
         kind: {"uplink": {}, "downlink": {}} for kind in LINK_KINDS

@@ -47,6 +47,7 @@ def _trace_problems(text: str, fmt: str) -> list[TraceProblem]:
 
 
 def build(b: Builder) -> list[model.Event]:
+    """The events that checked out, the `set` events with a radio last (`_radio_sets`)."""
     events: Items | None = b.root.get("timeline")
     out: list[model.Event] = []
     radio_sets: list[tuple[model.SetEvent, Section]] = []

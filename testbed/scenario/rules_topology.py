@@ -31,6 +31,7 @@ NAME_CUTOFF = 0.5
 
 
 def listing(names: list[str], limit: int = 8) -> str:
+    """`names` for a message: the first `limit` of them, or "none"."""
     shown = names[:limit] + (["..."] if len(names) > limit else [])
     return ", ".join(shown) if shown else "none"
 
@@ -45,6 +46,8 @@ def _edge_name(cell: Section) -> str | None:
 
 
 def build(b: Builder) -> model.Topology | None:
+    """The `Topology`, or None when a part is wrong (reported). On the way it records the
+    names of the nodes (`b.roles`) and of the links (`b.link_kinds`) later sections name."""
     topo: Section | None = b.root.get("topology")
     if topo is None:
         return None
@@ -435,6 +438,7 @@ def check_link(b: Builder, section: Section, key: str) -> bool:
 
 
 def check_node(b: Builder, section: Section, key: str) -> None:
+    """Report `section[key]` where it names no node of the topology."""
     name = section.get(key)
     if name is None or name in b.roles or not b.topology_ok:
         return

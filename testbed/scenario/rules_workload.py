@@ -20,6 +20,7 @@ if TYPE_CHECKING:
 
 
 def build(b: Builder) -> model.Workload:
+    """The `Workload`; the default one when anything so far is wrong (reported)."""
     workload: Section | str | None = b.root.get("workload")
     if workload is None:
         return model.Workload()
