@@ -5,8 +5,8 @@ Three passes, each reporting `Issue`s with file:line:column and the field path:
    is not a plain scalar, so loading never runs anything);
 2. the declarations of `schema_v1.py`, made of the kinds of `kinds.py` (types, units, ranges,
    allowed values, unknown and duplicate keys);
-3. the rules that join fields, one module per section of the file, which `Builder` calls in
-   the file's order: `rules_topology` (names defined once and referred to correctly),
+3. the rules that join fields, one module per section of the file, each handed the file's
+   `building.Builder` (what they share) in the file's order: `rules_topology` (names defined once and referred to correctly),
    `rules_links`, `rules_timeline` (times inside the run, trace files that exist and parse),
    `rules_workload` (paths relative to the file), `channel` and `programs`.
 All issues of a file are collected; a rule that depends on a broken part is skipped rather
@@ -31,6 +31,7 @@ from testbed.scenario import (
     rules_workload,
     schema_v1,
 )
+from testbed.scenario.building import Builder
 from testbed.scenario.issues import ROOT_PATH, Issue, ScenarioError
 from testbed.scenario.kinds import Context, Invalid, Section
 from testbed.scenario.programs import Programs
@@ -105,7 +106,7 @@ def _load(
         )
     scenario = None
     if section is not None:
-        scenario = Builder(ctx, section, base_dir, display_dir, path).build()
+        scenario = _build(Builder(ctx, section, base_dir, display_dir, path))
     if ctx.issues or scenario is None:
         issues = sorted(
             ctx.issues, key=lambda i: (i.file != source, i.file, i.line or 0, i.column or 0)
@@ -152,61 +153,45 @@ def _compose(text: str, ctx: Context) -> Node | None:
 # ---- rules that join fields -----------------------------------------------------------------
 
 
-class Builder:
-    """Checks the rules between fields, section by section in the order of the file, and
-    builds the `Scenario` when nothing is wrong. It holds what the sections' rules share."""
-
-    def __init__(
-        self, ctx: Context, root: Section, base_dir: Path, display_dir: Path, path: Path | None
-    ) -> None:
-        self.ctx, self.root = ctx, root
-        self.base_dir, self.display_dir, self.path = base_dir, display_dir, path
-        self.duration: float | None = root.get("duration")
-        self.roles: dict[str, str] = {}  # node name -> vehicle | gnb | core
-        self.topology_ok = False  # every node known: references to unknown names are errors
-        self.link_kinds: dict[str, str] = {}  # link name -> air | backhaul
-        self.link_specs: dict[str, model.LinkSpec] = {}  # the links, once they checked out
-        # node -> (its host, the field path and YAML node where it is listed): `topology.hosts`
-        self.placed: dict[str, tuple[str, str, Node]] = {}
-
-    def build(self) -> model.Scenario | None:
-        topology = rules_topology.build(self)
-        links = rules_links.build(self)
-        if topology is not None and links is not None:
-            rules_topology.check_links_across_hosts(self, topology, links)
-        timeline = rules_timeline.build(self)
-        workload = rules_workload.build(self)
-        channel.check_sites(self.ctx, self.root)
-        channel.check_timeline(self.ctx, self.root, self.link_kinds)
-        channel.check_handover(self.ctx, self.root)
-        channel_spec = channel.spec(self.ctx, self.root, self.base_dir, self.display_dir)
-        record, report = self.root.get("record"), self.root.get("report")
-        if record is not None:
-            rules_topology.check_links_named(self, record, "pcap")
-        if report is not None:
-            rules_topology.check_links_named(self, report, "link_test")
-        check_node = functools.partial(rules_topology.check_node, self)
-        programs = Programs(self.ctx, self.base_dir, self.duration, check_node)
-        apps = programs.apps(self.root.get("apps"))
-        traffic = programs.traffic(self.root.get("traffic"))
-        topics = programs.topics(record.get("topics") if record is not None else None)
-        if self.ctx.issues or topology is None or links is None:
-            return None
-        built_record = record.obj.build(record) if record else model.Record()
-        scenario = model.Scenario(
-            name=self.root["name"],
-            seed=self.root["seed"],
-            duration_s=self.root["duration"],
-            topology=topology,
-            links=links,
-            timeline=tuple(sorted(timeline, key=lambda e: e.at_s)),
-            workload=workload,
-            record=dataclasses.replace(built_record, topics=topics),
-            report=report.obj.build(report) if report else model.Report(),
-            apps=apps,
-            traffic=traffic,
-            channel=channel_spec,
-            source=self.path,
-            version=self.root["version"],
-        )
-        return channel.apply(self.ctx, self.root, scenario)
+def _build(b: Builder) -> model.Scenario | None:
+    """The section rules in the order of the file, then the `Scenario` when none complained."""
+    topology = rules_topology.build(b)
+    links = rules_links.build(b)
+    if topology is not None and links is not None:
+        rules_topology.check_links_across_hosts(b, topology, links)
+    timeline = rules_timeline.build(b)
+    workload = rules_workload.build(b)
+    channel.check_sites(b.ctx, b.root)
+    channel.check_timeline(b.ctx, b.root, b.link_kinds)
+    channel.check_handover(b.ctx, b.root)
+    channel_spec = channel.spec(b.ctx, b.root, b.base_dir, b.display_dir)
+    record, report = b.root.get("record"), b.root.get("report")
+    if record is not None:
+        rules_topology.check_links_named(b, record, "pcap")
+    if report is not None:
+        rules_topology.check_links_named(b, report, "link_test")
+    check_node = functools.partial(rules_topology.check_node, b)
+    programs = Programs(b.ctx, b.base_dir, b.duration, check_node)
+    apps = programs.apps(b.root.get("apps"))
+    traffic = programs.traffic(b.root.get("traffic"))
+    topics = programs.topics(record.get("topics") if record is not None else None)
+    if b.ctx.issues or topology is None or links is None:
+        return None
+    built_record = record.obj.build(record) if record else model.Record()
+    scenario = model.Scenario(
+        name=b.root["name"],
+        seed=b.root["seed"],
+        duration_s=b.root["duration"],
+        topology=topology,
+        links=links,
+        timeline=tuple(sorted(timeline, key=lambda e: e.at_s)),
+        workload=workload,
+        record=dataclasses.replace(built_record, topics=topics),
+        report=report.obj.build(report) if report else model.Report(),
+        apps=apps,
+        traffic=traffic,
+        channel=channel_spec,
+        source=b.path,
+        version=b.root["version"],
+    )
+    return channel.apply(b.ctx, b.root, scenario)

@@ -11,17 +11,14 @@ from __future__ import annotations
 
 import dataclasses
 import math
-from typing import TYPE_CHECKING
 
 from netem.nr.radio import RADIO_PROFILES, Radio
 from netem.nr.rrc import RrcSettings
 from netem.profile import GilbertElliott, LinkProfile
 from testbed.scenario import model, radios, schema_v1
+from testbed.scenario.building import Builder
 from testbed.scenario.kinds import Context, Items, Section
 from testbed.scenario.rules_topology import check_link
-
-if TYPE_CHECKING:
-    from testbed.scenario.loader import Builder
 
 
 def profile_changes(

@@ -9,18 +9,15 @@ from __future__ import annotations
 
 import dataclasses
 import re
-from typing import TYPE_CHECKING
 
 from netem.nr.radio import Radio
 from netem.traces import TraceError, TraceProblem, default_format
 from testbed import units
 from testbed.scenario import model, radios
+from testbed.scenario.building import Builder
 from testbed.scenario.kinds import Items, Section
 from testbed.scenario.rules_links import off_grid, profile_changes, radio_of
 from testbed.scenario.rules_topology import check_link, check_node
-
-if TYPE_CHECKING:
-    from testbed.scenario.loader import Builder
 
 DIRS = ("uplink", "downlink")
 

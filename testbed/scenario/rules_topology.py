@@ -14,16 +14,14 @@ from __future__ import annotations
 import dataclasses
 import ipaddress
 from collections.abc import Callable
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 from yaml.nodes import Node
 
 from testbed.scenario import channel, model, schema_v1
+from testbed.scenario.building import Builder
 from testbed.scenario.issues import did_you_mean
 from testbed.scenario.kinds import Items, Section, item
-
-if TYPE_CHECKING:
-    from testbed.scenario.loader import Builder
 
 #: Names of this scenario (nodes, links, splits) are short words, so a misspelt one is matched
 #: more loosely than a key of the schema (`kinds.SPELLING_CUTOFF`).

@@ -8,15 +8,13 @@ use them, and a confidence calibration lies beside the weights.
 from __future__ import annotations
 
 import dataclasses
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 from testbed.scenario import model, schema_v1
+from testbed.scenario.building import Builder
 from testbed.scenario.issues import did_you_mean
 from testbed.scenario.kinds import Section
 from testbed.scenario.rules_topology import NAME_CUTOFF, listing
-
-if TYPE_CHECKING:
-    from testbed.scenario.loader import Builder
 
 
 def build(b: Builder) -> model.Workload:
