@@ -8,7 +8,8 @@
 """
 
 from testbed.scenario.issues import Issue, ScenarioError
-from testbed.scenario.loader import load, loads, profile_changes
+from testbed.scenario.loader import load, loads
+from testbed.scenario.rules_links import profile_changes
 from testbed.scenario.schema_v1 import json_schema
 
 __all__ = ["Issue", "ScenarioError", "json_schema", "load", "loads", "profile_changes"]
