@@ -6,9 +6,10 @@ Three passes, each reporting `Issue`s with file:line:column and the field path:
 2. the declarations of `schema_v1.py`, made of the kinds of `kinds.py` (types, units, ranges,
    allowed values, unknown and duplicate keys);
 3. the rules that join fields, one module per section of the file, each handed the file's
-   `building.Builder` (what they share) in the file's order: `rules_topology` (names defined once and referred to correctly),
-   `rules_links`, `rules_timeline` (times inside the run, trace files that exist and parse),
-   `rules_workload` (paths relative to the file), `channel` and `programs`.
+   `building.Builder` (what they share) in the file's order: `rules_topology` (names defined
+   once and referred to correctly), `rules_links`, `rules_timeline` (times inside the run,
+   trace files that exist and parse), `rules_workload` (paths relative to the file),
+   `channel` and `programs`.
 All issues of a file are collected; a rule that depends on a broken part is skipped rather
 than piling up errors that only repeat the first one.
 """
