@@ -1,5 +1,6 @@
 """Verbs about scenario files, before anything is built: `validate` (the schema, then with
---host this host's data plane) and `schema` (the JSON Schema, for editors)."""
+--host this host's data plane) and `schema` (the JSON Schema, for editors, or the field reference
+in Markdown)."""
 
 from __future__ import annotations
 
@@ -138,13 +139,29 @@ def _validate_host(scenarios: list[tuple[Path, Any]]) -> int:
     return failed
 
 
-def schema() -> None:
-    """Print the scenario JSON Schema (for editors).
+def schema(
+    markdown: Annotated[
+        bool,
+        typer.Option(
+            "--markdown",
+            help=(
+                "Print the field reference in Markdown instead: every field's path, type, "
+                "range, default and meaning."
+            ),
+        ),
+    ] = False,
+) -> None:
+    """Print the scenario JSON Schema (for editors), or with --markdown the field reference.
 
     Save it and point your YAML at it:
     testbed schema > scenario.schema.json, then put
     '# yaml-language-server: $schema=scenario.schema.json' at the top of a scenario.
     """
+    if markdown:
+        from testbed.scenario import reference
+
+        sys.stdout.write(reference.markdown())
+        return
     from testbed.scenario import json_schema
 
     sys.stdout.write(json.dumps(json_schema(), indent=2) + "\n")
