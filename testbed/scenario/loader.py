@@ -3,7 +3,7 @@
 Three passes, each reporting `Issue`s with file:line:column and the field path:
 1. YAML syntax (PyYAML's composer keeps every node's position; nothing is constructed that
    is not a plain scalar, so loading never runs anything);
-2. the declarations of `schema_v1.py`, made of the kinds of `kinds.py` (types, units, ranges,
+2. the declarations of `schema_v1`, made of the kinds of `kinds` (types, units, ranges,
    allowed values, unknown and duplicate keys);
 3. the rules that join fields, one module per section of the file, each handed the file's
    `building.Builder` (what they share) in the file's order: `rules_topology` (names defined

@@ -1,6 +1,6 @@
 """The rules of `apps:`, `traffic:` and `record.topics`, the workloads a researcher brings.
 
-What the declarations of `schema_v1.py` cannot say alone, each reported at the line and column
+What the declarations of `schema_v1` cannot say alone, each reported at the line and column
 it was written at, before anything is built:
 - names of apps and traffic flows are unique among both (they name log files and topics);
 - nodes are nodes of the topology; a flow goes between two different ones;

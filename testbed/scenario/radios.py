@@ -5,7 +5,7 @@ link, both directions), a direction's `radio` under `links.air`, a link's overri
 cell's `topology.cells[].radio` (its slot grid and carrier), and timeline `set` events. A
 named profile, or a mapping with a `profile` key, starts afresh from that profile; a mapping
 without one changes the radio of the layer below (or, where there is none, DEFAULT_PROFILE).
-The loader (`testbed.scenario.loader`) says where in the file a layer that does not fit is.
+The link rules (`testbed.scenario.rules_links`) say where in the file a layer that does not fit is.
 """
 
 from __future__ import annotations

@@ -12,6 +12,7 @@ from __future__ import annotations
 import dataclasses
 import math
 
+from netem.directions import DIRECTIONS
 from netem.nr.radio import RADIO_PROFILES, Radio
 from netem.nr.rrc import RrcSettings
 from netem.profile import GilbertElliott, LinkProfile
@@ -140,7 +141,7 @@ def build(b: Builder) -> model.Links | None:
             if kind == "n3" and pair is None:
                 pair = links.get("backhaul")  # the gNB's wired link, whatever its far end
             both = radio_of(pair.get("radio"), pair, b.ctx, check=False) if pair else None
-            for direction in ("uplink", "downlink"):
+            for direction in DIRECTIONS:
                 profile = pair.get(direction) if pair else None
                 base = both if isinstance(both, Radio) else None
                 changes = (
@@ -179,7 +180,7 @@ def build(b: Builder) -> model.Links | None:
                         f"rrc on {name}, a {kind} link",
                     )
             merged[name] = {}
-            for d in ("uplink", "downlink"):
+            for d in DIRECTIONS:
                 if d not in override:
                     merged[name][d] = {}
                     continue
@@ -202,9 +203,9 @@ def build(b: Builder) -> model.Links | None:
             d: LinkProfile(
                 **{**defaults[kind][d], **merged.get(name, {}).get(d, {}), "rrc": states}
             )
-            for d in ("uplink", "downlink")
+            for d in DIRECTIONS
         }
-        for d in ("uplink", "downlink"):
+        for d in DIRECTIONS:
             if (name, d) not in where and (kind, d) in where:
                 where[name, d] = where[kind, d]
         specs.append(
@@ -259,7 +260,7 @@ def _cell_radios(
         mine = [s for s in specs if s.kind == "air" and s.upper == cell["gnb"]]
         for spec in mine:
             changed = {}
-            for d in ("uplink", "downlink"):
+            for d in DIRECTIONS:
                 radio = radios.with_cell(getattr(spec, d).radio, part, profile)
                 changed[d] = dataclasses.replace(getattr(spec, d), radio=radio)
                 if radio is not None:
@@ -286,7 +287,7 @@ def _radios_fit(
     together; each misfit is reported once, where its radio was written last."""
     said: set[str] = set()
     for spec in specs:
-        for d in ("uplink", "downlink"):
+        for d in DIRECTIONS:
             radio = getattr(spec, d).radio
             why = None if radio is None else radios.problem(radio)
             section = where.get((spec.name, d))
@@ -302,7 +303,7 @@ def _one_grid_per_cell(
 ) -> bool:
     """Whether the radios of each gNB's air links share one slot grid (reported where
     the first that does not was written)."""
-    for d in ("uplink", "downlink"):
+    for d in DIRECTIONS:
         first: dict[str, tuple[str, Radio]] = {}
         for spec in specs:
             radio = getattr(spec, d).radio

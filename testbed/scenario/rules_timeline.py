@@ -10,6 +10,7 @@ from __future__ import annotations
 import dataclasses
 import re
 
+from netem.directions import DIRECTIONS, directions
 from netem.nr.radio import Radio
 from netem.traces import TraceError, TraceProblem, default_format
 from testbed import units
@@ -18,8 +19,6 @@ from testbed.scenario.building import Builder
 from testbed.scenario.kinds import Items, Section
 from testbed.scenario.rules_links import off_grid, profile_changes, radio_of
 from testbed.scenario.rules_topology import check_link, check_node
-
-DIRS = ("uplink", "downlink")
 
 
 def _trace_problems(text: str, fmt: str) -> list[TraceProblem]:
@@ -66,14 +65,13 @@ def _radio_sets(b: Builder, sets: list[tuple[model.SetEvent, Section]]) -> list[
     radio that leaves its cell's slot grid is refused: one gNB, one grid."""
     if not b.link_specs:
         return []  # the links did not check out: reported there
-    now = {(s.name, d): s.profile(d).radio for s in b.link_specs.values() for d in DIRS}
+    now = {(s.name, d): s.profile(d).radio for s in b.link_specs.values() for d in DIRECTIONS}
     out: list[model.Event] = []
     for event, section in sorted(sets, key=lambda p: (p[0].at_s, p[0].line)):
         if event.link not in b.link_specs:
             continue  # an unknown link: the event's own check reported it
-        directions = DIRS if event.direction == "both" else (event.direction,)
         built: dict[str, Radio | None] = {}
-        for d in directions:
+        for d in directions(event.direction):
             radio = radio_of(section["radio"], section, b.ctx, now[event.link, d])
             if radio is False:
                 break

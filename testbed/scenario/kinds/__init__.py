@@ -10,7 +10,7 @@ The scalar kinds are in `scalar.py`, the containers (`Nullable`, `Either`, `List
 `Argv`) in `compound.py`, the mappings (`Obj`, `Tagged`, `Field`, `Section`) in `mapping.py`, and
 what they all stand on (`Kind`, `Invalid`, `Context`) in `base.py`. Nothing here names a
 scenario field: the concrete declaration of version 1 is the `schema_v1` package, the rules that
-join fields are in `loader.py`.
+join fields are the `rules_*` modules the loader runs.
 """
 
 from testbed.scenario.kinds.base import (

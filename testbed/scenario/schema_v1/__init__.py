@@ -7,8 +7,8 @@ events), `workload` (learner, fusion, Kalman), `record` and `report`. The loader
 against it (`SCENARIO.check`) and builds the model dataclasses from the sections
 (`CELL.build`...); `json_schema()` is what `testbed schema` writes. Defaults come from the
 dataclasses of `model.py`; the kinds themselves (how a duration or a mapping is checked) are
-in the `kinds` package, the rules that join fields in `loader.py`. Each section is declared in
-its own module here; this face holds `SCENARIO` and re-exports what importers use.
+in the `kinds` package, the rules that join fields in the `rules_*` modules. Each section is
+declared in its own module here; this face holds `SCENARIO` and re-exports what importers use.
 """
 
 from __future__ import annotations

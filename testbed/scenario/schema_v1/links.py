@@ -22,7 +22,7 @@ from testbed.scenario.kinds import (
 from testbed.scenario.schema_v1.radio import RADIO_VALUE, RRC
 from testbed.scenario.schema_v1.shared import LINK_NAME, MAX_DELAY_S
 
-# Each profile key maps to one or more LinkProfile attributes; `loader.profile_changes` says how.
+# Each profile key maps to one or more LinkProfile attributes (`rules_links.profile_changes`).
 PROFILE_FIELDS: tuple[Field, ...] = (
     Field(
         "rate",

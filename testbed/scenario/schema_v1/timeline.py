@@ -4,6 +4,7 @@ clear, outage, trace), each `at` a time of the run.
 
 from __future__ import annotations
 
+from netem.directions import DIRECTIONS
 from testbed.scenario.kinds import Bool, Duration, Enum, Field, Obj, Rate, Str, Tagged
 from testbed.scenario.schema_v1.links import PROFILE_FIELDS
 from testbed.scenario.schema_v1.shared import LINK_NAME, MAX_DURATION_S, node_name
@@ -40,7 +41,7 @@ SHAPE_EVENT = Obj(
         Field("uplink", Rate(unlimited=False), "Cap on what the node sends."),
         Field("downlink", Rate(unlimited=False), "Cap on what the node receives."),
     ],
-    require_any=("uplink", "downlink"),
+    require_any=DIRECTIONS,
 )
 CLEAR_EVENT = Obj(
     "Remove what `shape` put on a node, and only that.",
@@ -64,7 +65,7 @@ TRACE_EVENT = Obj(
     [
         AT,
         Field("trace", LINK_NAME, "The link to drive.", required=True),
-        Field("direction", Enum(("uplink", "downlink")), "Which direction.", required=True),
+        Field("direction", Enum(DIRECTIONS), "Which direction.", required=True),
         Field(
             "file",
             Str("a path to a trace file, relative to the scenario file"),
