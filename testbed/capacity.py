@@ -22,6 +22,12 @@ the CPU count, the Python version and the netem/ sources stay the same.
 
 Rates are compared as the link counts them (the relay counts IP packets): a TCP goodput `g`
 is a link rate of `g x 1500 / 1448`, and `n` datagrams/s are `n x 1500 x 8` bit/s.
+
+How the figures are used: `testbed validate --host FILE` warns per link direction, an error
+when a rate is above what the relay carries even for TCP, a note when it is above the
+one-packet-at-a-time figure (plain UDP faster than that is limited by the relay, not the link).
+`testbed link-test` and `testbed run` print the same check before they start; it never fails a
+run, and `testbed run --no-capacity-check` skips it.
 """
 
 from __future__ import annotations

@@ -28,6 +28,61 @@ the other sites only interfere. With it, `netem.nr.handover.A3Handover` measures
 RSRP at each step and decides when the vehicle changes cell; each decision becomes a
 `HandoverEvent` (the timeline's handover: interruption, routes, N3 path switch), and the
 radio changes go to the air link of the cell serving at that step (`<vehicle>-<gnb>`).
+
+A cell's site: `topology.cells[].site: {x, y, height, tx_power, carrier}` in the world frame of
+the workload's poses, or `site: auto` (25 m off the route, the sites spread over the run). The
+uplink is the UE's 23 dBm against the gNB's noise. Link adaptation follows a 200 ms filtered
+SINR; each change of MCS, or of BLER across a level, becomes a `set` event (origin `channel`);
+the timeline's own radio changes keep their fields (PRBs, say) and take the channel's MCS.
+`channel: {trace: drive.csv}` plays a recorded radio (`time_s,ue,rsrp_dbm,sinr_db,mcs[,cell]`,
+one vehicle's rows each). `testbed sweep --seeds` redoes the channel per seed.
+
+`testbed validate` counts the radio changes and notes a route that leaves coverage (downlink SINR
+below CQI 1's -6.7 dB; the link runs at MCS 0 with BLER up to 99% there). A run records
+`/radio/<vehicle>` and the sites; the report draws the route coloured by SINR beside SINR and MCS
+over time, and both it and `testbed replay` sort the learner's plays by the uplink MCS their
+request met (`nodes.edgeloc.bands`). drive_one_cell.yaml (90 s, one UMa cell) makes 654 radio
+changes (`testbed validate`); its uplink MCS is 9 or less 29% of the run; in its replay (`testbed
+replay scenarios/drive_one_cell.yaml --no-compare`) the learner sent 3.6 kB per request where the
+uplink MCS was 0-9 (fc 42%, conv4 23%) and 7.8 kB where it was 20-28 (conv1 44%). `testbed sweep
+scenarios/drive_one_cell.yaml --set channel.model=uma,umi --set channel.los=los,nlos` gave EdgeLoc
+1599.6 m (UMa LOS), 1597.7 m (UMa NLOS), 1599.4 m (UMi LOS) and 1800.2 m (UMi NLOS, mean
+request latency 46.6 ms against 40.4 ms).
+
+Handovers (`channel.handover`): each vehicle has an air link to every gNB and its PDU session is
+prepared at every gNB from the start (as Xn preparation does), so a handover only moves routes.
+Each decision is a timeline event `handover` (origin the channel; not a learner phase); it stops
+both air links for `interruption` (default 40 ms) at their exit: lossless, what was in flight
+and what comes meanwhile is delivered afterwards in order (the target one slot after the source,
+PDCP's order); lossy, what was in flight on the source is lost. Then the vehicle's default route
+moves to the target's air link and the UPF's route into the target's N3 tunnel. `edge: stay`
+(default) keeps asking the first edge server through the target's N3; `edge: follow` (cells
+behind one UPF, an edge server each) makes the inference node ask the serving cell's edge, which
+it learns as a UE would, from the interface of its own default route (`nodes.ros.serving`).
+A run records `/handover`; replay and report give the split, payload, uplink MCS and error in
+the 3 s before and after each.
+
+Checks: `python -m pytest -s tests/test_handover_root.py` compares `ip route` in the namespaces and
+tshark on both N3 links (after the handover the UE's G-PDUs, TEIDs 0x1001/0x2001, cross the target's
+N3 and none the source's); with numbered datagrams every 1 ms, lossless gave a longest silence of
+41.8 ms (40 ms, one 0.5 ms slot, the TDD pattern's spacing) with nothing lost or reordered, lossy
+lost the 6 datagrams in flight, each counted as a "handover" drop. On the relay alone
+(tests/test_handover_gap_root.py) a 40 ms hold gave 40.6-40.7 ms of silence. drive_two_cells.yaml
+(90 s, two UMa cells, 10 MHz, `edge: follow`, modem in the cabin at 14 dBm) makes 876 radio changes
+and 5 handovers (`testbed validate`), three of them a ping-pong at the first cell edge, where the
+uplink falls to MCS 0-18 for about 20 s. In its replay (`testbed replay
+scenarios/drive_two_cells.yaml`; `python -m pytest -s tests/test_mobility_handover.py -k
+camera_frame` prints it) the learner sends `image` in 70% of its plays at MCS 20-28 (586 plays, 28.3
+kB per request), conv4 and smaller where it falls (MCS 0-9: 75 plays, 8.7 kB, image 16%; 10-19: 105
+plays, 11.1 kB), and the frame again once the uplink has recovered. A real run (`testbed run
+scenarios/drive_two_cells.yaml`) applied the five handovers 2.8-4.1 ms late, answered 776 of 779
+requests and sent 5.1 / 7.4 / 12.2 kB per request at MCS 0-9 / 10-19 / 20-28; the frame is a smaller
+share of the good stretch there (27%): real compute and DDS bring the splits' latencies closer than
+the replay's model does.
+
+Not built yet: cells behind different UPFs (N9), an edge at a cell (local breakout) with
+handovers, handovers on a recorded radio trace; the loader refuses each with a reason, and
+refuses a `shape` of a vehicle with handovers (its caps would hold on one air link only).
 """
 
 from __future__ import annotations

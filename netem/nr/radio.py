@@ -380,12 +380,13 @@ RADIO_PROFILES: dict[str, Radio] = {
     # configuration. 30 kHz and a 5 ms DDDDDDDSUU frame: the LTE-compatible 3.5 GHz frame of
     # the GSMA's "5G TDD Synchronisation" guidelines (2020). 273 PRBs: a 100 MHz carrier at
     # 30 kHz (TS 38.101-1 Table 5.3.2-1). An SR every 10 ms, the short end of the 10-20 ms
-    # that commercial cells configure (issue #16); RLC-AM status after 20 ms; the core ~3 ms
+    # that commercial cells configure; RLC-AM status after 20 ms; the core ~3 ms
     # from the gNB each way. By the oracle an idle UE's 92-byte packet then takes ~19 ms up
     # and ~5 ms down (median), a ~24 ms round trip: Rohde & Schwarz measured one-way delays
     # of under 7 ms down and up to ~18 ms up on Deutsche Telekom's public 5G in Munich
-    # (M. Kottkamp, "5G NR and LTE latency analysis in a public network", 2022), and issue
-    # #16 puts commercial median RTTs at 20-30 ms. MCS 16 (a mid-cell link) is an assumption.
+    # (M. Kottkamp, "5G NR and LTE latency analysis in a public network", 2022), and public
+    # measurements put commercial median RTTs at 20-30 ms. MCS 16 (a mid-cell link) is an
+    # assumption.
     # Of OAI's profile, the frame, K2, HARQ and RLC; the rest as above.
     "commercial-midband": dataclasses.replace(
         _OAI_TDD_30K,

@@ -18,6 +18,13 @@ Nouns:
 Only the packets given to `on_packet` count as traffic (both directions of the UE's link
 should be fed to one `Rrc`), and paging (a downlink packet to an idle UE) costs the same as
 the UE's own setup here.
+
+In a scenario: `links.air.rrc: {inactivity: 10s, idle_after: 60s, resume: 30ms, setup: 150ms}`,
+or per link in `overrides` (userspace backend); the stage is first in each direction's
+pipeline. On a real relay link the first datagram after 12 s of quiet with the default 10 s
+timer arrived 30.2 ms later than a plain one, after 8 s no later (`python -m pytest -s
+tests/test_rrc_root.py`). The replay leaves RRC out: EdgeLoc asks ~10 times a second and never
+goes quiet.
 """
 
 from __future__ import annotations

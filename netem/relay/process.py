@@ -16,6 +16,14 @@ offloads; kept to measure against and for kernels without TUN offloads).
 One relay can carry several links (`attach`; each its own two TUN ends and pipelines). Links
 that name the same `cell` share that cell's NR slots (`netem.nr.cell.Cell`), per direction:
 the air links of one gNB.
+
+Where a super-packet is split into its wire packets (software GSO, full checksums, which the
+receiving kernel verifies): a loss gate splits one only if it loses some of its packets; a
+bandwidth trace gives every packet its own delivery opportunity; a rate that would keep one on
+the wire more than 2 ms splits it; a full queue admits the segments that fit. Counters, queue
+limits and the rate charge what the packets weigh on a wire (headers repeated per segment).
+What is joined again (software GRO) is a TCP flow's segments that run in sequence, so the far
+end takes a slot's transport block in one write.
 """
 
 from __future__ import annotations

@@ -5,6 +5,10 @@ probe, found by trying) and `userspace` elsewhere. An explicit `tc` on a kernel 
 refused (HostError, exit 3) only when the scenario needs netem (delay, jitter, loss, outages);
 pure rate shaping is HTB. `ends_for` gives the backend's `LinkEnds`; `write_backend` records
 the choice in the run's `link-backend.json`.
+
+A link with an NR radio always gets the relay (the slot model runs only there). The choice and
+its reason are printed and stored in run.json. Wondershaper-style `shape` caps are HTB (egress)
+and an IFB (ingress) on the node's interface on either backend.
 """
 
 from __future__ import annotations

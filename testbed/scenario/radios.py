@@ -6,6 +6,22 @@ cell's `topology.cells[].radio` (its slot grid and carrier), and timeline `set` 
 named profile, or a mapping with a `profile` key, starts afresh from that profile; a mapping
 without one changes the radio of the layer below (or, where there is none, DEFAULT_PROFILE).
 The link rules (`testbed.scenario.rules_links`) say where in the file a layer that does not fit is.
+
+The layers in full: `links.air.radio`, a direction under `links.air`, a link's override, the
+cell's `topology.cells[].radio` (its `tdd`, `special_dl`/`special_ul`, `numerology`, `prbs` and
+`scheduler`: one gNB, one slot grid; a profile there gives the radio to air links that have
+none), and `set` events, which change the radio the link has at that time (a `both` event on
+two different radios becomes one per direction). A mapping may change `tdd`, `special_dl`,
+`special_ul`, `numerology`, `prbs`, `mcs`, `layers`, `k2`, `bler`, `max_retx`, `harq_slots`,
+`access`, `sr_period`, `sr_offset`, `sr_grant`, `grant_slots`, `cg_period`, `cg_offset`, `rlc`,
+`rlc_status`, `rlc_max_retx`, `in_order`, `buffer` (bytes) and `core_delay` (the gNB-to-core
+delay a radio carries in its direction).
+
+The fields are checked together once every layer is laid, and an error names the layer written
+last: an SR or configured grant in a slot without uplink symbols (with the slot it falls in),
+UEs of one cell on different slot grids, a `set` that changes one UE's grid. `delay`, `loss` and
+`rate` keep working beside a radio. `backend: tc` with a radio is refused at validation; `auto`
+picks the relay and says why.
 """
 
 from __future__ import annotations

@@ -20,6 +20,13 @@ calling process dies (PR_SET_PDEATHSIG) and when the time limit passes, and the 
 off when its job ends. KVM is used when /dev/kvm works, TCG otherwise; a KVM guest that
 prints nothing for `KVM_SILENCE_S` before its init runs is killed and the VM boots again
 under TCG, saying so (a /dev/kvm can run the probe's firmware and still not boot a kernel).
+
+`make sysdeps` (run by `make test`) installs qemu-system-x86, linux-image-amd64 and
+busybox-static from Debian; without them the test fails and says what to install. Under TCG the
+emulated CPU is many times slower (`make bench BENCH=netem_vm` prints the slowdown), so the
+guest's high-rate and timeline rows say nothing about fidelity. `make bench BENCH=netem_vm`
+prints the link fidelity table measured in the guest, with the guest's overhead (boot, CPU
+slowdown, timer lateness, path RTT).
 """
 
 from __future__ import annotations
