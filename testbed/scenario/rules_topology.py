@@ -55,8 +55,8 @@ def build(b: Builder) -> model.Topology | None:
 
     def define(section: Section, key: str, role: str, name: str | None = None) -> None:
         name = section.get(key) if name is None else name
-        if name is None:
-            return
+        if not isinstance(name, str):
+            return  # not written, or an edge mapping without its name (the schema said so)
         if name in first and role in ("upf", "edge") and b.roles.get(name) == role:
             return  # cells may share one UPF and one edge server
         if name in first:
