@@ -15,6 +15,14 @@ Nouns:
 
 Every process starts through `Node.popen`, so the run's state file lists it and `testbed
 down`/`clean` (or a Ctrl-C teardown) stop it like a built-in node.
+
+Exit codes, readiness time, CPU time and peak memory (and cgroup throttling with `cpu:`) go to
+run.json and the report's Apps table. Paths in `command` are relative to the scenario file, and
+`python` is the testbed's interpreter. Everything a scenario names is checked before anything is
+built (a shell string, an unknown node, a `ready` without `timeout`, a program that is not found:
+file:line:column). `record.topics` starts a recorder inside the named namespace that records
+those topics, of any installed message type, with their full ros2msg schemas; a type whose
+package is not installed is named, with the wheel to install.
 """
 
 from __future__ import annotations

@@ -20,6 +20,25 @@ The format itself (names, schemas, parts, merge) lives in `nodes.recording`.
 `Recording` is one run's side of it: the manifest and `links.json` (`links_config`) at the
 start, the counters while the run goes, the `/traffic/*`, `/radio/*` and `/handover` parts
 (each written by `write_part`) and the merge at the end.
+
+Chunks are zstd, lz4 or none (`record.compression`), with a summary and statistics. After kill -9
+of `testbed run`, `testbed clean` merges what was recorded, up to each part's last chunk.
+`runs/<id>/nodes/config.json` (the settings the nodes ran with) and run.json are attachments
+too, which is what lets a report be rebuilt from run.mcap alone.
+
+Packet captures (`record: {pcap: [av1-gnb1]}` or `pcap: all`) write runs/<id>/pcap/<link>.pcapng
+for each named link, both directions as they leave the link (after its impairments) from the
+start of the workload to its end: one interface per direction (`<link> uplink`, `<link>
+downlink`, direction flags set), raw IP, nanosecond stamps; what the link dropped is counted in
+each interface's statistics block, not captured. A file being written is `<link>.pcapng.part`
+until the run ends. `testbed run` prints where each file is and how many packets it holds,
+run.json records it (`captures`), the report lists the files. On the userspace backend the
+relays write them; on the tc backend a capture process per link listens on both veth ends and
+writes a TCP super-packet that crossed the veth whole as its wire packets with their checksums
+done (tests/test_sniff_root.py checks a file with tshark, checksums included;
+tests/test_links_root.py a tc-backend link's capture). Every frame is one packet, as on a wire
+(on N3 one G-PDU). The run test counts the frames per interface with tshark and finds the nodes'
+DDS traffic dissected as RTPS.
 """
 
 from __future__ import annotations

@@ -40,6 +40,14 @@ run.json says why (`compute_reason`).
 
 The watcher: `check()` raises `TestbedError` naming the node and its last log lines as soon as
 one process has exited while the run still needs it; `run.py` calls it every 0.2 s.
+
+A quota alone is not a slow processor (a sub-millisecond head fits in a 0.025-core quota and
+runs at full speed), so each DNN call is also paced: a call that used c s of its thread's CPU
+returns after c / cpu s. The replay's latency model uses the same rule on
+nodes/edgeloc/weights/compute.json, the CPU time of one head and one tail call per split
+measured as a node makes them (one call every 50 ms, caches cold; `python -m nodes.edgeloc.train
+--compute` measures it again). The rest of each namespace keeps at least one core so the
+real-time thread stays real time; run.json records requested and applied budgets.
 """
 
 from __future__ import annotations

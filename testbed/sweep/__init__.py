@@ -27,6 +27,12 @@ The package: `grid` (axes, `--set` parsing, overrides on the YAML tree, `shorten
 `engines` (`run_sweep`: the jobs one by one here), `rayengine` (the jobs as Ray tasks on a
 cluster, `--engine ray`), `stats` (`--seeds`: derived seeds, mean and 95% interval), `output`
 (the rows, the report and its three files).
+
+`--seeds N` runs each variant N times, with the scenario's seed and the N-1 after it (every
+random choice of a run follows its seed: the synthetic drive, loss and jitter draws). sweep.md
+then adds a table of each figure's mean +- 95% confidence interval (Student's t over the N
+rows), sweep.json its `statistics` (mean, half width, n and the values per metric), and
+sweep.png error bars.
 """
 
 from testbed.sweep.engines import run_sweep

@@ -12,7 +12,30 @@ and runs `testbed clean`'s removal of dead runs on each host that ran one, then 
 (exit 130).
 
 Hosts need root for real runs, this checkout at the same path and its venv (with `pip install
-'.[ray]'`); README's "Sweeps on a Ray cluster" says how to start one.
+'.[ray]'`).
+
+How to start a cluster (each host: root, this checkout at the same path, its venv with Ray):
+  sudo .venv/bin/ray start --head --resources='{"testbed": 1}'               # first host
+  sudo .venv/bin/ray start --address=HEAD:6379 --resources='{"testbed": 1}'  # every other host
+`--address auto` (default) finds the running cluster, `HOST:PORT` names one, `local` starts a
+one-host cluster for this sweep alone. A retried run's row in sweep.json names the host (`host`)
+and says `attempts: 2`, and the sweep then removes what the dead run left on every host still in
+the cluster. Each real run runs in a process of its own, forked from a server that the Ray worker
+starts with the run's modules, its report and torch imported once, and dies with the worker.
+
+Recent Ray (2.60 is what `make test` installs) turns token authentication on for a new local
+cluster and saves the token in ~/.ray/auth_token; a `ray start` on a host that has that file
+then requires it. Copy the head's file to every host (or set RAY_AUTH_TOKEN); the sweep sends it
+when it finds one, as `ray start` does, and says so when the cluster refuses it (exit 3).
+RAY_AUTH_MODE=disabled on every host and on the sweep turns it off.
+
+Cost (`make bench BENCH=ray`, per task against the local loop, one job at a time, goal 2 s; 2-core
+VM, host otherwise idle): +0.07 s and -0.01 s per offline replay (8 replays of 4 s); per real run
+(2 runs of 4 s) +2.19, +2.07, +1.75, +1.54 and +1.01 s in five measurements (local 22-24 s, Ray
+25-28 s), so the goal is met in three of five. The first run on a worker still waits for the
+server's imports (1.97 s in a fresh interpreter, the benchmark's last line), so a sweep with more
+runs per worker pays less per run; starting an interpreter per real run instead cost +3.1 to
++3.5 s. The tests start a head and a worker node on one machine and kill the worker mid-run.
 """
 
 from __future__ import annotations
