@@ -72,6 +72,7 @@ def test_the_tree_keeps_its_layers(tmp_path: Path) -> None:
         ),
         ("netem/tc/plan.py", "from netem.gtpu import wire", "netem.tc.plan -> netem.gtpu.wire"),
         ("netem/gso.py", "import netem.stages", "netem.gso -> netem.stages"),
+        ("netem/directions.py", "import netem.profile", "netem.directions -> netem.profile"),
     ],
     ids=[
         "up-two-layers",
@@ -83,6 +84,7 @@ def test_the_tree_keeps_its_layers(tmp_path: Path) -> None:
         "pipeline-to-the-ue-stage",
         "tc-to-gtpu",
         "foundation-to-a-wing",
+        "the-words-to-a-wing",
     ],
 )
 def test_an_upward_or_sideways_import_breaks_the_check(
