@@ -1,5 +1,10 @@
 """A link's NR air interface as plain data (`Radio`), the grid of occasions a direction sends
-in (`Grid`), and the named radios of real gNBs (`RADIO_PROFILES`)."""
+in (`Grid`), and the named radios of real gNBs (`RADIO_PROFILES`).
+
+srsRAN's low-latency log, cited below: a gNB log of srsRAN Project's `configs/low_latency.yml`
+posted to its GitHub tracker (https://github.com/srsran/srsRAN_Project/issues/603), where an
+SR, its grant and the PUSCH span 9 slots and the first grant carries 576 bits.
+"""
 
 from __future__ import annotations
 
@@ -86,7 +91,7 @@ class Radio:
     sr_period_slots: int = 10
     sr_offset: int = 7
     #: The first grant after an SR, in bytes: small, room for a buffer status report and a
-    #: little data (576 bits in srsRAN's log of its issue #603).
+    #: little data (576 bits in srsRAN's low-latency log).
     sr_grant_bytes: int = 72
     #: gNB processing from a decoded SR or buffer status report to the DCI of its grant
     #: (an assumption; K2 follows).
@@ -343,7 +348,7 @@ _OAI_TDD_30K = Radio(
     ul_access="sr",
     sr_period_slots=10,  # nr_rrc_config.c: sl10 for an SR slot offset below 10
     sr_offset=7,  # "SR in the first uplink slot": nrofDownlinkSlots, the special slot
-    sr_grant_bytes=72,  # an assumption: srsRAN's 576-bit first grant (issue #603)
+    sr_grant_bytes=72,  # an assumption: the 576-bit first grant of srsRAN's low-latency log
     grant_slots=2,  # an assumption; any of 0..7 puts the PUSCH one period after the SR
     cg_period_slots=10,  # for ul_access: configured, once per TDD period...
     cg_offset=8,  # ...in its first full uplink slot
@@ -369,9 +374,9 @@ RADIO_PROFILES: dict[str, Radio] = {
         ul_access="sr",
         sr_period_slots=4,  # SR every 2 ms (low_latency.yml)
         sr_offset=3,  # in the uplink slot
-        sr_grant_bytes=72,  # the 576-bit first grant of srsRAN's issue #603 log
+        sr_grant_bytes=72,  # the 576-bit first grant of srsRAN's low-latency log
         # PUSCH 8 slots after the SR slot: of what this pattern allows (its uplink slots are
-        # 4 apart), the nearest to the SR -> grant -> PUSCH of 9 slots measured in #603.
+        # 4 apart), the nearest to the SR -> grant -> PUSCH of 9 slots measured there.
         grant_slots=2,
         cg_period_slots=4,
         cg_offset=3,
