@@ -442,7 +442,7 @@ def test_a_saturating_ue_that_asks_still_gets_the_sum_of_its_transport_blocks() 
         ({"sr_offset": 12}, r"sr_offset must be a slot of the SR period 0\.\.9"),
         ({"ul_access": "configured", "cg_offset": 1}, r"falls in slot 1 \(D\)"),
         ({"ul_access": "configured", "cg_period_slots": 3}, "cg_period must be one of"),
-        ({"ul_access": "grantless"}, "ul_access must be one of sr, configured, ideal"),
+        ({"ul_access": "grantless"}, "ul_access must be one of sr, sr_free, configured, ideal"),
         ({"sr_grant_bytes": 0}, "sr_grant must be 1..100000 bytes"),
     ],
 )

@@ -121,6 +121,7 @@ class Slots(Stage):
         self._first_grant: float | None = None  # start of the occasion an SR was granted
         self._sr_floor = -math.inf  # no SR before this (a lost BSR is noticed after it)
         self.scheduling_requests = 0
+        self.segmented = 0  # packets whose bytes went in more than one block (RLC segments)
         #: The cell whose occasions this UE shares with others (`netem.nr.cell.Cell`), if any.
         self.cell: SharedSlots | None = None
         # RLC and PDCP.
@@ -136,6 +137,9 @@ class Slots(Stage):
         self._reorder: dict[int, tuple[float, bytes] | None] = {}
         self._failed_at = 0.0  # when the last block that failed every try was given up
         self.recovered = 0  # packets RLC-AM sent again
+        #: The UE's own processing (`Radio.ue_delay_s`): an uplink packet reaches the MAC
+        #: buffer this long after it came, a downlink one leaves this long after its decoding.
+        self.ue_delay_s = 0.0
         if occasions:
             self.set_occasions(occasions, period_s, lead_s)
 
@@ -185,6 +189,7 @@ class Slots(Stage):
         self.rlc_am, self.rlc_status_s = radio.rlc == "am", radio.rlc_status_s
         self.rlc_max_retx = radio.rlc_max_retx
         self.in_order = radio.in_order
+        self.ue_delay_s = radio.ue_delay_s(self.direction)
         self.set_access(grid.access, grid.sr_windows, grid.grant_delay_s, grid.first_grant_bytes)
         self.set_occasions(grid.occasions, grid.period_s, grid.lead_s)
         self.set_harq(radio.bler, radio.max_retx, radio.harq_s)
@@ -218,6 +223,7 @@ class Slots(Stage):
             "scheduling_requests": self.scheduling_requests,
             "rlc_recovered": self.recovered,
             "rlc_given_up": self.counters.dropped_packets.get("rlc", 0),
+            "segmented_packets": self.segmented,
         }
 
     def _lead(self) -> float:
@@ -342,6 +348,8 @@ class Slots(Stage):
         while q and budget > 0:
             if self._head_left <= budget:
                 budget -= self._head_left
+                if self._head_left < len(q[0][1]):
+                    self.segmented += 1  # its first bytes went in an earlier block
                 packet = q.popleft()[1]
                 self._queued_packets -= wire_packets(packet)
                 completing.append((packet, self._head_floor, self._head_lost))
@@ -368,7 +376,8 @@ class Slots(Stage):
                     self._decoded(0.0, None, id(packet))
                 continue
             self._rlc_sent.pop(id(packet), None)
-            self._decoded(max(ok_at, floor), packet, id(packet))
+            after = self.ue_delay_s if self.direction == "downlink" else 0.0
+            self._decoded(max(ok_at, floor) + after, packet, id(packet))
         if partial:
             if ok_at is None:
                 if self._head_lost is None:
@@ -490,6 +499,8 @@ class Slots(Stage):
             c.drop("queue_full", len(packet), n)
             return
         self._queued_packets += n
+        if self.direction == "uplink":
+            now += self.ue_delay_s  # (the buffer is the UE's MAC's)
         if not self._queue:
             self._head_left = len(packet)
             self._cursor = self._first_at_or_after(now + self._lead())

@@ -14,8 +14,10 @@ none), and `set` events, which change the radio the link has at that time (a `bo
 two different radios becomes one per direction). A mapping may change `tdd`, `special_dl`,
 `special_ul`, `numerology`, `prbs`, `mcs`, `layers`, `k2`, `bler`, `max_retx`, `harq_slots`,
 `access`, `sr_period`, `sr_offset`, `sr_grant`, `grant_slots`, `cg_period`, `cg_offset`, `rlc`,
-`rlc_status`, `rlc_max_retx`, `in_order`, `buffer` (bytes) and `core_delay` (the gNB-to-core
-delay a radio carries in its direction).
+`rlc_status`, `rlc_max_retx`, `in_order`, `buffer` (bytes), `core_delay` (the gNB-to-core
+delay a radio carries in its direction), `sched_offset` and `radio_offset` (srsRAN's S and R
+slots), `ue_delay_ul`/`ue_delay_dl` (the UE's own processing) and `ul_prbs`/`ul_symbols` (what
+one uplink grant may use).
 
 The fields are checked together once every layer is laid, and an error names the layer written
 last: an SR or configured grant in a slot without uplink symbols (with the slot it falls in),
@@ -57,6 +59,12 @@ ATTRS = {
     "in_order": "in_order",
     "buffer": "buffer_bytes",
     "core_delay": "core_delay_s",
+    "sched_offset": "sched_offset_slots",
+    "radio_offset": "radio_offset_slots",
+    "ue_delay_ul": "ue_ul_delay_s",
+    "ue_delay_dl": "ue_dl_delay_s",
+    "ul_prbs": "ul_prbs",
+    "ul_symbols": "ul_symbols",
 }
 #: The attributes that are the cell's, not a UE's: all the UEs of a gNB share its slot grid.
 GRID_ATTRS = ("slots", "special", "numerology")

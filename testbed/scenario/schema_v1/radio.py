@@ -94,8 +94,9 @@ RADIO = Obj(
             "access",
             Enum(UL_ACCESS),
             "How the uplink gets grants: sr (a scheduling request, then grants from buffer"
-            " status reports), configured (a configured grant, no request) or ideal (a gNB"
-            " that sees the UE's buffer at once: a bound).",
+            " status reports), sr_free (a grant in every uplink slot, srsRAN's SR-free"
+            " access), configured (a configured grant, no request) or ideal (a gNB that sees"
+            " the UE's buffer at once: a bound).",
             attr=None,
         ),
         Field(
@@ -174,6 +175,44 @@ RADIO = Obj(
             Duration(1.0, noun="a delay"),
             "One-way delay from the gNB to the core carried in this direction (0: the"
             " backhaul link holds it).",
+            attr=None,
+        ),
+        Field(
+            "sched_offset",
+            Int(0, 16, noun="a number of slots"),
+            "The gNB's scheduling offset S: slots between the MAC's decision and the PHY's"
+            " (srsRAN: 1). With radio_offset it replaces grant_slots and the downlink's k2.",
+            attr=None,
+        ),
+        Field(
+            "radio_offset",
+            Int(0, 16, noun="a number of slots"),
+            "The gNB's radio offset R: slots the PHY and radio head get ahead of the air"
+            " (srsRAN: 3).",
+            attr=None,
+        ),
+        Field(
+            "ue_delay_ul",
+            Duration(0.1, noun="a delay"),
+            "The UE's own processing from the application to its MAC buffer.",
+            attr=None,
+        ),
+        Field(
+            "ue_delay_dl",
+            Duration(0.1, noun="a delay"),
+            "The UE's own processing from a decoded block to the application.",
+            attr=None,
+        ),
+        Field(
+            "ul_prbs",
+            Int(1, 275, noun="a number of PRBs"),
+            "PRBs one uplink grant may use (default: the cell's); small grants segment packets.",
+            attr=None,
+        ),
+        Field(
+            "ul_symbols",
+            Int(1, 14, noun="a number of symbols"),
+            "PUSCH symbols one uplink grant may use (default: the window's).",
             attr=None,
         ),
     ],
