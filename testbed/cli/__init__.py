@@ -7,6 +7,7 @@ each verb module here only parses, calls that work and prints it. The verbs, by 
   replay    replay: the EdgeLoc workload in one process, no network
   sweep     sweep: a grid of variants of a scenario, one comparison
   checks    check, link-test: what this host and a scenario's links can do
+  fidelity  fidelity: the emulated cell against published measurements of real cells
 
 What every verb shares (the exit codes and the error table that decides them, the common
 options) is in `testbed.cli.common`.
@@ -19,7 +20,7 @@ import sys
 import typer
 
 from testbed import console as con
-from testbed.cli import checks, lab, replay, run, scenario, sweep
+from testbed.cli import checks, fidelity, lab, replay, run, scenario, sweep
 from testbed.cli.common import EXIT_INTERRUPTED
 
 app = typer.Typer(
@@ -57,6 +58,7 @@ app.command()(run.report)
 app.command()(replay.replay)
 app.command()(sweep.sweep)
 app.command("link-test")(checks.link_test)
+app.command()(fidelity.fidelity)
 app.command(
     "exec",
     context_settings={"allow_extra_args": True, "ignore_unknown_options": True},
