@@ -222,3 +222,20 @@ def test_a_shortened_case_through_the_relay(name: str) -> None:
             if check.what.endswith((" mean", " p50")) or "floor" in check.what:
                 assert check.ok, (judged.variant, check)
     assert not [n for n in netns.listnetns() if n.startswith("elf-")]
+
+
+def test_a_round_trip_is_the_uplink_then_the_downlink() -> None:
+    """`rtt` sends each probe up, echoes it at the far end and brings it down, with the wired
+    path both ways. The echo leaves at an uplink slot's end, so its downlink wait is that
+    phase's, not a uniform one's: the mean lies between the uplink's mean plus the downlink's
+    least and most."""
+    radio = RADIO_PROFILES["srsran-urllc"]
+    (case,) = find(["srsran-urllc"])
+    probe = dataclasses.replace(case.probe, count=1000, interval_s=0.05)
+    up = figures(model_delays(radio, probe, "uplink", wired_ms=2.0).delivered)
+    down = figures(model_delays(radio, probe, "downlink", wired_ms=2.0).delivered)
+    rtt = model_delays(radio, probe, "rtt", wired_ms=2.0)
+    assert len(rtt.delivered) == 1000
+    mean = figures(rtt.delivered)["mean"]
+    assert up["mean"] + down["min"] - 0.01 <= mean <= up["mean"] + down["max"] + 0.01
+    assert set(rtt.counters) == {"uplink", "downlink"}
