@@ -542,3 +542,33 @@ def test_a_radio_pipelines_counters_say_what_the_air_interface_did() -> None:
     assert radio["blocks"] == sum(radio["retransmissions"]) >= 800  # 72 B, then the rest
     assert 0.05 < sum(radio["retransmissions"][1:]) / radio["blocks"] < 0.15
     assert "radio" not in build_pipeline(LinkProfile()).snapshot()
+
+
+@pytest.mark.parametrize("t0", [1.0, 49_780.3, 86_400.0, 123_456.7, 3_000_000.0])
+def test_a_grant_due_at_an_occasions_start_takes_it_at_any_uptime(t0: float) -> None:
+    """The stage runs on the host's monotonic clock, ~10^5 s or more after boot, where a double
+    resolves ~10^-11 s. A grant that falls due exactly at an occasion's start (an SR's end plus
+    the grant delay, on the slot grid) must use that occasion however large the clock is: with
+    a 10^-12 tolerance it slipped to the next one, 2.5 ms later, in half the packets."""
+    from netem.nr.radio import Radio
+    from netem.profile import LinkProfile
+
+    radio = Radio(
+        slots="DDDSU", special=(10, 4, 0), n_prb=106, mcs=16, dmrs_re_per_prb=6, ul_prbs=5,
+        ul_symbols=3, sr_period_slots=5, sr_offset=4, sr_grant_bytes=1000, grant_slots=2,
+        k2_slots=2, bler=0.0,
+    )  # fmt: skip
+    pipeline = build_pipeline(LinkProfile(radio=radio), 0, "uplink")
+    period = radio.pattern().period_s
+    base = math.ceil(t0 / period) * period
+    delays = []
+    for k in range(20):
+        sent = base + k * 0.05 + 0.0021  # just after the uplink slot's start (2.0 ms)
+        pipeline.push(bytes(128), sent)
+        while (due := pipeline.next_due()) is not None:
+            if pipeline.pop_ready(due):
+                delays.append(round((due - sent) * 1000, 6))
+                break
+    # SR in the next uplink slot (2.5 ms on), its grant one period after it, then the
+    # buffer status report's grants: 128 bytes in 48-byte blocks, one per uplink slot.
+    assert delays == [10.4] * 20
