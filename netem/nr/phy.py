@@ -209,6 +209,8 @@ class Occasion:
     start_s: float
     end_s: float
     capacity_bytes: int
+    #: The block's bytes at each MCS of a radio's `mcs_mix`, in its order (empty: none).
+    alternatives: tuple[int, ...] = ()
 
 
 def occasions(pattern: TddPattern, direction: Direction, carrier: Carrier) -> list[Occasion]:

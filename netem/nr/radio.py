@@ -21,7 +21,6 @@ from netem.nr.phy import (
     NrError,
     Occasion,
     TddPattern,
-    occasions,
     slot_s,
 )
 
@@ -140,6 +139,14 @@ class Radio:
     #: a 128-byte packet left in several RLC segments, one per uplink slot.
     ul_prbs: int | None = None
     ul_symbols: int | None = None
+    #: What each block carries besides data: MAC subheaders, a buffer status report and the
+    #: RLC header (bytes). EDAF's 48-byte OAI grants carried 43-byte RLC PDUs of which 38
+    #: were data: 5 bytes of MAC and 3-5 of RLC.
+    l2_overhead_bytes: int = 0
+    #: (MCS, share) of the blocks: link adaptation on a fading channel picks each block's MCS,
+    #: and a block carries that MCS's bytes (EDAF's OAI uplink: MCS 19 in 59% of blocks, 16
+    #: in 29%). Empty: every block at `mcs`. The oracle, for packets of one block, needs none.
+    mcs_mix: tuple[tuple[int, float], ...] = ()
 
     def __str__(self) -> str:
         """A line a log can carry: the grid, the carrier and how the uplink is granted."""
@@ -185,22 +192,41 @@ class Radio:
         return self.ul_access if direction == "uplink" else "ideal"
 
     def _occasions(self, direction: Direction) -> list[Occasion]:
-        """One TDD period's occasions of `direction`, an uplink grant's PRBs and symbols
-        capped by `ul_prbs` and `ul_symbols`."""
+        """One TDD period's occasions of `direction` with the data each block carries: an
+        uplink grant's PRBs and symbols capped by `ul_prbs` and `ul_symbols`, every block less
+        its `l2_overhead_bytes`."""
         pattern = self.pattern()
-        if direction != "uplink" or (self.ul_prbs is None and self.ul_symbols is None):
-            return occasions(pattern, direction, self.carrier())
-        carrier = dataclasses.replace(self.carrier(), n_prb=min(self.n_prb, self.ul_prbs or 275))
+        carrier = self.carrier()
+        capped = direction == "uplink" and (self.ul_prbs is not None or self.ul_symbols is not None)
+        if capped:
+            carrier = dataclasses.replace(carrier, n_prb=min(self.n_prb, self.ul_prbs or 275))
         out = []
         for start, end, symbols in pattern.windows(direction):
-            used = min(symbols, self.ul_symbols or symbols)
-            capacity = carrier.tbs_bits(used) // 8
+            used = min(symbols, self.ul_symbols or symbols) if capped else symbols
+            capacity = carrier.tbs_bits(used) // 8 - self.l2_overhead_bytes
             if capacity > 0:
                 out.append(Occasion(start, end, capacity))
         return out
 
     def grid(self, direction: Direction) -> Grid:
-        """The occasions of `direction` and how its packets get them."""
+        """The occasions of `direction` and how its packets get them (each occasion with its
+        bytes at every MCS of `mcs_mix`, where there is one)."""
+        grid = self._grid(direction)
+        if not self.mcs_mix:
+            return grid
+        mixes = [
+            dataclasses.replace(self, mcs=m, mcs_mix=()).grid(direction).occasions
+            for m, _ in self.mcs_mix
+        ]
+        if any(len(m) != len(grid.occasions) for m in mixes):
+            raise NrError("an MCS of mcs_mix leaves a window without data: raise it")
+        mixed = tuple(
+            dataclasses.replace(o, alternatives=tuple(m[i].capacity_bytes for m in mixes))
+            for i, o in enumerate(grid.occasions)
+        )
+        return dataclasses.replace(grid, occasions=mixed)
+
+    def _grid(self, direction: Direction) -> Grid:
         pattern, slot = self.pattern(), slot_s(self.numerology)
         base = self._occasions(direction)
         access = self.access(direction)
@@ -309,6 +335,15 @@ class Radio:
         for name in ("ue_ul_delay_s", "ue_dl_delay_s"):
             if not 0.0 <= getattr(self, name) <= 0.1:
                 raise NrError(f"{name[:-2]} must be 0 to 100 ms, got {getattr(self, name)}")
+        for m, share in self.mcs_mix:
+            if not 0 <= m < len(MCS_TABLE_1) or not 0.0 < share <= 1.0:
+                raise NrError(f"mcs_mix needs (MCS 0..28, share in (0, 1]), got {(m, share)}")
+        if self.mcs_mix and abs(sum(share for _, share in self.mcs_mix) - 1.0) > 1e-6:
+            raise NrError("mcs_mix's shares must add up to 1")
+        if not 0 <= self.l2_overhead_bytes <= 64:
+            raise NrError(f"l2_overhead must be 0..64 bytes, got {self.l2_overhead_bytes}")
+        if not 0 <= self.dmrs_re_per_prb <= 48:
+            raise NrError(f"dmrs_re must be 0..48 resource elements, got {self.dmrs_re_per_prb}")
         if self.ul_prbs is not None and not 1 <= self.ul_prbs <= 275:
             raise NrError(f"ul_prbs must be 1..275, got {self.ul_prbs}")
         if self.ul_symbols is not None and not 1 <= self.ul_symbols <= 14:
@@ -374,13 +409,19 @@ class Radio:
                 )
 
     def to_dict(self) -> dict[str, object]:
-        return {**dataclasses.asdict(self), "special": list(self.special)}
+        return {
+            **dataclasses.asdict(self),
+            "special": list(self.special),
+            "mcs_mix": [list(x) for x in self.mcs_mix],
+        }
 
     @classmethod
     def from_dict(cls, data: dict[str, object]) -> Radio:
         data = dict(data)
         if "special" in data:
             data["special"] = tuple(data["special"])  # type: ignore[arg-type]
+        if "mcs_mix" in data:
+            data["mcs_mix"] = tuple(tuple(x) for x in data["mcs_mix"])  # type: ignore[attr-defined]
         return cls(**data)  # type: ignore[arg-type]
 
 
@@ -474,6 +515,36 @@ RADIO_PROFILES: dict[str, Radio] = {
         ue_ul_delay_s=0.00194,
         ue_dl_delay_s=0.00077,
     ),
+    # OpenAirInterface's gNB on a USRP as EDAF measured it, packet by packet (Mostafavi et
+    # al., arXiv 2401.09856; samiemostafavi/edaf res.parquet at a15e812, Apache-2.0):
+    # scenarios/fidelity/oai_usrp_edaf.yaml. The repository has no gNB configuration file,
+    # so most fields are read from the data ("data:"), as scenarios/fidelity/data/edaf says.
+    "oai-usrp-edaf": Radio(
+        slots="DDDSU",  # data: PUSCH in one slot per 2.5 ms (slots 3, 8, 13, 18 of a frame)
+        special=(10, 4, 0),  # data: no PUSCH in the special slot
+        numerology=1,  # edaf/core/uplink/decompose.py: 0.5 ms slots
+        n_prb=106,  # README.md: the 106-PRB (40 MHz) example configuration
+        mcs=16,
+        # data: the 5-PRB blocks are 48 bytes (66%) or 57 (34%): MCS 16 or 19 with 6 DMRS
+        # resource elements per PRB
+        mcs_mix=((16, 0.66), (19, 0.34)),
+        dmrs_re_per_prb=6,
+        ul_prbs=5,  # data: 72% of the grants; the first grant of an idle UE 617 times in 658
+        ul_symbols=3,  # data: every grant
+        l2_overhead_bytes=10,  # data: 5 bytes of MAC, 3-5 of RLC header per segment
+        k2_slots=2,  # OAI's min_rxtxtime 2
+        bler=0.072,  # data: 7.22% of the transport blocks were sent again
+        max_retx=1,  # data: no block needed a second retransmission
+        harq_slots=10,  # data: a retransmission 3 uplink periods (7.46-7.55 ms) later
+        ul_access="sr",
+        sr_period_slots=5,  # an SR in every uplink slot (not logged): an idle UE's packet
+        sr_offset=4,  # left in the 2nd uplink slot after it came in 322 of 658 cases
+        sr_grant_bytes=1000,  # the first grant is a whole 5-PRB block
+        grant_slots=2,
+        # data: 2.9% of packets ~25 ms late with no HARQ retransmission logged: a block lost
+        # twice (0.072^2) comes back by RLC-AM's status, ~10 ms later
+        rlc_status_s=0.01,
+    ),
     # Ericsson's 5G SA trial network at the 5G Industry Campus Europe (3.7 GHz, 100 MHz), as
     # DETERMINISTIC6G's PD-Wireless-5G-2a histograms measured it (scenarios/fidelity/
     # sa_midband_ericsson.yaml). The data set states the band, the carrier and the traffic
@@ -497,6 +568,28 @@ RADIO_PROFILES: dict[str, Radio] = {
         ue_dl_delay_s=0.00351,
         ue_ul_delay_s=0.00501,
     ),
+    # A public n78 network as a vehicle measured it at 20 Hz to a cloud server and back
+    # (CICV5G, Zhang et al., Zenodo 10.5281/zenodo.17475688, CC BY 4.0; scenarios/fidelity/
+    # public_n78_cicv5g.yaml). The data gives round trips, cells and signal, not the cells'
+    # configuration; the frame is the 2.5 ms double period Chinese n78 networks run.
+    "public-n78-cicv5g": Radio(
+        slots="DDDSUDDSUU",  # an assumption: the 5 ms "2.5 ms double period" frame
+        special=(10, 2, 2),  # an assumption
+        numerology=1,
+        n_prb=273,  # 100 MHz at 30 kHz
+        mcs=16,  # an assumption (100-byte messages fit any)
+        k2_slots=2,
+        # Chosen with core_delay to match the data's median and 95th percentile (a moving
+        # vehicle's first transmissions fail more often than link adaptation's 10%).
+        bler=0.25,
+        harq_slots=2,
+        ul_access="sr",
+        sr_period_slots=10,  # an assumption: an SR every 5 ms, in the first uplink slot
+        sr_offset=4,
+        sr_grant_bytes=72,
+        grant_slots=2,
+        core_delay_s=0.00225,  # the core and the cloud server each way, from the least RTT
+    ),
     # A commercial mid-band (n78/n77) cell as measurements see one, not any operator's
     # configuration. 30 kHz and a 5 ms DDDDDDDSUU frame: the LTE-compatible 3.5 GHz frame of
     # the GSMA's "5G TDD Synchronisation" guidelines (2020). 273 PRBs: a 100 MHz carrier at
@@ -508,7 +601,12 @@ RADIO_PROFILES: dict[str, Radio] = {
     # (M. Kottkamp, "5G NR and LTE latency analysis in a public network", 2022), and public
     # measurements put commercial median RTTs at 20-30 ms. MCS 16 (a mid-cell link) is an
     # assumption.
-    # Of OAI's profile, the frame, K2, HARQ and RLC; the rest as above.
+    # Of OAI's profile, the frame, K2, HARQ and RLC; the rest as above. No fidelity case
+    # measured this cell: CICV5G's public n78 network had a median round trip of 16 ms to a
+    # cloud server, this profile's is ~21 ms (`testbed fidelity --model` beside
+    # public-n78-cicv5g), the Ericsson trial's one-way medians 5.3/6.4 ms. It assumes the
+    # slower SR (10 ms) and frame (5 ms, two uplink slots) a macro cell tuned for capacity
+    # runs.
     "commercial-midband": dataclasses.replace(
         _OAI_TDD_30K,
         n_prb=273,

@@ -21,6 +21,16 @@ from netem.nr.phy import Occasion
 from netem.profile import LinkProfile
 from netem.stages.base import Stage, pop_timed, wire_packets
 
+#: Occasions before the per-block MCS draws of an `mcs_mix` repeat (a prime: no grid's period).
+MCS_DRAWS = 4099
+
+
+def _draws(mix: Sequence[tuple[int, float]], rng: random.Random) -> list[int]:
+    """Each occasion's index into its `alternatives`, drawn by the mix's shares."""
+    if not mix:
+        return []
+    return rng.choices(range(len(mix)), weights=[share for _, share in mix], k=MCS_DRAWS)
+
 
 #: How close two instants are to count as one (1 ns). Times are the host's monotonic clock,
 #: ~10^5 s after boot, where a double resolves ~10^-11 s: a tolerance of 10^-12 there is no
@@ -148,6 +158,8 @@ class Slots(Stage):
         #: The UE's own processing (`Radio.ue_delay_s`): an uplink packet reaches the MAC
         #: buffer this long after it came, a downlink one leaves this long after its decoding.
         self.ue_delay_s = 0.0
+        #: Which MCS of the radio's `mcs_mix` each occasion's block uses, by occasion number.
+        self._mcs_draws: list[int] = []
         if occasions:
             self.set_occasions(occasions, period_s, lead_s)
 
@@ -198,6 +210,7 @@ class Slots(Stage):
         self.rlc_max_retx = radio.rlc_max_retx
         self.in_order = radio.in_order
         self.ue_delay_s = radio.ue_delay_s(self.direction)
+        self._mcs_draws = _draws(radio.mcs_mix, self._rng)
         self.set_access(grid.access, grid.sr_windows, grid.grant_delay_s, grid.first_grant_bytes)
         self.set_occasions(grid.occasions, grid.period_s, grid.lead_s)
         self.set_harq(radio.bler, radio.max_retx, radio.harq_s)
@@ -241,6 +254,10 @@ class Slots(Stage):
         n, k = cursor
         o = self.occasions[k]
         base = self.epoch_s + n * self.period_s
+        if self._mcs_draws and o.alternatives:
+            # The same occasion always draws the same MCS: it is looked at more than once.
+            pick = self._mcs_draws[(n * len(self.occasions) + k) % len(self._mcs_draws)]
+            return base + o.start_s, base + o.end_s, o.alternatives[pick]
         return base + o.start_s, base + o.end_s, o.capacity_bytes
 
     def _step(self, cursor: tuple[int, int]) -> tuple[int, int]:
@@ -356,7 +373,7 @@ class Slots(Stage):
         while q and budget > 0:
             if self._head_left <= budget:
                 budget -= self._head_left
-                if self._head_left < len(q[0][1]):
+                if self._head_left < len(q[0][1]) and id(q[0][1]) not in self._rlc_sent:
                     self.segmented += 1  # its first bytes went in an earlier block
                 packet = q.popleft()[1]
                 self._queued_packets -= wire_packets(packet)

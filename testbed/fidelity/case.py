@@ -51,6 +51,10 @@ class Probe:
     interval_s: float
     measures: tuple[str, ...]
     count: int
+    #: When, after a TDD period's start, the source's probes were sent (s, drawn uniformly
+    #: in this range; the interval is a multiple of the period, so each probe meets the grid
+    #: there); None: anywhere in the period (a UE clock that drifts against the gNB's).
+    phase_s: tuple[float, float] | None = None
 
 
 @dataclass(frozen=True)
@@ -235,7 +239,7 @@ def load_case(path: Path) -> Case:
         )
     base, _ = _radio(radio_raw, RADIO_PROFILES[profile], f"{where}: radio")
     probe_raw = _need(raw, "probe", where, dict)
-    _unknown(probe_raw, ("size", "interval", "measures", "count"), f"{where}: probe")
+    _unknown(probe_raw, ("size", "interval", "measures", "count", "phase"), f"{where}: probe")
     size = _need(probe_raw, "size", f"{where}: probe", int)
     if not 28 <= size <= 1400:
         raise FidelityError(f"{where}: probe.size must be 28..1400 bytes, got {size}")
@@ -249,6 +253,18 @@ def load_case(path: Path) -> Case:
             f"{where}: probe.measures must list some of {', '.join(MEASURES)}, got {measures}"
         )
     count = int(probe_raw.get("count", 1000))
+    phase = None
+    if "phase" in probe_raw:
+        raw_phase = probe_raw["phase"]
+        if not isinstance(raw_phase, list) or len(raw_phase) != 2:
+            raise FidelityError(f"{where}: probe.phase must be [FROM, TO] in the TDD period")
+        lo, hi = (_duration(x, f"{where}: probe.phase") for x in raw_phase)
+        if not 0 <= lo <= hi <= interval:
+            raise FidelityError(
+                f"{where}: probe.phase must be FROM <= TO within the interval, 0 to "
+                f"{interval * 1000:g} ms after a TDD period's start"
+            )
+        phase = (lo, hi)
     folder = path.parent
     variants_raw = _need(raw, "variants", where, list)
     if not variants_raw:
@@ -263,7 +279,7 @@ def load_case(path: Path) -> Case:
         path=path,
         source={k: str(v) for k, v in source.items()},
         profile=profile,
-        probe=Probe(size, interval, measures, count),
+        probe=Probe(size, interval, measures, count, phase),
         variants=variants,
         calibrated=str(raw.get("calibrated", "")),
         not_modelled=str(raw.get("not_modelled", "")),

@@ -27,7 +27,7 @@ from netem.profile import LinkProfile
 from netem.relay.client import UserspaceLink
 from testbed.errors import HostError
 from testbed.fidelity.case import Probe
-from testbed.fidelity.model import Delays, profile_of, schedule
+from testbed.fidelity.model import Delays, aligned, profile_of, schedule
 from testbed.linktest import CTX, STAMP, in_namespace
 
 UE_ADDR, GNB_ADDR = "10.217.0.1", "10.217.0.2"
@@ -80,14 +80,26 @@ def _link(radio: Radio, wired_ms: float, seed: int) -> Iterator[tuple[str, str, 
                 netns.remove(name)
 
 
+#: The last stretch before a send is waited out by spinning: a sleep wakes 0.05-0.1 ms late,
+#: and a probe whose phase against the slot grid matters must not drift past a slot's start.
+SPIN_S = 0.0005
+
+
+def _until(t: float) -> None:
+    """Return at monotonic `t` (sleep, then spin the last SPIN_S)."""
+    wait = t - time.monotonic() - SPIN_S
+    if wait > 0:
+        time.sleep(wait)
+    while time.monotonic() < t:
+        pass
+
+
 def _send(addr: str, port: int, sends: list[float], size: int, start: float) -> int:
     """Send a stamped datagram at each of `sends` (s after monotonic `start`)."""
     with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as sock:
         pad = bytes(max(0, size - STAMP.size))
         for seq, at in enumerate(sends):
-            wait = start + at - time.monotonic()
-            if wait > 0:
-                time.sleep(wait)
+            _until(start + at)
             with contextlib.suppress(OSError):
                 sock.sendto(STAMP.pack(time.monotonic(), seq) + pad, (addr, port))
     return len(sends)
@@ -155,11 +167,20 @@ def _ping(addr: str, port: int, sends: list[float], size: int, start: float, unt
 
 
 def _one_way(
-    ue: str, gnb: str, measures: list[str], sends: list[float], size: int
+    ue: str,
+    gnb: str,
+    measures: list[str],
+    sends: list[float],
+    size: int,
+    period_s: float,
+    early_ms: dict[str, float] | None = None,
 ) -> dict[str, list[float | None]]:
-    """Each measure's one-way delays (ms, in send order) of probes sent on `sends`."""
+    """Each measure's one-way delays (ms, in send order) of probes sent on `sends` (s after
+    a boundary of the slot grid's `period_s`: the relay's grid starts at 0 on this clock),
+    each measure's `early_ms` sooner: the host's own delay before a packet reaches the radio,
+    so that it reaches the UE's MAC at the probe's phase."""
     span = (sends[-1] if sends else 0.0) + 1.0
-    start = time.monotonic() + LEAD_S
+    start = aligned(time.monotonic() + LEAD_S, period_s)
     until = start + span
     receivers, senders = {}, []
     ends = {"uplink": (gnb, GNB_ADDR, ue), "downlink": (ue, UE_ADDR, gnb)}
@@ -168,7 +189,8 @@ def _one_way(
         ready = CTX.Event()
         receivers[measure] = in_namespace(at, _receive, ready, addr, PORT + i, until)
         ready.wait(5)
-        senders.append(in_namespace(sender, _send, addr, PORT + i, sends, size, start))
+        early = (early_ms or {}).get(measure, 0.0) / 1000.0
+        senders.append(in_namespace(sender, _send, addr, PORT + i, sends, size, start - early))
     for sender in senders:
         sender.result(span + 30)
     out = {}
@@ -191,7 +213,7 @@ def host_baseline(ue: str, gnb: str, link: UserspaceLink, count: int = BASELINE_
     for direction in ("uplink", "downlink"):
         link.set(direction, plain)  # type: ignore[arg-type]
     sends = [k * BASELINE_INTERVAL_S for k in range(count)]
-    got = _one_way(ue, gnb, ["uplink", "downlink"], sends, 100)
+    got = _one_way(ue, gnb, ["uplink", "downlink"], sends, 100, BASELINE_INTERVAL_S)
     for direction, profile in saved.items():
         link.set(direction, profile)  # type: ignore[arg-type]
     out = {}
@@ -227,20 +249,22 @@ def measure_delays(
         if one_way:
             if progress:
                 progress(f"    {len(sends)} probes each way over {span:.0f} s")
-            got = _one_way(ue, gnb, one_way, sends, probe.size)
+            period = radio.pattern().period_s
+            got = _one_way(ue, gnb, one_way, sends, probe.size, period, base)
             for measure, ms in got.items():
                 net = [None if d is None else d - base[measure] for d in ms]
                 out[measure] = Delays(net, _radio_counters(link, measure), base[measure])
         if "rtt" in probe.measures:
             ready = CTX.Event()
-            start = time.monotonic() + LEAD_S
+            start = aligned(time.monotonic() + LEAD_S, radio.pattern().period_s)
             until = start + span
             echo = in_namespace(gnb, _echo, ready, GNB_ADDR, PORT + 9, until + 0.5)
             ready.wait(5)
             if progress:
                 progress(f"    {len(sends)} echoes over {span:.0f} s")
+            early = base["uplink"] / 1000.0  # (as the one-way probes)
             got_rtt = in_namespace(
-                ue, _ping, GNB_ADDR, PORT + 9, sends, probe.size, start, until
+                ue, _ping, GNB_ADDR, PORT + 9, sends, probe.size, start - early, until
             ).result(span + 30)
             echo.result(span + 30)
             both = base["uplink"] + base["downlink"]

@@ -14,6 +14,7 @@ pattern would lock onto one phase (three runs gave uplink medians of 12.6, 14.0 
 
 from __future__ import annotations
 
+import math
 import random
 import struct
 from dataclasses import dataclass, field
@@ -31,10 +32,16 @@ HEADERS = 28
 
 
 def schedule(probe: Probe, period_s: float, seed: int) -> list[float]:
-    """Send times (s from the start) of `probe.count` probes, phases uniform over a period."""
+    """Send times (s from a start on a TDD period's boundary) of `probe.count` probes: at
+    the source's phase in the period (`probe.phase_s`), or uniform over it."""
     rng = random.Random(f"fidelity:{seed}")
-    jitter = min(period_s, probe.interval_s * 0.9)
-    return [k * probe.interval_s + rng.uniform(0.0, jitter) for k in range(probe.count)]
+    lo, hi = probe.phase_s or (0.0, min(period_s, probe.interval_s * 0.9))
+    return [k * probe.interval_s + rng.uniform(lo, hi) for k in range(probe.count)]
+
+
+def aligned(t: float, period_s: float) -> float:
+    """The first boundary of the slot grid's period at or after `t` (the grid starts at 0)."""
+    return math.ceil(t / period_s - 1e-9) * period_s
 
 
 def profile_of(radio: Radio, wired_ms: float) -> LinkProfile:
@@ -86,7 +93,9 @@ def model_delays(
     """The delays (ms) of `probe` in `measure` (a direction, or "rtt": uplink then downlink
     to an echo at the far end) through the stages of `radio`, on a fake clock."""
     profile = profile_of(radio, wired_ms)
-    sends = [t + 1.0 for t in schedule(probe, radio.pattern().period_s, seed)]
+    period = radio.pattern().period_s
+    start = aligned(1.0, period)
+    sends = [start + t for t in schedule(probe, period, seed)]
     if measure != "rtt":
         exits, counters = _through(profile, measure, sends, probe.size, seed)  # type: ignore[arg-type]
         return Delays([_ms(e, s) for e, s in zip(exits, sends, strict=True)], counters)

@@ -16,6 +16,7 @@ from netem.nr.radio import Radio
 from testbed.fidelity.case import Case, Variant
 from testbed.fidelity.data import load_samples
 from testbed.fidelity.judge import (
+    BLOCK_S,
     CaseResult,
     Check,
     Judged,
@@ -66,7 +67,8 @@ def judge_variant(case: Case, variant: Variant, delays: dict[str, Delays]) -> Ju
             judged.checks.append(judge_floor(measure, ours["min"], variant.floors[measure]))
         if measure in variant.data:
             values, weights = load_samples(variant.data[measure])
-            judged.checks += judge_data(measure, ms, values, weights)
+            block = max(1, round(BLOCK_S / case.probe.interval_s))
+            judged.checks += judge_data(measure, ms, values, weights, block)
     components = variant.components
     uplink = delays.get("uplink")
     if uplink is not None:

@@ -17,7 +17,8 @@ two different radios becomes one per direction). A mapping may change `tdd`, `sp
 `rlc_status`, `rlc_max_retx`, `in_order`, `buffer` (bytes), `core_delay` (the gNB-to-core
 delay a radio carries in its direction), `sched_offset` and `radio_offset` (srsRAN's S and R
 slots), `ue_delay_ul`/`ue_delay_dl` (the UE's own processing) and `ul_prbs`/`ul_symbols` (what
-one uplink grant may use).
+one uplink grant may use), `l2_overhead` (bytes of MAC and RLC headers per block) and `dmrs_re`
+(resource elements per PRB the DMRS takes).
 
 The fields are checked together once every layer is laid, and an error names the layer written
 last: an SR or configured grant in a slot without uplink symbols (with the slot it falls in),
@@ -65,6 +66,8 @@ ATTRS = {
     "ue_delay_dl": "ue_dl_delay_s",
     "ul_prbs": "ul_prbs",
     "ul_symbols": "ul_symbols",
+    "l2_overhead": "l2_overhead_bytes",
+    "dmrs_re": "dmrs_re_per_prb",
 }
 #: The attributes that are the cell's, not a UE's: all the UEs of a gNB share its slot grid.
 GRID_ATTRS = ("slots", "special", "numerology")

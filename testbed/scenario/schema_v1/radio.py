@@ -215,6 +215,19 @@ RADIO = Obj(
             "PUSCH symbols one uplink grant may use (default: the window's).",
             attr=None,
         ),
+        Field(
+            "l2_overhead",
+            Int(0, 64, noun="a number of bytes"),
+            "Bytes of MAC subheaders, buffer status report and RLC header per block (default 0).",
+            attr=None,
+        ),
+        Field(
+            "dmrs_re",
+            Int(0, 48, noun="a number of resource elements"),
+            "Resource elements per PRB the DMRS takes in a block (default 12: one front-loaded"
+            " symbol, both CDM groups).",
+            attr=None,
+        ),
     ],
     fill_defaults=False,
     ref="radio",
