@@ -150,6 +150,15 @@ def edgeloc_vehicles(run: dict[str, Any]) -> int | None:
 # ---- the whole summary, the whole document ----------------------------------------------
 
 
+def air_link(data: RunData) -> str | None:
+    """What the first air link's uplink was, for the headline: `NR <TDD> <PRBs> PRB, <access>
+    uplink` where it had a radio (links.json), None for a plain pipe."""
+    for (link, direction), radio in sorted(data.link_radios.items()):
+        if direction == "uplink" and radio is not None:
+            return f"NR {radio.slots} {radio.n_prb} PRB, {radio.ul_access} uplink ({link})"
+    return None
+
+
 def summarize(data: RunData, splits: bool | str = True) -> dict[str, Any]:
     """The summary.json dict of a run (keys in the module docstring). `splits=False` leaves
     out the split comparison (its replays take seconds to a minute)."""
@@ -173,6 +182,7 @@ def summarize(data: RunData, splits: bool | str = True) -> dict[str, Any]:
                 None if run_id is None else str(run_id),
                 data.partial,
                 edgeloc_vehicles(data.run),
+                air_link(data),
             ),
             "latency": latency_summary(data),
             "learner": learner_summary(data),

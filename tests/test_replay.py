@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 from dataclasses import replace
@@ -136,7 +137,13 @@ def test_gate_radius_grows_with_distance_driven() -> None:
 
 
 def test_default_scenario_path_follows_the_timeline() -> None:
-    sc = load(ROOT / "scenarios" / "default.yaml")
+    """default_pipe.yaml is default.yaml over a plain pipe: the same timeline and workload."""
+    sc = load(ROOT / "scenarios" / "default_pipe.yaml")
+    nr = load(ROOT / "scenarios" / "default.yaml")
+    strip = [dataclasses.replace(e, line=0) for e in sc.timeline]
+    assert [dataclasses.replace(e, line=0) for e in nr.timeline] == strip
+    assert nr.workload == sc.workload
+    assert nr.links.get("av1-gnb1").uplink.radio is not None
     lm = latency_model(sc, COMPUTE)
     assert lm.uplink.times == (0.0, 30.0, 60.0)
     assert [s.rate_bps for s in lm.uplink.states] == [40e6, 2e6, 20e6]

@@ -851,3 +851,23 @@ def test_run_json_is_read_from_the_folder_or_else_from_run_mcap(tmp_path: Path) 
     (attached / "run.json").write_text(json.dumps({"traffic": {}}))
     build_report(attached, formats=("md",), plots=False, splits=False)
     assert "## Cross-traffic" not in (attached / "report.md").read_text()
+
+
+def test_the_headline_says_what_the_air_link_was() -> None:
+    """A run over an NR radio says so after its figures (and before `[partial]`); a plain pipe
+    says nothing more. `air_link` reads it from the links' radios."""
+    from netem.nr.radio import RADIO_PROFILES
+    from reports.build import air_link
+    from reports.sections.accuracy import headline, paper_comparison
+
+    comparison = paper_comparison({"edgeloc": 2.0, "vo": 4.0, "dnn": 3.0, "kalman": 2.5})
+    comparison = comparison.to_dict()
+    plain = headline(comparison, "abc123")
+    assert "over" not in plain
+    radio = RADIO_PROFILES["public-n78-cicv5g"]
+    both = {("av1-gnb1", "downlink"): radio, ("av1-gnb1", "uplink"): radio}
+    air = air_link(SimpleNamespace(link_radios=both))  # type: ignore[arg-type]
+    assert air == "NR DDDSUDDSUU 273 PRB, sr uplink (av1-gnb1)"
+    line = headline(comparison, "abc123", partial=True, air=air)
+    assert line.startswith(plain) and line.endswith(f"; over {air} [partial]")
+    assert air_link(SimpleNamespace(link_radios={})) is None  # type: ignore[arg-type]

@@ -2,11 +2,13 @@
 
 from __future__ import annotations
 
+import dataclasses
 import ipaddress
 from pathlib import Path
 
 import pytest
 
+from netem.nr.radio import RADIO_PROFILES
 from netem.profile import DEFAULT_QUEUE_PACKETS, GilbertElliott, LinkProfile
 from testbed.scenario import ScenarioError, load, loads
 from testbed.scenario import model as m
@@ -32,8 +34,12 @@ def test_default_scenario() -> None:
     assert sorted(s.links.names()) == ["av1-gnb1", "gnb1-upf1", "upf1-edge1"]
     air = s.links.get("av1-gnb1")
     assert (air.kind, air.lower, air.upper) == ("air", "av1", "gnb1")
-    assert air.uplink == LinkProfile(rate_bps=50e6, delay_s=0.008, jitter_s=0.002, loss=0.001)
-    assert air.downlink.rate_bps == 200e6
+    # The NR cell a fidelity case calibrated, its core and cloud left to N3 and N6.
+    cell = dataclasses.replace(RADIO_PROFILES["public-n78-cicv5g"], core_delay_s=0.0)
+    assert air.uplink == LinkProfile(radio=cell) and air.downlink == LinkProfile(radio=cell)
+    pipe = load(SCENARIOS / "default_pipe.yaml").links.get("av1-gnb1")
+    assert pipe.uplink == LinkProfile(rate_bps=50e6, delay_s=0.008, jitter_s=0.002, loss=0.001)
+    assert pipe.downlink.rate_bps == 200e6
     n3 = s.links.get("gnb1-upf1")
     assert (n3.kind, n3.uplink) == ("n3", LinkProfile(rate_bps=1e9, delay_s=0.001))
     assert s.links.get("upf1-edge1").uplink == LinkProfile()  # N6: the edge on the UPF's host

@@ -95,19 +95,19 @@ def test_overrides_reach_nested_fields_lists_and_single_links() -> None:
     data = variant_tree(
         base,
         {
-            "links.air.uplink.delay": "20ms",
+            "links.air.radio.mcs": 9,
             "workload.fusion.k_s": 40,  # smoke.yaml has no fusion: the mapping is made
             "timeline[1].uplink": "4mbit",
             "topology.vehicles.av1.cpu": 0.5,
             "links.av1-gnb1.downlink.loss": "1%",
         },
     )
-    assert base["links"]["air"]["uplink"]["delay"] == "8ms"  # the base tree is untouched
+    assert "mcs" not in base["links"]["air"]["radio"]  # the base tree is untouched
     scenario = load_tree(data, SMOKE, "test")
     air = scenario.links.get("av1-gnb1")
-    assert air.uplink.delay_s == pytest.approx(0.020)
+    assert air.uplink.radio is not None and air.uplink.radio.mcs == 9
     assert air.downlink.loss == pytest.approx(0.01)
-    assert air.downlink.delay_s == pytest.approx(0.008)  # the rest of the default stays
+    assert air.downlink.radio is not None and air.downlink.radio.sr_period_slots == 10
     assert scenario.links.get("gnb1-upf1").downlink.loss == 0  # other links keep defaults
     assert scenario.workload.fusion.k_s == 40
     assert scenario.timeline[1].uplink_bps == 4e6  # type: ignore[union-attr]

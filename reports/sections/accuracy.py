@@ -128,11 +128,13 @@ def headline(
     run_id: str | None = None,
     partial: bool = False,
     vehicles: int | None = None,
+    air: str | None = None,
 ) -> str:
-    """`run X: EdgeLoc total error N m; reduction a% vs VO (paper 67.75%), ...`; for a run
-    with no EdgeLoc vehicle (`vehicles=0`: `workload: none`), what it recorded instead."""
+    """`run X: EdgeLoc total error N m; reduction a% vs VO (paper 67.75%), ...`, then what the
+    air link was (`air`: `NR DDDSUDDSUU 273 PRB, SR uplink`, or none for a plain pipe); for
+    a run with no EdgeLoc vehicle (`vehicles=0`: `workload: none`), what it recorded instead."""
     head = f"run {run_id}: " if run_id else ""
-    tail = " [partial]" if partial else ""
+    tail = (f"; over {air}" if air else "") + (" [partial]" if partial else "")
     if vehicles == 0:
         return f"{head}no EdgeLoc workload (workload: none): see its apps and traffic" + tail
     totals = {t["method"]: t["ours"] for t in comparison["totals"]}
