@@ -137,7 +137,9 @@ def test_run_mcap_decodes_fully_and_counts_match_the_nodes(
         == set(links["final_profiles"])
         == {"av1-gnb1", "gnb1-upf1", "upf1-edge1"}
     )
-    assert links["links"]["av1-gnb1"]["profiles"]["uplink"]["rate_bps"] == 50e6
+    # smoke.yaml's air link is the NR cell: its radio, whole, in both directions
+    air = links["links"]["av1-gnb1"]["profiles"]
+    assert air["uplink"]["radio"]["slots"] == air["downlink"]["radio"]["slots"] == "DDDSUDDSUU"
     print(f"\nrun {result.run_id}: {path.stat().st_size / 1e6:.2f} MB, topics {counts}")
 
 
