@@ -44,10 +44,12 @@ report the block carried, which the UE then asks for again). Packets leave in ar
 PDCP delivers them (a late one holds back those behind it); `in_order: false` lets each leave
 when decoded.
 
-Named radios (each field's source is in `radio`, which defines them): `oai-tdd-30k`,
-`srsran-lowlat`, `commercial-midband` (a 100 MHz n78-like cell, DDDDDDDSUU, an SR every 10 ms,
-RLC status 20 ms, the core 3 ms from the gNB: a median idle RTT of 20-30 ms by its oracle, as
-commercial cells measure; tests/test_scenario_radio.py computes it).
+Named radios (each field's source is in `radio`, which defines them): those calibrated on a
+published measurement, `srsran-urllc`, `oai-usrp-edaf`, `sa-midband-ericsson` and
+`public-n78-cicv5g` (`testbed fidelity` judges each against its source, `testbed.fidelity`);
+and `oai-tdd-30k`, `srsran-lowlat`, `commercial-midband` (a 100 MHz n78-like cell, DDDDDDDSUU,
+an SR every 10 ms, RLC status 20 ms, the core 3 ms from the gNB), which follow a configuration
+file or common practice but no measurement: each says in `radio` what it assumes.
 
 Shared cells: the air links of one gNB with a radio share one relay process and its slots; in
 each occasion retransmissions go first, then the cell's `scheduler` (`rr`, `pf`) splits the

@@ -443,6 +443,10 @@ def _repeated(base: Sequence[Occasion], period_s: float, times: int) -> list[Occ
 # nrofDownlinkSlots 7, nrofDownlinkSymbols 6, nrofUplinkSymbols 4, nrofUplinkSlots 2;
 # 106 PRBs; min_rxtxtime 2 (K2 = 2 slots). MCS 20 is a mid-cell link adaptation choice
 # (an assumption, not from the file).
+# No fidelity case measured this cell: EDAF's OAI gNB (`oai-usrp-edaf`) ran another frame
+# (an uplink period every 2.5 ms), grants of 5 PRBs x 3 symbols and 7.2% of blocks
+# retransmitted. This profile assumes the 5 ms frame of the file, full-width grants, the SR
+# and grant timing below, MCS 20 and a 10% BLER with 2-slot HARQ, and no UE processing time.
 _OAI_TDD_30K = Radio(
     slots="DDDDDDDSUU",
     special=(6, 4, 4),
@@ -469,6 +473,9 @@ RADIO_PROFILES: dict[str, Radio] = {
     # srsRAN Project configs/low_latency.yml: a 2 ms period at 30 kHz of 2 downlink slots, a
     # special slot of 10 downlink symbols, and 1 uplink slot; min K1 = K2 = 2. 106 PRBs (a
     # 40 MHz carrier at 30 kHz, TS 38.101-1 Table 5.3.2-1) and MCS 20 are assumptions.
+    # The measured srsRAN cell is `srsran-urllc`; this one folds the scheduling and radio
+    # offsets into grant_slots and K2 and leaves out the UE's own processing (the 1-2 ms per
+    # direction that case calibrated), so its delays are a cell's, not a UE's.
     "srsran-lowlat": Radio(
         slots="DDSU",
         special=(10, 4, 0),

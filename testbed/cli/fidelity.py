@@ -3,7 +3,6 @@
 
 from __future__ import annotations
 
-import dataclasses
 import json
 import sys
 from pathlib import Path
@@ -55,15 +54,13 @@ def fidelity(
     host. Examples: testbed fidelity; testbed fidelity srsran-urllc --count 300
     """
     from testbed.fidelity import find, run_cases, table, to_dict, write
+    from testbed.fidelity.case import shortened
 
     progress = None if json_out else con.plain
     try:
         chosen = find(list(cases or []))
         if count is not None:
-            chosen = [
-                dataclasses.replace(c, probe=dataclasses.replace(c.probe, count=count))
-                for c in chosen
-            ]
+            chosen = [shortened(c, count) for c in chosen]
         results = run_cases(chosen, real=not model, progress=progress)
         paths = write(results, out)
     except KNOWN_ERRORS as err:

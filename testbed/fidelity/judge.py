@@ -37,8 +37,9 @@ TOLERANCES: dict[str, tuple[float, float]] = {
 HOST_W1_MS = 0.3
 HARQ_SIGMAS = 3.0
 #: Per-packet data is resampled in runs this long (of the source's probes): EDAF's near-full
-#: uplink stays busy for seconds, and one packet at a time its 2,710 delays looked 4x steadier
-#: (W1 spread 0.38 ms) than runs of one second do (1.0-1.5 ms).
+#: uplink stays busy for seconds, so its delays are correlated over runs of packets, and
+#: resampling them one by one would understate the data's own spread (the W1 tolerance
+#: `testbed fidelity oai-usrp-edaf` prints is this spread plus HOST_W1_MS).
 BLOCK_S = 1.0
 SEGMENTED_POINTS = 0.10
 
@@ -89,38 +90,40 @@ class CaseResult:
         return all(v.ok for v in self.variants)
 
 
-def figures(values: Sequence[float], weights: Sequence[float] | None = None) -> dict[str, float]:
-    """min / p50 / mean / p90 / p95 / p99 / max (ms) of samples, weighted or not."""
+def _sorted_cdf(
+    values: Sequence[float], weights: Sequence[float] | None
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Samples sorted, their weights, and the weighted CDF at each."""
     v = np.asarray(values, dtype=float)
     w = np.ones_like(v) if weights is None else np.asarray(weights, dtype=float)
     order = np.argsort(v)
     v, w = v[order], w[order]
-    cum = np.cumsum(w) / w.sum()
+    return v, w, np.cumsum(w) / w.sum()
 
-    def q(p: float) -> float:
-        return float(v[min(len(v) - 1, int(np.searchsorted(cum, p)))])
 
+def _at(v: np.ndarray, cum: np.ndarray, p: np.ndarray | float) -> np.ndarray:
+    return v[np.minimum(len(v) - 1, np.searchsorted(cum, p))]
+
+
+def figures(values: Sequence[float], weights: Sequence[float] | None = None) -> dict[str, float]:
+    """min / p50 / mean / p90 / p95 / p99 / max (ms) of samples, weighted or not."""
+    v, w, cum = _sorted_cdf(values, weights)
     mask = w > 0
     return {
         "n": float(w.sum()),
         "min": float(v[mask][0]),
-        "p50": q(0.5),
+        "p50": float(_at(v, cum, 0.5)),
         "mean": float((v * w).sum() / w.sum()),
-        "p90": q(0.9),
-        "p95": q(0.95),
-        "p99": q(0.99),
+        "p90": float(_at(v, cum, 0.9)),
+        "p95": float(_at(v, cum, 0.95)),
+        "p99": float(_at(v, cum, 0.99)),
         "max": float(v[mask][-1]),
     }
 
 
 def _quantiles(values: Sequence[float], weights: Sequence[float] | None, n: int) -> np.ndarray:
-    v = np.asarray(values, dtype=float)
-    w = np.ones_like(v) if weights is None else np.asarray(weights, dtype=float)
-    order = np.argsort(v)
-    v, w = v[order], w[order]
-    cum = np.cumsum(w) / w.sum()
-    u = (np.arange(n) + 0.5) / n
-    return v[np.minimum(len(v) - 1, np.searchsorted(cum, u))]
+    v, _, cum = _sorted_cdf(values, weights)
+    return _at(v, cum, (np.arange(n) + 0.5) / n)
 
 
 def w1_ms(ours: Sequence[float], theirs: Sequence[float], weights: Sequence[float] | None) -> float:

@@ -35,10 +35,9 @@ PORT = 9300
 #: Time for the relay and the receivers to be ready before the first probe.
 LEAD_S = 0.5
 #: Probes each way of the host's baseline, every BASELINE_INTERVAL_S. The figure depends on how
-#: busy the relay is: here a plain link's median was 0.28-0.32 ms with a probe every 2 ms and
-#: 0.43-0.49 ms every 10 ms (deeper idle states between packets), while a radio's relay, awake
-#: at every slot a packet waits for, added 0.23-0.25 ms over the fake clock's figures. Every
-#: 2 ms is the nearest to that.
+#: busy the relay is (sparser probes let the CPU reach deeper idle states between packets), and
+#: a radio's relay is awake at every slot a packet waits for: a probe every 2 ms is the nearest
+#: a plain link comes to that. `testbed fidelity` prints the baseline it took off.
 BASELINE_PROBES = 300
 BASELINE_INTERVAL_S = 0.002
 
@@ -105,14 +104,20 @@ def _send(addr: str, port: int, sends: list[float], size: int, start: float) -> 
     return len(sends)
 
 
+def _bound(addr: str, port: int, ready: Any) -> socket.socket:
+    """A UDP socket on addr:port that wakes every 50 ms to check the time; `ready` set."""
+    sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4 << 20)
+    sock.bind((addr, port))
+    sock.settimeout(0.05)
+    ready.set()
+    return sock
+
+
 def _receive(ready: Any, addr: str, port: int, until: float) -> dict[int, float]:
     """Each datagram's one-way delay (ms) by sequence number, until monotonic `until`."""
     out: dict[int, float] = {}
-    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as sock:
-        sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4 << 20)
-        sock.bind((addr, port))
-        sock.settimeout(0.05)
-        ready.set()
+    with _bound(addr, port, ready) as sock:
         buf = bytearray(2048)
         while time.monotonic() < until:
             try:
@@ -128,10 +133,7 @@ def _receive(ready: Any, addr: str, port: int, until: float) -> dict[int, float]
 def _echo(ready: Any, addr: str, port: int, until: float) -> int:
     """Send every datagram back where it came from, until monotonic `until`."""
     n = 0
-    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as sock:
-        sock.bind((addr, port))
-        sock.settimeout(0.05)
-        ready.set()
+    with _bound(addr, port, ready) as sock:
         buf = bytearray(2048)
         while time.monotonic() < until:
             try:
