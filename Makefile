@@ -56,15 +56,20 @@ scenario:
 smoke: setup
 	$(BIN)/testbed run scenarios/smoke.yaml
 
-# Two passes. First, one at a time, the tests that need the machine to themselves: those with
-# namespaces (root), ROS (one DDS domain), whole scenarios (e2e), rate measurements, the VM and
-# the slow ones, in conftest's order (measurements first, onto a fresh machine). Then the unit
-# tests on every core (pytest-xdist). Both passes always run; a failure in either fails.
-SERIAL_TESTS := root or ros or e2e or measure or netem_vm or slow
+# Three passes. First, one at a time, the tests that need the machine to themselves: rate and
+# timing measurements, the VM, Ray clusters and whatever compares the whole host before and
+# after (conftest sorts the measurements first, onto a fresh machine). Then, two at a time, the
+# other tests with namespaces (root), ROS, whole scenarios (e2e) or long replays (slow): each
+# has its own run id, namespaces, state dir and ROS domain. Last, the unit tests on every core.
+# Every pass always runs; a failure in any fails.
+ALONE_TESTS  := alone or measure or netem_vm
+SHARED_TESTS := (root or ros or e2e or slow) and not ($(ALONE_TESTS))
+UNIT_TESTS   := not (root or ros or e2e or slow or $(ALONE_TESTS))
 test: setup sysdeps chromium tshark iperf3 ray
 	@rc=0; \
-	$(BIN)/python -m pytest -q -m "$(SERIAL_TESTS)" || rc=$$?; \
-	$(BIN)/python -m pytest -q -n auto -m "not ($(SERIAL_TESTS))" || rc=$$?; \
+	$(BIN)/python -m pytest -q -m "$(ALONE_TESTS)" || rc=$$?; \
+	$(BIN)/python -m pytest -q -n 2 -m "$(SHARED_TESTS)" || rc=$$?; \
+	$(BIN)/python -m pytest -q -n auto -m "$(UNIT_TESTS)" || rc=$$?; \
 	exit $$rc
 
 # Installs $(VM_DEBS) when this kernel lacks sch_netem and they are missing (root only).

@@ -25,7 +25,7 @@ import contextlib
 import shutil
 import sys
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -279,6 +279,13 @@ def unanswered(nodes: dict[str, Any]) -> list[str]:
     ]
 
 
+def steps_line(steps: dict[str, float]) -> str:
+    """One progress line: where a run's wall time went, step by step."""
+    order = ["capacity", "up", "link test", "echoes", "nodes", "timeline", "stop", "down"]
+    shown = [k for k in order if k in steps] + [k for k in steps if k not in order]
+    return "steps: " + ", ".join(f"{k} {steps[k]:.1f} s" for k in shown)
+
+
 def run_scenario(
     scenario: Scenario, runs_dir: Path, progress: Progress, capacity_check: bool = False
 ) -> RunResult:
@@ -330,6 +337,15 @@ class _Run:
         self.folder: Path | None = None
         self.result: RunResult | None = None
         self.recording: Recording | None = None
+        self.steps_s: dict[str, float] = {}  # each step's wall time, in the order they ran
+
+    @contextlib.contextmanager
+    def _timed(self, step: str) -> Iterator[None]:
+        t0 = time.perf_counter()
+        try:
+            yield
+        finally:
+            self.steps_s[step] = self.steps_s.get(step, 0.0) + time.perf_counter() - t0
 
     def run(self) -> RunResult:
         scenario, progress = self.scenario, self.progress
@@ -337,7 +353,8 @@ class _Run:
         if self.capacity_check:
             # Before the network exists: its relays would compete with the measurement.
             try:
-                capacity = check_scenario(scenario, progress=progress)
+                with self._timed("capacity"):
+                    capacity = check_scenario(scenario, progress=progress)
             except (TestbedError, NetemError, OSError) as err:
                 # No figure is no reason to stop a run; what would (no root) stops the build
                 # next, with its own message.
@@ -366,11 +383,14 @@ class _Run:
                 self.recording = Recording(net, result.folder, result.link_backend, progress)
             self._steps(net, result)
             t1 = time.perf_counter()
+        down = time.perf_counter() - t1
         result.timings_s = {
             "up": t_up,
-            "down": time.perf_counter() - t1,
+            "down": down,
             "total": time.perf_counter() - t0,
+            "steps": {**self.steps_s, "up": t_up, "down": down},
         }
+        progress("  " + steps_line(result.timings_s["steps"]))
         write_json(result.folder / "connectivity.json", [r.to_dict() for r in result.connectivity])
         write_json(
             result.folder / names.RUN_FILE,
@@ -392,7 +412,8 @@ class _Run:
             net.control.watch()  # a relay that dies sets the failure `_check` raises in POLL_S
         tested = scenario.report.link_test_links(list(net.links))
         if tested:
-            report = LinkTest(net, quick=True, progress=progress, links=tested).run()
+            with self._timed("link test"):
+                report = LinkTest(net, quick=True, progress=progress, links=tested).run()
             if result.capacity is not None:
                 report.capacity = result.capacity.to_dict()
             result.linktest = report
@@ -402,7 +423,8 @@ class _Run:
             if not report.ok:
                 progress(f"  {report.warning()}")
         _check(net)
-        result.connectivity = vehicles_reach_cores(net)
+        with self._timed("echoes"):
+            result.connectivity = vehicles_reach_cores(net)
         for r in result.connectivity:
             rtt = f"{r.rtt_ms_median:.2f} ms" if r.rtt_ms_median is not None else "-"
             progress(
@@ -431,21 +453,23 @@ class _Run:
             traffic.tick(elapsed)
 
         try:
-            if ros_ok:
-                nodes.start()
-            _check(net)
-            # The drives start before the apps: an app may be ready only once it hears the
-            # workload (`ready: {topic: /av1/pose}`). The timeline's 0 s is still the drives'
-            # start; what the apps' start takes beyond its lead shows as the first events'
-            # lateness.
-            start = nodes.release() if ros_ok else None
-            apps.start_first()
-            if traffic:
-                traffic.start_receivers()
-            _check(net)
-            if self.recording is not None:
-                self.recording.start_counters(ros_ok)
-            player = play_timeline(net, result.folder, progress, watch, start)
+            with self._timed("nodes"):
+                if ros_ok:
+                    nodes.start()
+                _check(net)
+                # The drives start before the apps: an app may be ready only once it hears the
+                # workload (`ready: {topic: /av1/pose}`). The timeline's 0 s is still the
+                # drives' start; what the apps' start takes beyond its lead shows as the first
+                # events' lateness.
+                start = nodes.release() if ros_ok else None
+                apps.start_first()
+                if traffic:
+                    traffic.start_receivers()
+                _check(net)
+                if self.recording is not None:
+                    self.recording.start_counters(ros_ok)
+            with self._timed("timeline"):
+                player = play_timeline(net, result.folder, progress, watch, start)
             result.timeline = {
                 "events": len(scenario.timeline),
                 "applied": len(player.applied),
@@ -459,6 +483,7 @@ class _Run:
             # Apps, then nodes stop before teardown (the nodes write their stats and close
             # their MCAP parts; a recorder outlives the apps it records); links still up for
             # the last counters.
+            t_stop = time.perf_counter()
             if traffic:
                 result.traffic = traffic.stop()
                 if self.recording is not None:
@@ -483,6 +508,7 @@ class _Run:
                 "since_link_creation": after,
                 "during_nodes": counters_delta(before, after),
             }
+            self.steps_s["stop"] = time.perf_counter() - t_stop
         if ros_ok:
             progress(node_line(result.nodes))
             for name in unanswered(result.nodes):

@@ -251,6 +251,7 @@ def _flows(folder: Path) -> dict[str, Any]:
     return json.loads((folder / "run.json").read_text())["traffic"]
 
 
+@pytest.mark.alone  # rates and latencies of a loaded cell: nothing else on the CPUs
 def test_cross_traffic_udp_overload_loses_a_third_and_tcp_gets_the_link_rate(
     state_dir: Path, interfaces: None, tmp_path: Path
 ) -> None:
@@ -351,6 +352,7 @@ def test_byo_ros2_carries_a_third_party_talker_to_a_listener_across_gtp_u(
     _nothing_left(run_id, folder)
 
 
+@pytest.mark.alone  # rates and latencies of a loaded cell: nothing else on the CPUs
 def test_loaded_cell_reports_edgeloc_with_and_without_the_background_ues_load(
     state_dir: Path, interfaces: None, tmp_path: Path
 ) -> None:

@@ -21,7 +21,7 @@ from testbed.errors import TestbedError
 from testbed.links import relay_pids
 from tests.realrun import testbed_cli
 
-pytestmark = pytest.mark.root
+pytestmark = [pytest.mark.root, pytest.mark.alone]
 
 TAG = "c0ffee00"
 NAMES = [f"{PROBE_PREFIX}{TAG}-a", f"{PROBE_PREFIX}{TAG}-b"]

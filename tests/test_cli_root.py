@@ -159,6 +159,7 @@ def test_up_dry_run_prints_ip_and_link_commands(state_dir: Path) -> None:
     assert st.list_runs() == []
 
 
+@pytest.mark.alone  # compares every el- namespace of the host before and after
 def test_bad_scenario_exits_2_and_creates_nothing(state_dir: Path, tmp_path: Path) -> None:
     bad = tmp_path / "bad.yaml"
     bad.write_text(

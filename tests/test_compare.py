@@ -379,3 +379,28 @@ def test_ekf_fusion_beats_the_papers_weight_and_kalman_on_the_default_replay(
     assert s["fusion"]["method"] == "ekf" and "BEYOND THE PAPER" in s["fusion"]["description"]
     assert totals["edgeloc"] < default_comparison.learned.total_m  # type: ignore[union-attr]
     assert reductions["kalman"] > 30.26, reductions  # the paper's reduction against its KF
+
+
+def test_replays_on_forked_workers_equal_one_after_another() -> None:
+    """The comparison's replays go to one worker per CPU: each must come back exactly as the
+    same replay run alone, and the answers the workers computed must reach the caller's cache
+    (the oracle, replayed afterwards, asks for them again)."""
+    from nodes.edgeloc.compare import replays
+
+    scenario = load(SCENARIOS / "smoke.yaml")
+    cfg = replay_config(scenario)
+    ds = config_dataset(cfg)
+    model = load_model(cfg.weights)
+    configs = {k: replace(cfg, learner=replace(cfg.learner, fixed_split=k)) for k in cfg.splits[:3]}
+    one = replays(configs, latency_model(scenario), ds, model, None, workers=1)
+    cache = InferenceCache(model, ds, cfg.codec)
+    two = replays(configs, latency_model(scenario), ds, model, cache, workers=2)
+    assert list(two) == list(configs)
+    for k in configs:
+        a, b = one[k], two[k]
+        assert a.plays == b.plays, k
+        assert set(a.poses) == set(b.poses)
+        for method in a.poses:
+            np.testing.assert_array_equal(a.poses[method], b.poses[method], err_msg=k)
+    asked = {(p.frame, p.split) for r in two.values() for p in r.plays}
+    assert asked and asked <= set(cache.answers())

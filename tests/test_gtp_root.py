@@ -27,7 +27,7 @@ from netem.netns import in_netns
 from netem.relay.client import UserspaceLink
 from tests.tshark import TSHARK, Capture
 
-pytestmark = pytest.mark.root
+pytestmark = [pytest.mark.root, pytest.mark.alone]
 
 UE, GNB_AIR = "10.45.0.2", "10.201.0.1"
 GNB_N3, UPF_N3 = "10.100.3.1", "10.100.3.2"

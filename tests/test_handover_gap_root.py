@@ -26,7 +26,7 @@ from netem.profile import LinkProfile
 from tests.test_relay_root import ADDR_B, PORT, link_for, namespaces, udp_socket
 from tests.test_rrc_root import _stamp
 
-pytestmark = pytest.mark.root
+pytestmark = [pytest.mark.root, pytest.mark.alone]
 
 SO_TIMESTAMPNS = 35  # <asm-generic/socket.h>
 DELAY_S = 0.005

@@ -26,7 +26,7 @@ from testbed.timeline import TimelinePlayer
 from testbed.topology import Net, build
 from tests.tshark import TSHARK, Capture
 
-pytestmark = pytest.mark.root
+pytestmark = [pytest.mark.root, pytest.mark.alone]
 
 SCENARIO = """
 version: 1

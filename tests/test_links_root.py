@@ -305,6 +305,7 @@ def test_the_air_links_of_one_gnb_with_a_radio_share_one_relay_and_its_cell(
     assert pids and links.relay_pids(net.state.namespaces) == []
 
 
+@pytest.mark.alone  # times the first packet after a quiet spell: nothing else on the CPUs
 def test_rrc_states_from_the_scenario_hold_the_first_packet_after_a_quiet_spell(
     state_dir: Path, tmp_path: Path
 ) -> None:

@@ -12,7 +12,7 @@ from testbed.linktest import LinkTest, LinkTestReport
 from testbed.scenario import load
 from testbed.topology import build
 
-pytestmark = pytest.mark.root
+pytestmark = [pytest.mark.root, pytest.mark.alone]
 
 SCENARIO = """\
 name: lt

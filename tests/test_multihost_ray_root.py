@@ -30,7 +30,7 @@ from netem.netns import delete_netns, list_netns
 from testbed.namespaces import Netns
 from tests import test_multihost_root as mh
 
-pytestmark = pytest.mark.root
+pytestmark = [pytest.mark.root, pytest.mark.alone]
 
 pytest.importorskip(
     "ray", reason="Ray is the optional extra: pip install '.[ray]' (make test installs it)"

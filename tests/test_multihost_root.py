@@ -31,7 +31,7 @@ from testbed.namespaces import Netns
 from testbed.topology import vxlan
 from tests.test_multihost import two_host_yaml
 
-pytestmark = pytest.mark.root
+pytestmark = [pytest.mark.root, pytest.mark.alone]
 
 ROOT = Path(__file__).resolve().parent.parent
 UNDERLAY_A, UNDERLAY_B = "10.250.0.1", "10.250.0.2"

@@ -24,7 +24,7 @@ from netem.netns import in_netns
 from netem.profile import LinkProfile
 from netem.relay.client import RelayError, UserspaceLink
 
-pytestmark = pytest.mark.root
+pytestmark = [pytest.mark.root, pytest.mark.alone]
 
 ADDR_A, ADDR_B = "10.213.0.1", "10.213.0.2"
 PORT = 9000

@@ -38,7 +38,8 @@ def test_run_reports_and_the_report_rebuilds_identically(state_dir: Path, tmp_pa
     (folder,) = runs.iterdir()
     *_, headline, where = result.stdout.strip().splitlines()
     assert headline.startswith(f"run {folder.name}: EdgeLoc total error "), result.stdout[-2000:]
-    assert where == f"report: {folder / 'report.html'}"
+    report_line = rf"report: {re.escape(str(folder / 'report.html'))}, built in [0-9.]+ s"
+    assert re.fullmatch(report_line, where), where
 
     summary = json.loads((folder / "summary.json").read_text())
     assert summary["status"] == "ok" and summary["partial"] is False

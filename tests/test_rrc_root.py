@@ -25,7 +25,7 @@ from netem.nr.rrc import RrcSettings
 from netem.profile import LinkProfile
 from tests.test_relay_root import ADDR_A, ADDR_B, PORT, link_for, namespaces, udp_socket
 
-pytestmark = pytest.mark.root
+pytestmark = [pytest.mark.root, pytest.mark.alone]
 
 SO_TIMESTAMPNS = 35  # <asm-generic/socket.h>
 DELAY_S = 0.005  # each direction's own delay

@@ -24,6 +24,9 @@ import pytest
 
 from tests.realrun import REPO, processes_mentioning
 
+# A Ray cluster of its own (its ports, the host's namespaces before and after): one at a time.
+pytestmark = pytest.mark.alone
+
 ray = pytest.importorskip(
     "ray", reason="Ray is the optional extra: pip install '.[ray]' (make test installs it)"
 )
@@ -128,7 +131,7 @@ def _totals(folder: Path) -> list[tuple[int, int, float]]:
     return [(v["index"], v["seed"], v["methods"]["edgeloc"]["total_m"]) for v in data["variants"]]
 
 
-@pytest.mark.slow  # a Ray cluster of its own: one at a time (make test runs slow tests alone)
+@pytest.mark.slow  # a Ray cluster of its own: make test runs it alone (the module is `alone`)
 def test_a_replay_sweep_on_a_two_host_cluster_gives_the_rows_of_a_local_one(
     tmp_path: Path,
 ) -> None:

@@ -30,7 +30,7 @@ import pytest
 
 from nodes.traffic.flows import SAMPLE_KEYS
 
-pytestmark = pytest.mark.root
+pytestmark = [pytest.mark.root, pytest.mark.alone]
 
 REPO = Path(__file__).resolve().parents[1]
 RATE_BPS = 20_000_000

@@ -30,6 +30,8 @@ from __future__ import annotations
 
 import itertools
 import math
+import multiprocessing
+import os
 from collections.abc import Sequence
 from dataclasses import asdict, dataclass, field, replace
 
@@ -41,7 +43,7 @@ from nodes.edgeloc.dataset import Dataset
 from nodes.edgeloc.latency import LatencyModel, MeasuredLatency
 from nodes.edgeloc.metrics import position_errors
 from nodes.edgeloc.model import LocNet
-from nodes.edgeloc.replay import InferenceCache, ReplayResult, run_replay
+from nodes.edgeloc.replay import Answer, InferenceCache, ReplayResult, run_replay
 from nodes.edgeloc.settings import ReplayConfig
 
 #: Seconds per block when weighing a difference in mean error between two splits. Two splits'
@@ -316,6 +318,50 @@ class SplitComparison:
         }
 
 
+#: What the forked workers of `replays` replay on: set before the fork, so each inherits the
+#: dataset, the DNN and the answers cached so far without pickling them.
+_SHARED: tuple[LatencyModel, Dataset, LocNet, InferenceCache | None] | None = None
+
+
+def _replay_one(config: ReplayConfig) -> tuple[ReplayResult, dict[tuple[int, str], Answer]]:
+    """One replay in a worker, and the DNN answers it computed that the parent has not."""
+    assert _SHARED is not None
+    latency, dataset, model, cache = _SHARED
+    known = set(cache.answers()) if cache is not None else set()
+    result = run_replay(config, latency, dataset, model, cache)
+    new = {k: v for k, v in cache.answers().items() if k not in known} if cache else {}
+    return result, new
+
+
+def replays(
+    configs: dict[str, ReplayConfig],
+    latency: LatencyModel,
+    dataset: Dataset,
+    model: LocNet,
+    cache: InferenceCache | None = None,
+    workers: int | None = None,
+) -> dict[str, ReplayResult]:
+    """Each config replayed, by name. The replays are independent, and each runs on one
+    thread (`run_replay`), so they go to forked workers, one per CPU this process may use
+    (`workers`), and come back in order; the answers are those of replaying one after another,
+    since every worker computes each DNN answer as a node does, one frame at a time."""
+    names = list(configs)
+    n = min(len(names), workers or len(os.sched_getaffinity(0)))
+    if n <= 1 or "fork" not in multiprocessing.get_all_start_methods():
+        return {k: run_replay(configs[k], latency, dataset, model, cache) for k in names}
+    global _SHARED
+    _SHARED = (latency, dataset, model, cache)
+    try:
+        with multiprocessing.get_context("fork").Pool(n) as pool:
+            done = pool.map(_replay_one, [configs[k] for k in names], chunksize=1)
+    finally:
+        _SHARED = None
+    if cache is not None:  # what comes next (the oracle) asks for the same answers
+        for _, new in done:
+            cache.remember(new)
+    return {k: result for k, (result, _) in zip(names, done, strict=True)}
+
+
 def compare_splits(
     config: ReplayConfig,
     latency: LatencyModel,
@@ -345,13 +391,24 @@ def compare_splits(
         )
         learned = None  # the run's own learner chose among all arms: replay it among these
     free = replace(config, learner=replace(config.learner, fixed_split=None))
+    configs: dict[str, ReplayConfig] = {
+        f"fixed:{k}": replace(config, learner=replace(config.learner, fixed_split=k))
+        for k in config.splits
+    }
     if learned is None:
-        learned = run_replay(free, latency, dataset, model, cache)
+        configs["learned"] = free
+    if (
+        config.robust_c is not None
+        or config.confidence is not None
+        or config.fusion_method != "paper"
+    ):
+        configs["learned, paper fusion"] = replace(
+            free, robust_c=None, robust_centre_s=None, confidence=None, fusion_method="paper"
+        )
+    results = replays(configs, latency, dataset, model, cache)
+    learned = learned or results["learned"]
     bounds = phase_bounds(config, learned.duration_s)
-    fixed: dict[str, PolicyRow] = {}
-    for k in config.splits:
-        cfg = replace(config, learner=replace(config.learner, fixed_split=k))
-        fixed[k] = policy_row(f"fixed:{k}", run_replay(cfg, latency, dataset, model, cache), bounds)
+    fixed = {k: policy_row(f"fixed:{k}", results[f"fixed:{k}"], bounds) for k in config.splits}
     comparison = SplitComparison(
         bounds=tuple(bounds),
         learned=policy_row("learned", learned, bounds),
@@ -367,17 +424,8 @@ def compare_splits(
         res = run_replay(free, latency, dataset, model, cache, schedule=schedule)  # type: ignore[arg-type]
         oracle = policy_row("oracle", res, bounds)
     paper = None
-    if (
-        config.robust_c is not None
-        or config.confidence is not None
-        or config.fusion_method != "paper"
-    ):
-        bare = replace(
-            free, robust_c=None, robust_centre_s=None, confidence=None, fusion_method="paper"
-        )
-        paper = policy_row(
-            "learned, paper fusion", run_replay(bare, latency, dataset, model, cache), bounds
-        )
+    if "learned, paper fusion" in results:
+        paper = policy_row("learned, paper fusion", results["learned, paper fusion"], bounds)
     return replace(comparison, oracle=oracle, paper_fusion=paper)
 
 
@@ -391,4 +439,5 @@ __all__ = [
     "compare_splits",
     "paired_noise_m",
     "policy_row",
+    "replays",
 ]

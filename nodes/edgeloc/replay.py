@@ -100,6 +100,14 @@ class InferenceCache:
                 self._images[frame] = x
         return x
 
+    def answers(self) -> dict[tuple[int, str], Answer]:
+        """The answers computed so far, by (frame, split)."""
+        return self._cache
+
+    def remember(self, answers: dict[tuple[int, str], Answer]) -> None:
+        """Take answers computed elsewhere on the same model and dataset (a worker's)."""
+        self._cache.update(answers)
+
     @torch.no_grad()
     def answer(self, frame: int, split: str) -> Answer:
         key = (frame, split)

@@ -3,6 +3,7 @@ down, then reports on it; `report` rebuilds a run's report from its run.mcap."""
 
 from __future__ import annotations
 
+import time
 from pathlib import Path
 from typing import Annotated
 
@@ -111,12 +112,14 @@ def _report_after_run(
     A report that cannot be built is a warning: the run's own outcome decides the exit code."""
     from reports.build import report_after_run
 
+    t0 = time.perf_counter()
     built, why_not = report_after_run(folder, formats, plots, splits)
     if built is None:
         con.warn(f"no report: {why_not}")
         return
     con.plain(built.headline)
-    con.plain(f"report: {built.main_file}" + (" (partial)" if built.partial else ""))
+    partial = " (partial)" if built.partial else ""
+    con.plain(f"report: {built.main_file}{partial}, built in {time.perf_counter() - t0:.1f} s")
 
 
 def report(

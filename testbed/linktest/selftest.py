@@ -13,6 +13,7 @@ import math
 import statistics
 import time
 from collections.abc import Sequence
+from concurrent.futures import ThreadPoolExecutor
 from typing import TYPE_CHECKING, Any, Protocol
 
 from netem.directions import DIRECTIONS, Direction
@@ -150,7 +151,16 @@ class LinkTest:
 
     def link(self, link: Link) -> LinkResult:
         rtts = self.rtt(link.lower, link.upper, 30 if self.quick else 200)
-        directions = [self.direction(link, d) for d in DIRECTIONS]
+        if self.quick:
+            # The sparse delay probes of the two directions cross different queues (and a
+            # radio's different slots), so a quick test sends them together: a radio link's
+            # probes, tens of ms apart, are most of its time. Loss and rates, which load the
+            # relay, stay one direction at a time.
+            with ThreadPoolExecutor(len(DIRECTIONS)) as pool:
+                probed = list(pool.map(lambda d: self.delays(link, d), DIRECTIONS))
+        else:
+            probed = [self.delays(link, d) for d in DIRECTIONS]
+        directions = [self.throughput(link, result) for result in probed]
         return LinkResult(
             link.name,
             statistics.median(rtts) if rtts else None,
@@ -163,8 +173,16 @@ class LinkTest:
         return echo_rtts(src, dst, str(dst.address_towards(src.name)), count=count, port=PORT)
 
     def direction(self, link: Link, direction: Direction) -> DirectionResult:
+        """One direction measured whole: its delays, then its loss and rates."""
+        return self.throughput(link, self.delays(link, direction))
+
+    def _ends(self, link: Link, direction: Direction) -> tuple[Node, Node, str]:
         src, dst = (link.lower, link.upper) if direction == "uplink" else (link.upper, link.lower)
-        addr = str(dst.address_towards(src.name))
+        return src, dst, str(dst.address_towards(src.name))
+
+    def delays(self, link: Link, direction: Direction) -> DirectionResult:
+        """One direction's one-way delays, against its profile (and a radio's oracle)."""
+        src, dst, addr = self._ends(link, direction)
         profile = self.control.profile(link.name, direction)
         result = DirectionResult(
             link.name, direction, src.name, dst.name, _profile_summary(profile)
@@ -244,6 +262,16 @@ class LinkTest:
             )
         else:
             result.verdicts.append(Verdict("delay ms", float("nan"), 0.0, "no echo", False))
+        return result
+
+    def throughput(self, link: Link, result: DirectionResult) -> DirectionResult:
+        """Loss and rates of the direction `result` holds the delays of (and a radio's HARQ
+        shares and slot goodput over them)."""
+        direction = result.direction
+        src, dst, addr = self._ends(link, direction)
+        profile = self.control.profile(link.name, direction)
+        radio = profile.radio
+        tail = profile.delay_s + 4 * profile.jitter_s + 0.3
         capped = _radio_capped(profile, direction)
         before = self._radio_counters(link.name, direction) if radio else None
         self.loss(result, capped, src, dst, addr, tail)
