@@ -333,6 +333,12 @@ def _replay_one(config: ReplayConfig) -> tuple[ReplayResult, dict[tuple[int, str
     return result, new
 
 
+def _render(frames: list[int]) -> dict[int, np.ndarray]:
+    assert _SHARED is not None
+    dataset = _SHARED[1]
+    return {f: dataset.image(f) for f in frames}
+
+
 def replays(
     configs: dict[str, ReplayConfig],
     latency: LatencyModel,
@@ -350,9 +356,16 @@ def replays(
     if n <= 1 or "fork" not in multiprocessing.get_all_start_methods():
         return {k: run_replay(configs[k], latency, dataset, model, cache) for k in names}
     global _SHARED
+    fork = multiprocessing.get_context("fork")
     _SHARED = (latency, dataset, model, cache)
     try:
-        with multiprocessing.get_context("fork").Pool(n) as pool:
+        if cache is not None and (todo := cache.unrendered()):
+            # Every replay asks for most frames, and a synthetic frame costs more to render
+            # than the DNN: render them once, across the workers, before the replays fork.
+            with fork.Pool(n) as pool:
+                for images in pool.map(_render, [todo[i::n] for i in range(n)]):
+                    cache.keep_images(images)
+        with fork.Pool(n) as pool:
             done = pool.map(_replay_one, [configs[k] for k in names], chunksize=1)
     finally:
         _SHARED = None

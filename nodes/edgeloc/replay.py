@@ -100,6 +100,17 @@ class InferenceCache:
                 self._images[frame] = x
         return x
 
+    def unrendered(self) -> list[int]:
+        """The frames whose images this cache would keep but has not rendered yet."""
+        n = min(len(self.dataset), self.max_images)
+        return [f for f in range(n) if f not in self._images]
+
+    def keep_images(self, images: dict[int, np.ndarray]) -> None:
+        """Take frames' images rendered elsewhere (a worker's), as `image` would keep them."""
+        for frame, image in images.items():
+            if len(self._images) < self.max_images:
+                self._images[frame] = torch.from_numpy(np.ascontiguousarray(image[None]))
+
     def answers(self) -> dict[tuple[int, str], Answer]:
         """The answers computed so far, by (frame, split)."""
         return self._cache
