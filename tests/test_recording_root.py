@@ -65,6 +65,7 @@ def mcap_extras(path: Path) -> tuple[dict[str, dict[str, str]], set[str]]:
     return meta, names
 
 
+@pytest.mark.alone  # counts every message to the stop: a node beside another run lags
 def test_run_mcap_decodes_fully_and_counts_match_the_nodes(
     state_dir: Path, interfaces: None, tmp_path: Path
 ) -> None:

@@ -66,6 +66,7 @@ def _temp_entries() -> set[str]:
     return set(os.listdir(tempfile.gettempdir()))
 
 
+@pytest.mark.alone  # counts every message to the stop: a node beside another run lags
 def test_run_starts_every_node_and_leaves_nothing(
     state_dir: Path, interfaces: None, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
