@@ -41,7 +41,11 @@ def scenario(tmp_path: Path):
     return load(path)
 
 
-def test_link_test_measures_what_the_profile_says(state_dir: Path, scenario) -> None:
+@pytest.mark.measure  # rates within 5%, delays within 0.5 ms
+def test_link_test_measures_what_the_profile_says(
+    state_dir: Path, scenario, quiet_machine: float
+) -> None:
+    print(f"waited {quiet_machine:.1f} s for the CPUs to quieten")
     with build(scenario, mode="run") as net:
         test = LinkTest(net, quick=True)
         result = test.link(net.links["av1-gnb1"])
@@ -86,11 +90,11 @@ links:
 """
 
 
+@pytest.mark.measure  # delay distributions within the host's timer noise, rates within 5%
 def test_a_radio_link_is_measured_against_its_oracle(
-    state_dir: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+    state_dir: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch, quiet_machine: float
 ) -> None:
-    import dataclasses
-
+    print(f"waited {quiet_machine:.1f} s for the CPUs to quieten")
     from netem.nr.radio import Radio
 
     path = tmp_path / "radio.yaml"
@@ -101,13 +105,18 @@ def test_a_radio_link_is_measured_against_its_oracle(
         test = LinkTest(net, quick=True)
         link = net.links["av1-gnb1"]
         up = test.direction(link, "uplink")
-        # An oracle that expects the grant 4 slots later than the link gives it.
+        # An oracle that expects every packet later than the link delivers it: four 0.5 ms
+        # slots, or twice the tolerance the host's noise gave the uplink where that is more
+        # (CI's 2-vCPU VM once allowed 3.7 ms, and a 2 ms shift then passed as noise).
+        assert up.radio is not None
+        shift_ms = max(2.0, 2 * up.radio["tolerance_ms"] + 1.0)
+        print(f"uplink W1 {up.radio['w1_ms']:.3f} ms, tolerance {up.radio['tolerance_ms']:.3f}")
         oracle = Radio.oracle
         monkeypatch.setattr(
             Radio,
             "oracle",
             lambda self, d, fixed_s=0.0, size_bytes=100: oracle(
-                dataclasses.replace(self, k2_slots=self.k2_slots + 4), d, fixed_s, size_bytes
+                self, d, fixed_s + shift_ms / 1000, size_bytes
             ),
         )
         down = test.direction(link, "downlink")
@@ -131,7 +140,7 @@ def test_a_radio_link_is_measured_against_its_oracle(
     assert slots["bytes_per_block"] == pytest.approx(slots["block_bytes"], rel=0.05), slots
     assert test.timer is not None and test.timer.count > 0
     late = {v.what: v for v in down.verdicts}["radio W1 ms"]
-    assert not late.ok and late.measured > 1.5  # four 0.5 ms slots off the oracle
+    assert not late.ok and late.measured > shift_ms / 2, (late, shift_ms)
 
 
 # The same links behind a UPF: the UE's address from the pool, on an air interface of MTU 1456.
@@ -139,8 +148,9 @@ N3_SCENARIO = SCENARIO.replace("{gnb: gnb1, core: core1}", "{gnb: gnb1, upf: upf
 N3_SCENARIO = N3_SCENARIO[: N3_SCENARIO.index("  backhaul:")]
 
 
+@pytest.mark.measure  # a UDP rate within 5%
 def test_a_ues_udp_rate_is_measured_in_datagrams_that_fit_its_mtu(
-    state_dir: Path, tmp_path: Path
+    state_dir: Path, tmp_path: Path, quiet_machine: float
 ) -> None:
     """A UE's air interface has MTU 1456 (room for GTP-U on N3): the UDP rate test sends
     1428-byte datagrams from it, so the link is measured, not IP fragmentation (1472-byte
