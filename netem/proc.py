@@ -7,7 +7,8 @@ adds delay no profile asked for), warning instead of failing where that is not a
 and says False when that parent is already gone (the helper should then exit at once).
 
 In the starter: `spawn_ready` starts a helper that prints a JSON ready line first and waits
-for it; `stop` ends one (SIGTERM, then SIGKILL); `remove_dir` removes its private folder.
+for it (or `spawn` several, then `wait_ready` for each); `stop` ends one (SIGTERM, then
+SIGKILL); `remove_dir` removes its private folder.
 """
 
 from __future__ import annotations
@@ -59,11 +60,23 @@ def spawn_ready(
     `"event": "ready"`. Its stderr goes to `log_path` (a pipe nobody reads once a detached
     `testbed up` has exited would fail its next write). Returns (the process, "") once it is
     ready, else (None, why: its log, what it printed, or the timeout), the process gone."""
+    return wait_ready(spawn(cmd, log_path), log_path, timeout_s)
+
+
+def spawn(cmd: list[str], log_path: Path) -> subprocess.Popen[str]:
+    """Start `cmd` (stdout a pipe for its ready line, stderr to `log_path`) without waiting:
+    helpers spawned together and then waited for come up in the time of the slowest."""
     log = open(log_path, "w")  # noqa: SIM115 - the child holds it
     with log:
-        proc = subprocess.Popen(
+        return subprocess.Popen(
             cmd, stdout=subprocess.PIPE, stderr=log, text=True, cwd=_ROOT
         )  # fmt: skip
+
+
+def wait_ready(
+    proc: subprocess.Popen[str], log_path: Path, timeout_s: float
+) -> tuple[subprocess.Popen[str] | None, str]:
+    """`spawn_ready`'s wait for a process `spawn` started (the same outcomes)."""
     assert proc.stdout is not None
     with selectors.DefaultSelector() as sel:
         sel.register(proc.stdout, selectors.EVENT_READ)

@@ -27,9 +27,7 @@ import os
 import socket
 from collections.abc import Iterator
 from dataclasses import dataclass
-from typing import Protocol
-
-from pyroute2 import IPRoute
+from typing import TYPE_CHECKING, Protocol
 
 from netem.errors import NetlinkError
 from netem.netns import (
@@ -41,6 +39,9 @@ from netem.netns import (
     setns,
 )
 from testbed.errors import HostError
+
+if TYPE_CHECKING:
+    from pyroute2 import IPRoute
 
 _MS_REC = 0x4000
 _MS_BIND = 0x1000
@@ -90,6 +91,8 @@ def _prepare_netns_dir() -> None:
 
 def open_ipr_inside(path: str | os.PathLike[str]) -> IPRoute:
     """A netlink (rtnetlink) socket bound to the namespace at `path`, opened without a fork."""
+    from pyroute2 import IPRoute  # a fifth of a second: only where a socket is wanted
+
     with inside(path):
         return IPRoute()
 
@@ -108,6 +111,8 @@ class Netns:
 
     @classmethod
     def create(cls, name: str) -> Netns:
+        from pyroute2 import IPRoute
+
         _prepare_netns_dir()
         path = netns_path(name)
         try:
@@ -235,7 +240,12 @@ class LinkEnds(Protocol):
         ...
 
     def create(self, link: LinkToCreate, net: RunResources) -> None:
-        """Create both interfaces of `link` (named as in `link.ends`) inside its namespaces."""
+        """Create both interfaces of `link` (named as in `link.ends`) inside its namespaces;
+        a backend may return before they exist, if `settle` then waits for them."""
+        ...
+
+    def settle(self) -> None:
+        """Return once every interface `create` was asked for exists."""
         ...
 
 
@@ -273,3 +283,6 @@ class VethEnds:
             os.close(fd)
         for ns, ifname in ((lower, link.ends.lower_ifname), (upper, link.ends.upper_ifname)):
             ns.ipr.link("set", index=ns.ifindex(ifname), gso_max_size=GSO_MAX_SIZE)
+
+    def settle(self) -> None:
+        """Nothing to wait for: `create` made the pair."""

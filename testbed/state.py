@@ -96,6 +96,9 @@ class RunState:
     version: int = 1
     #: The run's results folder (`runs/<id>`), once made: `clean` finalises its recording.
     folder: str | None = None
+    #: Whether the run may have VXLAN tunnels here (links across hosts): `down` then looks
+    #: for them in each namespace. True where a file does not say (an older one).
+    vxlan: bool = True
 
     # ---- file --------------------------------------------------------------------------
 
@@ -125,6 +128,7 @@ class RunState:
             cgroups=[str(c) for c in d.get("cgroups", [])],
             version=int(d.get("version", 1)),
             folder=d.get("folder"),
+            vxlan=bool(d.get("vxlan", True)),
         )
 
     def save(self) -> None:
@@ -187,8 +191,10 @@ def new_run(
     mode: Mode,
     run_id: str,
     pool: str | None,
+    vxlan: bool = True,
 ) -> RunState:
     return RunState(
+        vxlan=vxlan,
         run_id=run_id,
         scenario=scenario,
         scenario_path=scenario_path,

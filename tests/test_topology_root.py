@@ -17,16 +17,19 @@ import subprocess
 import sys
 from ipaddress import IPv4Network
 from pathlib import Path
+from typing import Any
 
 import pytest
 from typer.testing import CliRunner
 
 from netem.errors import NetlinkError
 from netem.netns import delete_netns, list_netns
+from netem.relay.client import UserspaceLink
 from testbed import state as st
 from testbed.cli import app
-from testbed.errors import BadInput
-from testbed.namespaces import Netns, VethEnds
+from testbed.errors import BadInput, TestbedError
+from testbed.links.relay_ends import TunRelayEnds
+from testbed.namespaces import EndNames, Netns, VethEnds
 from testbed.topology import Link, Net, build, clean, example_scenario, teardown_run
 
 pytestmark = pytest.mark.root
@@ -217,9 +220,10 @@ class _FailingEnds(VethEnds):
     """Creates two links, then fails (or is interrupted) on the third."""
 
     def __init__(self, exc: BaseException) -> None:
-        self.exc, self.count = exc, 0
+        self.exc, self.count, self.run_id = exc, 0, ""
 
     def create(self, link: Link, net: Net) -> None:
+        self.run_id = net.run_id
         self.count += 1
         if self.count == 3:
             raise self.exc
@@ -230,11 +234,46 @@ class _FailingEnds(VethEnds):
     "exc", [NetlinkError("link refused"), KeyboardInterrupt()], ids=["error", "ctrl-c"]
 )
 def test_a_failed_build_removes_everything(state_dir: Path, exc: BaseException) -> None:
-    before = list_netns()
+    ends = _FailingEnds(exc)
     with pytest.raises(type(exc)):
-        build(example_scenario(4, 1), mode="run", backend=_FailingEnds(exc))
-    assert list_netns() == before
+        build(example_scenario(4, 1), mode="run", backend=ends)
+    # its own namespaces: the tests beside it (`make test` runs two at a time) have theirs
+    assert ends.run_id and not [n for n in list_netns() if f"-{ends.run_id}-" in n]
     assert st.list_runs() == []
+
+
+class _DeadRelayEnds(TunRelayEnds):
+    """Relays launched together; the third one's program exits at once instead of coming up."""
+
+    def _relay(self, ends: EndNames, control: str | None = None,
+               log_dir: Path | None = None, **cell: Any) -> UserspaceLink:  # fmt: skip
+        relay = super()._relay(ends, control, log_dir, **cell)
+        if len(self.relays) == 2:
+            relay.python = "/bin/false"
+        return relay
+
+
+def test_a_relay_that_never_comes_up_fails_the_build_and_leaves_nothing(
+    state_dir: Path,
+) -> None:
+    scenario = example_scenario(2, 1)
+    ends = _DeadRelayEnds(scenario.links)
+    with pytest.raises(TestbedError, match=r"link \S+: relay for .* exited with code 1"):
+        build(scenario, mode="run", backend=ends)
+    run_ids = {Path(r.control_path or "").parent.name for r in ends.relays.values()}
+    assert len(run_ids) == 1 and not [n for n in list_netns() if f"-{run_ids.pop()}-" in n]
+    assert st.list_runs() == []
+    # the relays launched beside it were stopped too
+    assert not [p for p in os.listdir("/proc") if p.isdigit() and _relay_of(p, state_dir)]
+
+
+def _relay_of(pid: str, state_dir: Path) -> bool:
+    """Whether `pid` is a relay of a run in `state_dir` (its control socket is there)."""
+    try:
+        argv = Path(f"/proc/{pid}/cmdline").read_bytes().split(b"\0")
+    except OSError:
+        return False
+    return b"netem.relay" in argv and any(bytes(state_dir) in a for a in argv)
 
 
 def test_cgroups_recorded_by_a_run_are_removed(state_dir: Path) -> None:

@@ -62,7 +62,7 @@ from netem.gtpu.wire import (
     encode_gpdu,
 )
 from netem.netns import in_netns
-from netem.proc import die_with_parent, remove_dir, renice, spawn_ready, stop
+from netem.proc import die_with_parent, remove_dir, renice, spawn, stop, wait_ready
 from netem.tun import TunConfig, open_tun
 
 Role = Literal["gnb", "upf"]
@@ -586,9 +586,14 @@ def serve(
 
     signal.signal(signal.SIGTERM, on_signal)
     signal.signal(signal.SIGINT, on_signal)
+    # A signal wakes the select at once (its byte on this pipe) rather than at its timeout:
+    # a run's teardown waits for every endpoint to have written its last counters.
+    wake_r, wake_w = os.pipe2(os.O_NONBLOCK | os.O_CLOEXEC)
+    signal.set_wakeup_fd(wake_w)
     sel = selectors.DefaultSelector()
     sel.register(fd, selectors.EVENT_READ, endpoint.from_tun)
     sel.register(sock, selectors.EVENT_READ, endpoint.from_n3)
+    sel.register(wake_r, selectors.EVENT_READ, lambda: os.read(wake_r, 64))
     print(json.dumps({"event": "ready", "pid": os.getpid(), "role": config.role}), flush=True)
     next_stats = next_echo = time.monotonic()
     try:
@@ -605,9 +610,11 @@ def serve(
                 key.data()
     finally:
         _write_stats(config.stats_path, endpoint)
+        signal.set_wakeup_fd(-1)
         sel.close()
         sock.close()
-        os.close(fd)
+        for end in (fd, wake_r, wake_w):
+            os.close(end)
     return 0
 
 
@@ -639,6 +646,12 @@ class GtpEndpoint:
         self.proc: subprocess.Popen[str] | None = None
 
     def start(self, timeout_s: float = 10.0) -> GtpEndpoint:
+        return self.launch().wait_ready(timeout_s)
+
+    def launch(self) -> GtpEndpoint:
+        """Start the process without waiting for it to be ready (`wait_ready` does)."""
+        if self.proc is not None:
+            raise GtpEndpointError(f"GTP-U {self.config.role} is already started")
         path = Path(self._dir) / "config.json"
         path.write_text(self.config.to_json())
         cmd = [sys.executable, "-m", "netem.gtpu.endpoint", str(path)]
@@ -649,7 +662,14 @@ class GtpEndpoint:
         if self.nice and os.geteuid() == 0:
             # Like the relays: on a busy 2-core host an endpoint waiting for a CPU adds delay.
             cmd += ["--nice", str(self.nice)]
-        self.proc, why = spawn_ready(cmd, Path(self._dir) / "gtp.log", timeout_s)
+        self.proc = spawn(cmd, Path(self._dir) / "gtp.log")
+        return self
+
+    def wait_ready(self, timeout_s: float = 10.0) -> GtpEndpoint:
+        """Wait for the launched process's ready line; on failure it is gone and closed."""
+        if self.proc is None:
+            raise GtpEndpointError(f"GTP-U {self.config.role} was not launched")
+        self.proc, why = wait_ready(self.proc, Path(self._dir) / "gtp.log", timeout_s)
         if self.proc is None:
             self.close()
             raise GtpEndpointError(f"GTP-U {self.config.role} failed to start: {why}")

@@ -213,6 +213,14 @@ class UserspaceLink:
         A link with a `host` is attached to the host's relay instead."""
         if self.host is not None:
             return self._attach()
+        return self.launch().wait_ready(timeout_s)
+
+    def launch(self) -> UserspaceLink:
+        """Start the relay process without waiting for it (`wait_ready` then does): several
+        relays launched first and waited for together come up in the time of the slowest,
+        not of all of them in turn. Not for a link with a `host` (`start` attaches it)."""
+        if self.host is not None:
+            raise RelayError(f"{self.describe()} joins its host's relay: start() attaches it")
         if self._proc is not None:
             raise RelayError("this link's relay is already started")
         if self._log_dir is None:
@@ -235,7 +243,14 @@ class UserspaceLink:
                 env=env,
                 start_new_session=True,  # a ^C in the terminal reaches us, and we stop it
             )
+        return self
+
+    def wait_ready(self, timeout_s: float = 10.0) -> UserspaceLink:
+        """Wait until the launched relay's TUN ends are up; on failure (`RelayError`) the
+        relay is closed."""
         try:
+            if self._proc is None:
+                raise RelayError(f"the relay for {self.describe()} was not launched")
             self._wait_ready(timeout_s)
         except BaseException:
             self.close()

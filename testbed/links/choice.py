@@ -23,7 +23,8 @@ from nodes.recording.jsonfile import write_json
 from testbed import check
 from testbed import state as st
 from testbed.errors import HostError
-from testbed.links.relay_ends import LINK_STATE_FILE, TunRelayEnds, link_state_dir
+from testbed.links.linkstate import LINK_STATE_FILE, link_state_dir
+from testbed.links.relay_ends import TunRelayEnds
 from testbed.links.views import BackendName
 from testbed.namespaces import VethEnds
 from testbed.scenario.model import OutageEvent, Scenario, SetEvent

@@ -1,35 +1,23 @@
 """The userspace backend's link ends and their state: `TunRelayEnds` makes each link's two
 interfaces as TUN devices of one relay process (`netem.relay.client.UserspaceLink`), whose pid goes
 into the run state and whose control socket lives in the run's link-state folder
-(`link_state_dir`, with `link-backend.json`: what `down`, `status` and `clean` read).
+(`linkstate`: `link-backend.json`, what `down`, `status` and `clean` read).
 """
 
 from __future__ import annotations
 
-import os
 import re
-import shutil
 from pathlib import Path
 from typing import Any
 
 from netem.profile import LinkProfile
 from netem.relay.client import RelayError, UserspaceLink
 from nodes.recording.jsonfile import write_json
-from testbed import state as st
 from testbed.errors import TestbedError
+from testbed.links.linkstate import LINK_STATE_FILE, link_state_dir
 from testbed.links.views import LinkView, NetView
 from testbed.namespaces import EndNames
 from testbed.scenario.model import Links
-
-#: In a run's link-state folder (state dir, not the results folder): the backend, and each
-#: relay's pid and control socket (what `down`, `status` and `clean` read).
-LINK_STATE_FILE = "link-backend.json"
-
-
-def link_state_dir(run_id: str) -> Path:
-    """Where a run keeps its relays' control sockets, logs and `link-backend.json`: in the
-    state dir, beside the run's state file (not the results folder under runs/)."""
-    return st.state_dir() / run_id
 
 
 class TunRelayEnds:
@@ -56,6 +44,8 @@ class TunRelayEnds:
         self.seed = seed
         self.relays: dict[str, UserspaceLink] = {}
         self.cell_hosts: dict[str, UserspaceLink] = {}  # gNB -> the relay its cell lives in
+        #: Relays launched by `create` that `settle` has not yet seen ready.
+        self._launched: dict[str, UserspaceLink] = {}
 
     def _relay(
         self,
@@ -109,9 +99,15 @@ class TunRelayEnds:
         logs = folder / f"{n}.log.d"  # the relay's log lives with the run, not in /tmp
         logs.mkdir(exist_ok=True)
         cell = self._cell_of(link, net)
+        if "host" in cell:
+            self.settle()  # a link joins its cell's relay once that relay is up
         relay = self._relay(link.ends, control=str(control), log_dir=logs, **cell)
         try:
-            relay.start()
+            if "host" in cell:
+                relay.start()
+            else:
+                relay.launch()
+                self._launched[link.name] = relay
         except RelayError as err:
             raise TestbedError(f"link {link.name}: {err}") from None
         self.relays[link.name] = relay
@@ -119,6 +115,17 @@ class TunRelayEnds:
             self.cell_hosts[cell["cell"]] = relay
         net.record_pid(relay.pid or 0, f"relay {link.name}")
         _write_relay_file(folder, self.relays)
+
+    def settle(self) -> None:
+        """Wait for every relay `create` launched to have both its TUN ends up: the relays
+        start together (a Python process each, a third of a second to import and open its
+        devices), and the topology configures their ends after this."""
+        launched, self._launched = self._launched, {}
+        for name, relay in launched.items():
+            try:
+                relay.wait_ready()
+            except RelayError as err:
+                raise TestbedError(f"link {name}: {err}") from None
 
 
 def _shell_word(word: str) -> str:
@@ -141,28 +148,3 @@ def _write_relay_file(folder: Path, relays: dict[str, UserspaceLink]) -> None:
         ],
     }
     write_json(folder / LINK_STATE_FILE, data)
-
-
-def remove_link_state(run_id: str) -> None:
-    """Remove a run's link-state folder: relay sockets, relay logs, `link-backend.json` (after
-    the relays stopped)."""
-    shutil.rmtree(link_state_dir(run_id), ignore_errors=True)
-
-
-def relay_pids(namespaces: list[str]) -> list[int]:
-    """Relay processes whose command line names one of `namespaces` (found in /proc)."""
-    wanted = {ns.encode() for ns in namespaces}
-    found = []
-    for entry in os.listdir("/proc"):
-        if not entry.isdigit():
-            continue
-        try:
-            argv = Path(f"/proc/{entry}/cmdline").read_bytes().split(b"\0")
-        except OSError:
-            continue
-        if b"netem.relay" in argv and any(
-            a == b"--netns-a" and i + 1 < len(argv) and argv[i + 1] in wanted
-            for i, a in enumerate(argv)
-        ):
-            found.append(int(entry))
-    return found

@@ -37,11 +37,36 @@ scenario into nodes, links, addresses, routes; nothing built), `build` (the plan
 `teardown` (down, and `clean` of what dead runs left).
 """
 
-from testbed.topology.build import build
-from testbed.topology.model import Link, Net, Node, Route
-from testbed.topology.names import NETNS_PREFIX, OWNER_TAG, netns_name
-from testbed.topology.plan import example_scenario, plan
-from testbed.topology.teardown import Removed, clean, remove_run, teardown_run
+from typing import TYPE_CHECKING
+
+from testbed.lazyexports import lazy
+
+if TYPE_CHECKING:
+    from testbed.topology.build import build
+    from testbed.topology.model import Link, Net, Node, Route
+    from testbed.topology.names import NETNS_PREFIX, OWNER_TAG, netns_name
+    from testbed.topology.plan import example_scenario, plan
+    from testbed.topology.teardown import Removed, clean, remove_run, teardown_run
+
+lazy(
+    __name__,
+    {
+        "build": "build",
+        "Link": "model",
+        "Net": "model",
+        "Node": "model",
+        "Route": "model",
+        "NETNS_PREFIX": "names",
+        "OWNER_TAG": "names",
+        "netns_name": "names",
+        "example_scenario": "plan",
+        "plan": "plan",
+        "Removed": "teardown",
+        "clean": "teardown",
+        "remove_run": "teardown",
+        "teardown_run": "teardown",
+    },
+)
 
 __all__ = [
     "NETNS_PREFIX",

@@ -138,7 +138,9 @@ def build(
                     echo(line)
             return net
         # Write-ahead: every namespace is on file before the first one exists.
-        net.state = st.new_run(scenario.name, source, mode, run_id, str(pool))
+        net.state = st.new_run(
+            scenario.name, source, mode, run_id, str(pool), vxlan=bool(net.tunnels)
+        )
         net.state.record_namespaces(_namespaces(net))
     try:
         if choice is not None:

@@ -188,6 +188,14 @@ class CorePath:
                 if self.net.here(upf):
                     self._endpoint(f"{upf.name}/{cell.gnb}", "upf", upf.netns,
                                    upf_tun(cell.gnb), n3.upper.ip, mine)  # fmt: skip
+            # Launched together, waited for together: each is a Python process to start.
+            for key, endpoint in self.endpoints.items():
+                try:
+                    endpoint.wait_ready()
+                except GtpEndpointError as err:
+                    raise TestbedError(f"GTP-U {key}: {err}") from None
+            for cell in self._cells():
+                gnb, upf = self.net[cell.gnb], self.net[cell.uplink_peer]
                 routes = self._routes(cell)
                 for node, tun in ((gnb, GNB_TUN), (upf, upf_tun(cell.gnb))):
                     if self.net.here(node):
@@ -257,7 +265,7 @@ class CorePath:
             config, echo_interval_s=1.0, die_with_parent=self.die_with_parent, workdir=workdir
         )
         try:
-            endpoint.start()
+            endpoint.launch()
         except GtpEndpointError as err:
             raise TestbedError(f"GTP-U {key}: {err}") from None
         self.endpoints[key] = endpoint

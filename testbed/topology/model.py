@@ -346,11 +346,14 @@ class Net:
             for link in self.local_links():
                 step = f"creating link {link.name} ({self.backend.name})"
                 self.backend.create(link, self)
+            step = f"waiting for the links' ends ({self.backend.name})"
+            self.backend.settle()
             for name, tunnel in self.tunnels.items():
                 link = self.links[name]
                 if tunnel.transit is not None:
                     step = f"creating link {name}'s relay to {tunnel.transit.netns}"
                     self.backend.create(RelayLeg(link, tunnel.transit), self)
+                    self.backend.settle()
                 step = (
                     f"creating link {name}'s VXLAN tunnel (VNI {tunnel.vni}, {tunnel.local} to "
                     f"host {tunnel.peer_host} at {tunnel.remote}) in {tunnel.netns}"

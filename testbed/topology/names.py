@@ -5,7 +5,7 @@ from __future__ import annotations
 import re
 from collections.abc import Callable
 
-from testbed.scenario.schema_v1 import NODE_NAME_PATTERN
+from testbed.scenario.patterns import NODE_NAME_PATTERN
 
 NODE_NAME_RE = re.compile(NODE_NAME_PATTERN)  # the schema's: one pattern for names
 NETNS_PREFIX = "el-"

@@ -11,7 +11,7 @@ from testbed.addressing import assign
 from testbed.errors import BadInput
 from testbed.namespaces import LinkEnds, VethEnds
 from testbed.scenario.model import Cell, LinkKind, Links, LinkSpec, Scenario, Topology, Vehicle
-from testbed.scenario.schema_v1 import NODE_NAME_PATTERN
+from testbed.scenario.patterns import NODE_NAME_PATTERN
 from testbed.topology.model import Link, Net, Node, Route
 from testbed.topology.names import NODE_NAME_RE, netns_name, transit_netns_name
 from testbed.topology.vxlan import Transit, Tunnel, vnis

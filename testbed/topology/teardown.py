@@ -14,15 +14,16 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from pyroute2.netlink.exceptions import NetlinkError as PyNetlinkError
-
 from netem.netns import delete_netns, list_netns, netns_identity
-from testbed import cgroups, check, links
+from testbed import cgroups
 from testbed import state as st
 from testbed.errors import BadInput
+from testbed.links import linkstate
 from testbed.namespaces import Netns, require_root
-from testbed.topology import vxlan
 from testbed.topology.names import OWNER_TAG, RUN_NETNS_RE, STOP_GRACE_S
+
+# pyroute2, the namespaces' netlink and the VXLAN module are imported where a tunnel or an
+# orphan is looked for: `down` of a run on one host needs none of them (a fifth of a second).
 
 
 @dataclass
@@ -125,15 +126,18 @@ def _remove_cgroup(path: str) -> str | None:
         time.sleep(0.05)
 
 
-def _remove_namespaces(names: Sequence[str], removed: Removed, open_ns: Sequence[Netns]) -> None:
+def _remove_namespaces(
+    names: Sequence[str], removed: Removed, open_ns: Sequence[Netns], vxlan: bool = True
+) -> None:
     identities = {i for i in (netns_identity(n) for n in names) if i is not None}
     # Link relays live in the host namespace with TUN ends in ours: found by command line.
-    relays = [st.ProcessRef.of(pid, "link relay") for pid in links.relay_pids(list(names))]
+    relays = [st.ProcessRef.of(pid, "link relay") for pid in linkstate.relay_pids(list(names))]
     if identities or relays:
         removed.processes += _stop([*(_processes_in(identities) if identities else []), *relays])
     for ns in open_ns:
         ns.close()  # our sockets keep a namespace alive after it is unregistered
-    _remove_tunnels(names, removed)
+    if vxlan:
+        _remove_tunnels(names, removed)
     for name in names:
         try:
             if delete_netns(name):
@@ -146,6 +150,10 @@ def _remove_tunnels(names: Sequence[str], removed: Removed) -> None:
     """Delete the VXLAN devices in these namespaces now: a namespace is freed in the
     background once unregistered, and until then its tunnels would keep their VNIs and the
     underlay's UDP socket (a quick `up` again would find its VNI taken)."""
+    from pyroute2.netlink.exceptions import NetlinkError as PyNetlinkError
+
+    from testbed.topology import vxlan
+
     for name in names:
         try:
             ns = Netns.open(name)
@@ -168,7 +176,7 @@ def remove_run(
     if state.path.exists():
         state.set_phase("tearing-down")
     removed.processes += _stop(state.pids, children)
-    _remove_namespaces(state.namespaces, removed, open_ns)
+    _remove_namespaces(state.namespaces, removed, open_ns, vxlan=state.vxlan)
     for cg in reversed(state.cgroups):
         problem = _remove_cgroup(cg)
         if problem:
@@ -177,7 +185,7 @@ def remove_run(
             removed.cgroups += 1
     # The run's cgroup parent (`edgeloc/<run>`) is not recorded itself; remove the whole tree.
     removed.cgroups += len(cgroups.remove_all(state.run_id))
-    links.remove_link_state(state.run_id)  # relay sockets and logs
+    linkstate.remove_link_state(state.run_id)  # relay sockets and logs
     if not removed.problems:
         state.delete()
     return removed
@@ -221,6 +229,8 @@ def teardown_run(run_id: str | None) -> Removed:
 
 def _owner_tag(name: str) -> str | None:
     """The state file path written on lo of a run namespace, or None if it carries none."""
+    from pyroute2.netlink.exceptions import NetlinkError as PyNetlinkError
+
     try:
         ns = Netns.open(name)
     except OSError:
@@ -278,6 +288,8 @@ def clean(include_detached: bool = False) -> str:
     for run_id in cgroups.run_ids():
         if st.RUN_ID_RE.match(run_id) and run_id not in live_ids:
             totals.cgroups += len(cgroups.remove_all(run_id))
+    from testbed import check
+
     preflight = check.remove_leftovers()  # what a SIGKILLed `testbed check` left
     _remove_stale_temp_files()
     left = [r for r in st.list_runs() if r.liveness() == "detached"]

@@ -16,18 +16,17 @@ from __future__ import annotations
 from typing import Any
 
 from testbed.scenario.kinds import Const, Duration, Either, Field, Int, ListOf, Obj, Str
+from testbed.scenario.patterns import (
+    LINK_NAME_PATTERN,
+    NODE_NAME_PATTERN,
+    SCENARIO_NAME_PATTERN,
+)
 from testbed.scenario.schema_v1.apps import APP, TRAFFIC
 from testbed.scenario.schema_v1.channel import CHANNEL, HANDOVER
 from testbed.scenario.schema_v1.links import LINKS, PROFILE
 from testbed.scenario.schema_v1.radio import RADIO, RRC
 from testbed.scenario.schema_v1.record import RECORD, REPORT
-from testbed.scenario.schema_v1.shared import (
-    LINK_NAME_PATTERN,
-    MAX_DURATION_S,
-    NODE_NAME_PATTERN,
-    SCENARIO_NAME_PATTERN,
-    WORKLOAD_KIND,
-)
+from testbed.scenario.schema_v1.shared import MAX_DURATION_S, WORKLOAD_KIND
 from testbed.scenario.schema_v1.timeline import EVENT
 from testbed.scenario.schema_v1.topology import CELL, SITE, TOPOLOGY, VEHICLE
 from testbed.scenario.schema_v1.workload import WORKLOAD

@@ -6,12 +6,7 @@ ceilings of durations and delays, a CPU quota and the workload's kind.
 from __future__ import annotations
 
 from testbed.scenario.kinds import Enum, Float, Nullable, Str
-
-NODE_NAME_PATTERN = r"^[a-z][a-z0-9]{0,9}$"
-HOST_NAME_PATTERN = r"^[a-z][a-z0-9-]{0,31}$"
-IPV4_ADDRESS_PATTERN = r"^[0-9]{1,3}(\.[0-9]{1,3}){3}$"
-LINK_NAME_PATTERN = r"^[a-z][a-z0-9]{0,9}-[a-z][a-z0-9]{0,9}$"
-SCENARIO_NAME_PATTERN = r"^[a-z0-9][a-z0-9_-]{0,31}$"
+from testbed.scenario.patterns import LINK_NAME_PATTERN, NODE_NAME_PATTERN
 
 MAX_DURATION_S = 24 * 3600.0
 MAX_DELAY_S = 10.0

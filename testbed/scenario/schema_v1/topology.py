@@ -22,14 +22,9 @@ from testbed.scenario.kinds import (
     PrivateNetwork,
     Str,
 )
+from testbed.scenario.patterns import HOST_NAME_PATTERN, IPV4_ADDRESS_PATTERN
 from testbed.scenario.schema_v1.radio import CELL_RADIO
-from testbed.scenario.schema_v1.shared import (
-    CPU,
-    HOST_NAME_PATTERN,
-    IPV4_ADDRESS_PATTERN,
-    WORKLOAD_KIND,
-    node_name,
-)
+from testbed.scenario.schema_v1.shared import CPU, WORKLOAD_KIND, node_name
 
 EDGE = Obj(
     "The edge server behind a UPF, and where it sits.",
