@@ -130,3 +130,4 @@ lint: setup
 clean:
 	-@test -x $(BIN)/testbed && $(BIN)/testbed clean
 	rm -rf .pytest_cache .ruff_cache build *.egg-info
+	rm -rf "$${EDGELOC_CACHE_DIR:-$${XDG_CACHE_HOME:-$$HOME/.cache}/edgeloc-testbed}"

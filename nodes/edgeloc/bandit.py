@@ -56,7 +56,14 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from nodes.edgeloc.detector import FITS, MAD_TO_STD, ChangeEvent, KLChangeDetector, finite_cost
+from nodes.edgeloc.detector import (
+    FITS,
+    MAD_TO_STD,
+    ChangeEvent,
+    KLChangeDetector,
+    finite_cost,
+)
+from nodes.edgeloc.robust import median
 
 MIN_SAMPLES = 2  # UCB1-normal needs a variance, hence two samples per arm
 
@@ -187,11 +194,11 @@ class SlidingWindowUCB1Normal:
             if n == 0:
                 out.append(ArmStats(arm, 0, math.nan, math.nan, -math.inf))
                 continue
-            x = np.fromiter(costs, dtype=np.float64, count=n)
             if self.fit == "robust":  # median and normal-consistent MAD (see the module doc)
-                mean = float(np.median(x))
-                var = float((MAD_TO_STD * np.median(np.abs(x - mean))) ** 2)
+                mean = median(costs)
+                var = (MAD_TO_STD * median([abs(c - mean) for c in costs])) ** 2
             else:
+                x = np.fromiter(costs, dtype=np.float64, count=n)
                 mean = float(x.mean())
                 var = float(np.mean((x - mean) ** 2))  # two-pass population variance
             if self._must_explore(n, t):

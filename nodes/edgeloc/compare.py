@@ -36,7 +36,6 @@ from collections.abc import Sequence
 from dataclasses import asdict, dataclass, field, replace
 
 import numpy as np
-import scipy.stats
 from numpy.typing import NDArray
 
 from nodes.edgeloc.dataset import Dataset
@@ -106,10 +105,14 @@ def against_noise(by_m: float, noise_m: float, digits: int = 2) -> str:
 def paired_noise_m(a: Sequence[float], b: Sequence[float]) -> float:
     """Half-width of Student's 95% interval for the mean of a − b over paired block means (inf
     with fewer than 2 blocks)."""
+    # Student's quantile from scipy.special (what scipy.stats.t.ppf computes it with): a
+    # report imports this module, and scipy.stats took it a second more to import.
+    from scipy.special import stdtrit
+
     d = np.asarray(a, dtype=np.float64) - np.asarray(b, dtype=np.float64)
     if len(d) < 2:
         return math.inf
-    return float(scipy.stats.t.ppf(0.975, len(d) - 1) * d.std(ddof=1) / math.sqrt(len(d)))
+    return float(stdtrit(len(d) - 1, 0.975) * d.std(ddof=1) / math.sqrt(len(d)))
 
 
 def block_means(errors: NDArray[np.float64], seconds: float) -> tuple[float, ...]:
@@ -339,6 +342,59 @@ def _render(frames: list[int]) -> dict[int, np.ndarray]:
     return {f: dataset.image(f) for f in frames}
 
 
+def _answer_frames(job: tuple[list[int], tuple[str, ...]]) -> dict[tuple[int, str], Answer]:
+    """In a worker: the DNN's answers to `frames` at every split named, each frame rendered
+    once."""
+    assert _SHARED is not None
+    cache = _SHARED[3]
+    assert cache is not None
+    frames, splits = job
+    return _answer_here(cache, frames, splits)
+
+
+def answer_all(cache: InferenceCache, splits: Sequence[str], workers: int | None = None) -> int:
+    """Compute the answers `cache` lacks to every frame of its drive at each of `splits`, on
+    forked workers (one per CPU), and return how many it computed. For a drive whose answers
+    are kept (`nodes.edgeloc.answerstore`): once whole, no replay of it runs the DNN again,
+    whatever frames the next run's latencies make it ask for."""
+    known = cache.answers()
+    frames = [f for f in range(len(cache.dataset)) if any((f, k) not in known for k in splits)]
+    if not frames:
+        return 0
+    n = min(len(frames), workers or len(os.sched_getaffinity(0)))
+    wanted = tuple(splits)
+    if n <= 1 or "fork" not in multiprocessing.get_all_start_methods():
+        new = _answer_here(cache, frames, wanted)
+    else:
+        global _SHARED
+        _SHARED = (None, cache.dataset, cache.model, cache)  # type: ignore[assignment]
+        try:
+            with multiprocessing.get_context("fork").Pool(n) as pool:
+                new = {}
+                for part in pool.map(_answer_frames, [(frames[i::n], wanted) for i in range(n)]):
+                    new.update(part)
+        finally:
+            _SHARED = None
+    cache.remember(new)
+    return len(new)
+
+
+def _answer_here(
+    cache: InferenceCache, frames: list[int], splits: tuple[str, ...]
+) -> dict[tuple[int, str], Answer]:
+    import torch
+
+    # One thread, as a node and a replay compute them (and the same answers: another thread
+    # count may sum a convolution in another order).
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        known = set(cache.answers())
+        return {(f, k): cache.answer(f, k) for f in frames for k in splits if (f, k) not in known}
+    finally:
+        torch.set_num_threads(threads)
+
+
 def replays(
     configs: dict[str, ReplayConfig],
     latency: LatencyModel,
@@ -359,7 +415,8 @@ def replays(
     fork = multiprocessing.get_context("fork")
     _SHARED = (latency, dataset, model, cache)
     try:
-        if cache is not None and (todo := cache.unrendered()):
+        wanted = sorted({k for c in configs.values() for k in c.splits})
+        if cache is not None and (todo := cache.unrendered(wanted)):
             # Every replay asks for most frames, and a synthetic frame costs more to render
             # than the DNN: render them once, across the workers, before the replays fork.
             with fork.Pool(n) as pool:
@@ -448,6 +505,7 @@ __all__ = [
     "PhaseFigures",
     "PolicyRow",
     "SplitComparison",
+    "answer_all",
     "block_means",
     "compare_splits",
     "paired_noise_m",

@@ -31,6 +31,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from nodes.edgeloc.robust import median
+
 FITS = ("mle", "robust")
 MAD_TO_STD = 1.4826  # σ of a normal distribution = 1.4826 · its median absolute deviation
 
@@ -130,8 +132,9 @@ class KLChangeDetector:
     def _fit(self, x: np.ndarray) -> tuple[float, float]:
         """(mean, standard deviation) of the Gaussian fitted to `x`."""
         if self.fit == "robust":
-            med = float(np.median(x))
-            return med, MAD_TO_STD * float(np.median(np.abs(x - med)))
+            values = x.tolist()
+            med = median(values)
+            return med, MAD_TO_STD * median([abs(v - med) for v in values])
         return float(np.mean(x)), float(np.std(x))
 
     def last_kl(self, arm: str) -> float | None:

@@ -87,6 +87,7 @@ import numpy as np
 from nodes.edgeloc import geometry
 from nodes.edgeloc.errors import EdgeLocError
 from nodes.edgeloc.geometry import Pose
+from nodes.edgeloc.robust import median
 
 
 def as_pose(value: object, name: str = "pose") -> Pose:
@@ -254,7 +255,7 @@ class InnovationScale:
     def weight(self, innovation: float, c: float) -> float:
         """Cauchy weight of `innovation` against the scale before it; then remember it."""
         seen = self._seen
-        s = float(np.median(seen)) if len(seen) >= self.minimum else innovation
+        s = median(seen) if len(seen) >= self.minimum else innovation
         seen.append(innovation)
         del seen[: -self.history]
         if s <= 1e-9:

@@ -39,8 +39,9 @@ import platform
 import time
 from collections import Counter
 from collections.abc import Sequence
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import torch
@@ -100,10 +101,16 @@ class InferenceCache:
                 self._images[frame] = x
         return x
 
-    def unrendered(self) -> list[int]:
-        """The frames whose images this cache would keep but has not rendered yet."""
+    def unrendered(self, splits: Sequence[str] = ()) -> list[int]:
+        """The frames whose images this cache would keep but has not rendered yet, less those
+        it holds an answer for at every split of `splits` (no answer left to compute)."""
         n = min(len(self.dataset), self.max_images)
-        return [f for f in range(n) if f not in self._images]
+        answers = self._cache
+        return [
+            f
+            for f in range(n)
+            if f not in self._images and not (splits and all((f, k) in answers for k in splits))
+        ]
 
     def keep_images(self, images: dict[int, np.ndarray]) -> None:
         """Take frames' images rendered elsewhere (a worker's), as `image` would keep them."""
@@ -617,14 +624,7 @@ class Replay:
                         "kl": event.kl,
                     }
                 )
-        return Play(
-            **{
-                **asdict(play),
-                "weight": weight,
-                "gated_edgeloc": gated_e,
-                "gated_kalman": gated_k,
-            }
-        )
+        return replace(play, weight=weight, gated_edgeloc=gated_e, gated_kalman=gated_k)
 
     def run(self) -> dict[str, np.ndarray]:
         n = len(self.t)
@@ -667,13 +667,18 @@ def _check_schedule(
 def config_dataset(config: ReplayConfig) -> Dataset:
     """The drive `config` replays (the synthetic one regenerated from its seed, rate, duration
     and corruption, or the recorded folder it names)."""
-    return open_dataset(
-        config.dataset,
-        seed=config.seed,
-        rate_hz=config.rate_hz,
-        duration_s=config.duration_s,
-        corruption=config.corruption,
-    )
+    return open_dataset(**drive_of(config))
+
+
+def drive_of(config: ReplayConfig) -> dict[str, Any]:
+    """What makes the drive `config` replays: the arguments of `open_dataset`."""
+    return {
+        "source": config.dataset,
+        "seed": config.seed,
+        "rate_hz": config.rate_hz,
+        "duration_s": config.duration_s,
+        "corruption": config.corruption,
+    }
 
 
 def run_replay(
