@@ -165,3 +165,26 @@ def test_a_ues_udp_rate_is_measured_in_datagrams_that_fit_its_mtu(
     [udp] = [v for v in up.verdicts if v.what == "udp Mbit/s"]
     assert udp.expected == pytest.approx(20 * 1428 / (1456 + overhead))
     assert udp.ok, udp
+
+
+def test_a_quick_test_probes_every_links_delays_together_then_rates_one_by_one(
+    state_dir: Path, tmp_path: Path
+) -> None:
+    """A quick test of a whole network sends every link's delay probes at once, then measures
+    each link's loss and rates in turn; a direction with no rate to judge gets no TCP test."""
+    path = tmp_path / "lt.yaml"
+    path.write_text(N3_SCENARIO)
+    lines: list[str] = []
+    with build(load(path), mode="run") as net:
+        report = LinkTest(net, quick=True, progress=lines.append).run()
+        names = list(net.links)
+    assert [r.link for r in report.links] == names
+    together = [i for i, line in enumerate(lines) if "together" in line]
+    assert len(together) == 1 and together[0] < lines.index(f"link test: {names[0]}"), lines
+    for result in report.links:
+        assert [d.direction for d in result.directions] == ["uplink", "downlink"]
+        for d in result.directions:
+            assert "delay ms" in {v.what for v in d.verdicts}, (result.link, d.verdicts)
+            assert d.baseline_ms is not None and d.owd_median_ms is not None
+            rated = result.link == "av1-gnb1"  # the rest of this network is unshaped
+            assert (d.tcp_mbit is not None) == (rated and d.direction == "downlink"), result.link

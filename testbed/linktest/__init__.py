@@ -10,7 +10,9 @@ its profile.
 - `radio`: a radio direction judged against its delay oracle and its BLER;
 - `report`: the figures and verdicts (`LinkTestReport`).
 
-`testbed run` runs the quick mode first (a few seconds per wired link, longer per radio link).
+`testbed run` runs the quick mode first: every link's delay probes at once (a radio's, tens of
+ms apart, set the time), then each link's loss and rates in turn, TCP only where a rate is set
+to judge it against (an unshaped link's TCP goodput is the host's; a full test prints it).
 A scenario chooses with `report: {link_test: true}` (default), `false`, or a list of links
 (`[av1-gnb1]`); a name that is not a link of the topology is a file:line error naming the
 likely link. `testbed link-test --link NAME` (repeatable) does the same from the command line.
