@@ -8,8 +8,12 @@ pyplot, so no global state or display backend is involved.
 
 from __future__ import annotations
 
+import functools
 import itertools
+import multiprocessing
+import os
 import re
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -728,27 +732,54 @@ def radio_map(
 
 
 def draw_all(
-    data: RunData, errs: dict[str, dict[str, FrameErrors]], summary: dict[str, Any], out: Path
+    data: RunData,
+    errs: dict[str, dict[str, FrameErrors]],
+    summary: dict[str, Any],
+    out: Path,
+    workers: int | None = None,
 ) -> dict[str, Plot | None]:
-    """Every figure, keyed by what it shows (None: not recorded)."""
+    """Every figure, keyed by what it shows (None: not recorded). The figures are independent
+    (each reads the run and writes its own file), so they are drawn on forked workers, one per
+    CPU this process may use (`workers`): the same files as drawn one after another, in about
+    half the time on two cores."""
     out.mkdir(parents=True, exist_ok=True)
-    plots: dict[str, Plot | None] = {
-        "errors_over_time": errors_over_time(data, errs, summary, out),
-        "error_boxplot": error_boxplots(errs, out),
-        "latency_per_split": latency_per_split(data, out),
-        "accuracy_vs_latency": accuracy_vs_latency(errs.get("edgeloc"), out),
-        "link_rates": link_rates(data, out),
-        "radio_cdfs": radio_cdfs(summary, out),
-        "realtime": realtime(data, summary, out),
-        "split_error_latency": split_error_latency(summary, out),
+    jobs: dict[str, Callable[[], Plot | None]] = {
+        "errors_over_time": lambda: errors_over_time(data, errs, summary, out),
+        "error_boxplot": lambda: error_boxplots(errs, out),
+        "latency_per_split": lambda: latency_per_split(data, out),
+        "accuracy_vs_latency": lambda: accuracy_vs_latency(errs.get("edgeloc"), out),
+        "link_rates": lambda: link_rates(data, out),
+        "radio_cdfs": lambda: radio_cdfs(summary, out),
+        "realtime": lambda: realtime(data, summary, out),
+        "split_error_latency": lambda: split_error_latency(summary, out),
     }
     for v in list(data.vehicles)[:MAX_VEHICLE_FIGURES]:
         vd = data.vehicles[v]
-        plots[f"split:{v}"] = split_over_time(data, vd, summary, out)
-        plots[f"trajectory:{v}"] = trajectory(data, vd, out)
+        jobs[f"split:{v}"] = functools.partial(split_over_time, data, vd, summary, out)
+        jobs[f"trajectory:{v}"] = functools.partial(trajectory, data, vd, out)
     for v in list(data.radio)[:MAX_VEHICLE_FIGURES]:
-        plots[f"radio:{v}"] = radio_map(data, summary, v, out, errs.get("edgeloc", {}).get(v))
-    return plots
+        edgeloc = errs.get("edgeloc", {}).get(v)
+        jobs[f"radio:{v}"] = functools.partial(radio_map, data, summary, v, out, edgeloc)
+    n = min(len(jobs), workers or len(os.sched_getaffinity(0)))
+    if n <= 1 or "fork" not in multiprocessing.get_all_start_methods():
+        return {k: draw() for k, draw in jobs.items()}
+    global _JOBS
+    _JOBS = list(jobs.values())
+    try:
+        with multiprocessing.get_context("fork").Pool(n) as pool:
+            drawn = pool.map(_draw, range(len(_JOBS)), chunksize=1)
+    finally:
+        _JOBS = []
+    return dict(zip(jobs, drawn, strict=True))
+
+
+#: The figures a forked worker of `draw_all` draws, by index: set before the fork, so each
+#: worker inherits the run's data instead of receiving it pickled.
+_JOBS: list[Callable[[], Plot | None]] = []
+
+
+def _draw(i: int) -> Plot | None:
+    return _JOBS[i]()
 
 
 __all__ = ["MAX_VEHICLE_FIGURES", "Plot", "draw_all"]

@@ -54,8 +54,23 @@ def figures(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Figure]:
 
     with pytest.MonkeyPatch.context() as mp:
         mp.setattr(reports.plots, "_save", save)
-        draw_all(data, method_errors(data), summarize(data), tmp_path / "plots")
+        # one process: the figures are captured here as they are saved
+        draw_all(data, method_errors(data), summarize(data), tmp_path / "plots", workers=1)
     return saved
+
+
+def test_figures_drawn_on_forked_workers_are_those_drawn_one_after_another(
+    tmp_path: Path,
+) -> None:
+    data = read_run(write_run(tmp_path, small_run()) / "run.mcap")
+    errs, summary = method_errors(data), summarize(data)
+    one = draw_all(data, errs, summary, tmp_path / "one", workers=1)
+    two = draw_all(data, errs, summary, tmp_path / "two", workers=2)
+    assert list(two) == list(one) and two == one
+    files = sorted(p.name for p in (tmp_path / "one").iterdir())
+    assert files and files == sorted(p.name for p in (tmp_path / "two").iterdir())
+    for name in files:
+        assert (tmp_path / "one" / name).read_bytes() == (tmp_path / "two" / name).read_bytes()
 
 
 def _axes(fig: Figure) -> list[Any]:
