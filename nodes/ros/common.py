@@ -8,6 +8,14 @@ replay of the same scenario use the same learner, fusion, Kalman and gate settin
 Lifecycle (Jazzy aborts at exit otherwise, SPEC §8): our own SIGTERM/SIGINT handler sets a
 stop flag; the node's loop ends; the executor thread is joined and the node destroyed before
 `rclpy.shutdown()`.
+
+A node runs alone (`python -m nodes.ros.<module>`: it owns the process, its rclpy context and
+its signal handler, and logs on stdout) or as one role of a container (`nodes.ros.container`:
+several nodes in one process). A role runs its module's `main(argv)` in a thread whose
+`Composed` (a context variable, so the threads the role starts carry it too) gives it its own
+log file, the container's stop flag and the container's rclpy context: `emit` writes to the
+role's log, `ros_node` neither initialises nor shuts down rclpy (the container does, once), and
+everything else a role does (its executor thread, stats, MCAP part) is what it does alone.
 """
 
 from __future__ import annotations
@@ -15,6 +23,7 @@ from __future__ import annotations
 import argparse
 import concurrent.futures
 import contextlib
+import contextvars
 import faulthandler
 import json
 import math
@@ -27,7 +36,7 @@ from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, TypeVar
+from typing import Any, TextIO, TypeVar
 
 from nodes.edgeloc.settings import REQUEST_TIMEOUT_S, ReplayConfig, config_from_dict
 from nodes.recording.jsonfile import write_json
@@ -208,14 +217,53 @@ class ComputeThread:
         self._pool.shutdown(wait=True)
 
 
+@dataclass(frozen=True)
+class Composed:
+    """What a role of a container shares with the container (see the module doc): its name
+    (e.g. `av1.fusion`), its own log, and the container's stop flag."""
+
+    name: str
+    log: TextIO
+    stop: Stop
+
+
+#: Set in a container's role threads (and the threads they start); None in a node alone.
+COMPOSED: contextvars.ContextVar[Composed | None] = contextvars.ContextVar(
+    "edgeloc_composed", default=None
+)
+
+
+def log_stream() -> TextIO:
+    """Where this node's lines go: its role's log in a container, else stdout."""
+    composed = COMPOSED.get()
+    return composed.log if composed is not None else sys.stdout
+
+
+def start_thread(target: Callable[[], object], name: str) -> threading.Thread:
+    """A daemon thread that runs `target` in a copy of the caller's context, so a role's
+    threads log into the role's log (`threading.Thread` does not carry context variables)."""
+    ctx = contextvars.copy_context()
+    thread = threading.Thread(target=ctx.run, args=(target,), name=name, daemon=True)
+    thread.start()
+    return thread
+
+
 def emit(event: str, **values: Any) -> None:
-    """One JSON line on stdout (the node's log file): what the supervisor and tests read.
-    The ready line also names the process's network namespace (inode), so a reader can check
-    where each node ran."""
+    """One JSON line in the node's log file (stdout alone, its role's log in a container):
+    what the supervisor and tests read. The ready line also names the process's network
+    namespace (inode) and pid, so a reader can check where each node ran, and in which
+    process."""
     if event == READY:
         values["netns"] = os.stat("/proc/self/ns/net").st_ino
         values["pid"] = os.getpid()
-    print(json.dumps({"event": event, "t": round(time.time(), 6), **values}), flush=True)
+        composed = COMPOSED.get()
+        if composed is not None:
+            values["role"] = composed.name
+    line = json.dumps({"event": event, "t": round(time.time(), 6), **values})
+    out = log_stream()
+    # A role's log is shared by its threads: one write per line keeps lines whole.
+    out.write(line + "\n")
+    out.flush()
 
 
 def write_stats(path: Path | None, stats: dict[str, Any]) -> None:
@@ -244,15 +292,21 @@ def from_stamp(stamp: Any) -> float:
 
 
 class Stop:
-    """Set by SIGTERM/SIGINT: the node's loops poll it and end."""
+    """Set by SIGTERM/SIGINT: the node's loops poll it and end. One per process: a container
+    makes it in its main thread (only there may Python install a signal handler) and hands it
+    to every role."""
 
     def __init__(self) -> None:
         self.event = threading.Event()
-        self.since = math.nan  # monotonic time of the signal
+        self.since = math.nan  # monotonic time of the signal (or of `set`)
         for sig in (signal.SIGTERM, signal.SIGINT):
             signal.signal(sig, self._on_signal)
 
     def _on_signal(self, signum: int, frame: object) -> None:
+        self.set()
+
+    def set(self) -> None:
+        """Stop, as a signal would (a container stops its other roles when one ends)."""
         if not self.event.is_set():
             self.since = time.monotonic()
             # A node still here just before the supervisor's SIGKILL writes where each of its
@@ -332,16 +386,22 @@ def ros_node(name: str, spin: bool = True, record: Path | None = None) -> Iterat
     """An initialised rclpy context with one node, spun by an executor thread (if `spin`), and
     torn down in the order Jazzy needs whatever the body does: stop flag, executor thread
     joined, owned entities and the node destroyed, then `rclpy.shutdown()`; last, the MCAP
-    part (`record`) is closed, after the last publish."""
+    part (`record`) is closed, after the last publish. In a container's role the context and
+    the stop flag are the container's: the node gets its own executor and thread, and the
+    container shuts rclpy down once every role has destroyed its node."""
     import rclpy
     from rclpy.executors import SingleThreadedExecutor
     from rclpy.signals import SignalHandlerOptions
 
     from nodes.recording.parts import PartWriter
 
+    composed = COMPOSED.get()
     recorder = PartWriter(record) if record is not None else None
-    rclpy.init(signal_handler_options=SignalHandlerOptions.NO)
-    stop = Stop()
+    if composed is None:
+        rclpy.init(signal_handler_options=SignalHandlerOptions.NO)
+        stop = Stop()
+    else:
+        stop = composed.stop
     ctx = RosContext(rclpy.create_node(name), stop, recorder)
     executor = SingleThreadedExecutor()
     executor.add_node(ctx.node)
@@ -352,8 +412,7 @@ def ros_node(name: str, spin: bool = True, record: Path | None = None) -> Iterat
             while not stop:
                 executor.spin_once(timeout_sec=0.1)
 
-        thread = threading.Thread(target=loop, name=f"{name}-executor", daemon=True)
-        thread.start()
+        thread = start_thread(loop, f"{name}-executor")
     try:
         yield ctx
     finally:
@@ -379,8 +438,9 @@ def ros_node(name: str, spin: bool = True, record: Path | None = None) -> Iterat
         executor.shutdown()
         ctx.node.destroy_node()
         step("destroy")
-        rclpy.shutdown()
-        step("rclpy_shutdown")
+        if composed is None:
+            rclpy.shutdown()
+            step("rclpy_shutdown")
         if recorder is not None:
             recorder.close()
             step("recording")
@@ -428,15 +488,21 @@ def _python_heap_tracer() -> Callable[[], None] | None:
     return report
 
 
-def run_main(main: Any) -> None:
-    """Run a node's `main()` and exit with its status; a bad setting is one line, not a trace."""
-    report_heap = _python_heap_tracer()
+def call_main(main: Callable[..., int], argv: Sequence[str] | None = None) -> int:
+    """A node's `main(argv)` (argv None: the process's command line) as an exit status; a bad
+    setting is one line in the node's log, not a trace."""
     try:
-        code = main()
+        return main() if argv is None else main(list(argv))
     except (ValueError, FileNotFoundError) as err:
         emit("error", message=str(err))
         print(f"error: {err}", file=sys.stderr, flush=True)
-        code = 2
+        return 2
+
+
+def run_main(main: Any) -> None:
+    """Run a node's `main()` and exit with its status; a bad setting is one line, not a trace."""
+    report_heap = _python_heap_tracer()
+    code = call_main(main)
     if report_heap is not None:
         report_heap()
     sys.exit(code)

@@ -13,6 +13,7 @@ from __future__ import annotations
 import math
 import time
 from collections import Counter
+from collections.abc import Sequence
 from typing import Any
 
 import torch
@@ -34,8 +35,8 @@ from nodes.ros.common import (
 RESULT_TIMEOUT_S = 1  # seconds a finished goal's result is kept for the client
 
 
-def main() -> int:
-    args = NodeArgs.parse(prog="edge_inference")
+def main(argv: Sequence[str] | None = None) -> int:
+    args = NodeArgs.parse(argv, prog="edge_inference")
     torch.set_num_threads(1)
     model = load_model(args.config.weights)
     from edgeloc_interfaces.action import SplitInference

@@ -29,6 +29,7 @@ import math
 import threading
 import time
 from collections import Counter
+from collections.abc import Sequence
 from typing import Any
 
 import numpy as np
@@ -331,8 +332,8 @@ def _ask(
     return pose, handle, edge_s, entropy, error, timed_out
 
 
-def main() -> int:
-    args = NodeArgs.parse(prog="inference_request")
+def main(argv: Sequence[str] | None = None) -> int:
+    args = NodeArgs.parse(argv, prog="inference_request")
     cfg = args.config
     torch.set_num_threads(1)  # the head is small; one thread keeps the budget honest
     model = load_model(cfg.weights)

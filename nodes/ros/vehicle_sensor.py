@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import array
 import time
+from collections.abc import Sequence
 
 import numpy as np
 
@@ -53,8 +54,8 @@ def pose_msg(vehicle: str, method: str, pose: np.ndarray, t: float, frame: int) 
     )
 
 
-def main() -> int:
-    args = NodeArgs.parse(prog="vehicle_sensor")
+def main(argv: Sequence[str] | None = None) -> int:
+    args = NodeArgs.parse(argv, prog="vehicle_sensor")
     cfg = args.config
     dataset = open_dataset(
         cfg.dataset,
