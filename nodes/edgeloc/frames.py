@@ -1,0 +1,106 @@
+"""A synthetic drive's camera frames rendered once, ahead, into one file every sensor reads.
+
+Rendering a synthetic frame (`world.Camera.render`) takes ~8 ms of CPU, so a sensor that
+rendered its own at 20 Hz spent 0.16 cores on drawing the world, more than the vehicle's own
+nodes, and eight vehicles spent 1.3 of a 2-core host's cores on it: the emulation, not the
+vehicles, then set the latency. A real camera hands its frames over for nothing, so a run
+renders the drive's frames before its nodes start, spread over the host's cores, into an `.npy`
+array (N, H, W, 3) uint8 beside a JSON of what drive it holds (`FramesKey`); each sensor maps
+the file read-only, so all of a run's vehicles (they drive the same seeded drive) share one
+copy in the page cache. A frame beyond the file's end is rendered on demand, as before.
+"""
+
+from __future__ import annotations
+
+import concurrent.futures
+import json
+import multiprocessing
+import os
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import numpy as np
+
+from nodes.edgeloc.dataset import U8, SyntheticDataset
+from nodes.edgeloc.errors import EdgeLocError
+
+
+class FramesError(EdgeLocError, ValueError):
+    """A frames file that is not the drive the reader asked for."""
+
+
+@dataclass(frozen=True)
+class FramesKey:
+    """Which synthetic drive a frames file holds."""
+
+    seed: int
+    rate_hz: float
+    duration_s: float
+    corruption: float = 0.0
+
+    def dataset(self) -> SyntheticDataset:
+        return SyntheticDataset(
+            self.seed, self.rate_hz, self.duration_s, corruption=self.corruption
+        )
+
+
+def _key_path(path: Path) -> Path:
+    return path.with_suffix(".json")
+
+
+def _render_part(key: FramesKey, path: str, part: int, parts: int) -> int:
+    """A worker: render every `parts`-th frame from `part` into the shared file."""
+    ds = key.dataset()
+    out = np.load(path, mmap_mode="r+")
+    for i in range(part, out.shape[0], parts):
+        out[i] = ds.image(i)
+    out.flush()
+    return part
+
+
+def render_frames(key: FramesKey, frames: int, path: Path, workers: int | None = None) -> Path:
+    """Render the drive's first `frames` frames into `path` (.npy) and its key beside it, on
+    `workers` processes (default: every CPU). Returns `path`."""
+    ds = key.dataset()
+    n = min(frames, len(ds))
+    path.parent.mkdir(parents=True, exist_ok=True)
+    out = np.lib.format.open_memmap(path, mode="w+", dtype=np.uint8, shape=(n, *ds.image_shape))
+    del out  # the header is written; workers fill the frames through their own maps
+    parts = max(1, min(workers or os.cpu_count() or 1, n))
+    # Spawned, not forked: the caller (a run) has threads, and a fork copies their locks.
+    ctx = multiprocessing.get_context("spawn")
+    with concurrent.futures.ProcessPoolExecutor(parts, mp_context=ctx) as pool:
+        for done in [pool.submit(_render_part, key, str(path), p, parts) for p in range(parts)]:
+            done.result()
+    _key_path(path).write_text(json.dumps(asdict(key)))
+    return path
+
+
+class Frames:
+    """A frames file opened read-only for one drive: `image(i)` from the file where it holds
+    frame i, else rendered as `SyntheticDataset.image` would."""
+
+    def __init__(self, path: Path, dataset: SyntheticDataset, key: FramesKey) -> None:
+        try:
+            written = FramesKey(**json.loads(_key_path(path).read_text()))
+        except (OSError, ValueError, TypeError) as err:
+            raise FramesError(f"frames file {path}: no readable key: {err}") from err
+        if written != key:  # the duration too: a drive's route is generated for its length
+            raise FramesError(f"frames file {path} holds drive {written}, not {key}")
+        self._frames = np.load(path, mmap_mode="r")
+        if self._frames.shape[1:] != dataset.image_shape:
+            raise FramesError(
+                f"frames file {path}: images {self._frames.shape[1:]}, "
+                f"the camera's are {dataset.image_shape}"
+            )
+        self.dataset = dataset
+        self.rendered_here = 0  # frames past the file's end, rendered on demand
+
+    def __len__(self) -> int:
+        return int(self._frames.shape[0])
+
+    def image(self, i: int) -> U8:
+        if 0 <= i < self._frames.shape[0]:
+            return np.asarray(self._frames[i])
+        self.rendered_here += 1
+        return self.dataset.image(i)
