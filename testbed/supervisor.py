@@ -72,10 +72,11 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from nodes.edgeloc.frames import FramesKey, render_frames
 from nodes.edgeloc.settings import config_to_dict
 from nodes.recording import layout as names
 from nodes.recording.jsonfile import write_json
-from nodes.ros.common import READY
+from nodes.ros.common import DATASET_MARGIN_S, READY
 from nodes.ros.env import RosEnv, domain_id_for
 from nodes.ros.start import MATCHED, write_start
 from testbed import cgroups
@@ -99,6 +100,8 @@ LOOPBACK = "127.0.0.1"
 RECORDER = "nodes.ros.topic_recorder"
 #: The vehicle's sensor node: the one that waits for the run's common start.
 SENSOR = "nodes.ros.vehicle_sensor"
+#: Seconds of frames rendered ahead beyond the run's duration (a sensor renders any later one).
+FRAMES_MARGIN_S = 5.0
 #: The least DNN-stage budget the kernel can enforce (1 ms quota per 1 s period).
 MIN_COMPUTE_CORES = 0.001
 
@@ -210,7 +213,8 @@ class Supervisor:
     fault-tolerance test checks). `start_together=True` makes the vehicles' sensors wait, once
     matched, for `release()` (`nodes.ros.start`): what a run does, so that every drive's frame
     0 and the timeline's 0 s are one instant. `compose=False` starts each vehicle node as a
-    process of its own, as before containers (a benchmark's baseline).
+    process of its own, and `prerender=False` leaves each sensor to render its own frames, as
+    before (a benchmark's baselines).
     """
 
     def __init__(
@@ -221,6 +225,7 @@ class Supervisor:
         edge: bool = True,
         start_together: bool = False,
         compose: bool = True,
+        prerender: bool = True,
     ) -> None:
         self.net, self.folder, self.progress = net, Path(folder).resolve(), progress
         self.edge, self.compose = edge, compose
@@ -231,6 +236,9 @@ class Supervisor:
         self.stopping = False
         self.config_path = self.folder / names.NODE_CONFIG_FILE
         self.config = replay_config(net.scenario)
+        # Rendered ahead for a synthetic drive (`nodes.edgeloc.frames`); in `start`.
+        synthetic = self.config.dataset == "synthetic" and net.scenario.edgeloc_vehicles()
+        self.frames = (self.folder / names.FRAMES_FILE) if synthetic and prerender else None
 
     # ---- plan --------------------------------------------------------------------------
 
@@ -292,6 +300,8 @@ class Supervisor:
             add(v.name, "fusion", "fusion_node", who, peers, own)
             add(v.name, "inference", "inference_request", who + follow, peers, own)
             start = [] if self.start_file is None else ["--start-file", str(self.start_file)]
+            if self.frames is not None:
+                start += ["--frames", str(self.frames)]
             add(v.name, "sensor", "vehicle_sensor", who + start, peers, own)
         if topo.cells:
             events = ["--events", str(self.folder / names.EVENTS_FILE)]
@@ -356,6 +366,7 @@ class Supervisor:
         self.config_path.parent.mkdir(parents=True, exist_ok=True)
         write_json(self.config_path, config_to_dict(self.config))
         (self.folder / "logs").mkdir(parents=True, exist_ok=True)
+        self._render_frames()
         self._budgets()
         self.nodes = self.plan()
         t0 = time.monotonic()
@@ -400,6 +411,20 @@ class Supervisor:
         self.progress(f"  all ready in {time.monotonic() - t0:.1f} s; CPU cores: {shown}")
         if self.start_file is not None:
             self._wait_for(MATCHED, self._sensors(), "matched with its subscribers", timeout_s)
+
+    def _render_frames(self) -> None:
+        """The drive's camera frames, once for every sensor, before any node starts."""
+        if self.frames is None:
+            return
+        cfg = self.config
+        key = FramesKey(cfg.seed, cfg.rate_hz, cfg.duration_s + DATASET_MARGIN_S, cfg.corruption)
+        count = round((cfg.duration_s + FRAMES_MARGIN_S) * cfg.rate_hz)
+        t = time.monotonic()
+        render_frames(key, count, self.frames)
+        self.progress(
+            f"  camera frames: {count} rendered ahead in {time.monotonic() - t:.1f} s "
+            f"({self.frames.stat().st_size / 1e6:.0f} MB, shared by the sensors)"
+        )
 
     def _sensors(self) -> list[NodeProcess]:
         return [n for n in self.nodes if n.module == SENSOR]
@@ -478,6 +503,9 @@ class Supervisor:
                 with contextlib.suppress(OSError):
                     b.stats = b.group.stats()
                 b.group.remove()
+        if self.frames is not None:
+            for path in (self.frames, self.frames.with_suffix(".json")):
+                path.unlink(missing_ok=True)
         return self.summary()
 
     def node_stats(self) -> dict[str, dict[str, Any]]:

@@ -36,7 +36,7 @@ from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, TextIO, TypeVar
+from typing import Any, NoReturn, TextIO, TypeVar
 
 from nodes.edgeloc.settings import REQUEST_TIMEOUT_S, ReplayConfig, config_from_dict
 from nodes.recording.jsonfile import write_json
@@ -53,6 +53,17 @@ RECORDING_FAILED = 3
 STOP_DUMP_S = 8.0
 
 T = TypeVar("T")
+
+
+class _Parser(argparse.ArgumentParser):
+    """A node's parser: alone, a refused command line exits (status 2) as argparse does; as a
+    container's role it raises ValueError instead, so the reason lands in the role's own log
+    (`call_main`), not in the container's shared stderr."""
+
+    def error(self, message: str) -> NoReturn:
+        if COMPOSED.get() is not None:
+            raise ValueError(f"{self.prog}: {message}")
+        super().error(message)
 
 
 @dataclass(frozen=True)
@@ -74,10 +85,12 @@ class NodeArgs:
     edges: dict[str, str] = field(default_factory=dict)
     #: The vehicle sensor: wait for the run's common start time in this file (`nodes.ros.start`).
     start_file: Path | None = None
+    #: The sensor: the run's pre-rendered camera frames (`nodes.edgeloc.frames`).
+    frames: Path | None = None
 
     @classmethod
     def parse(cls, argv: Sequence[str] | None = None, prog: str = "") -> NodeArgs:
-        p = argparse.ArgumentParser(prog=prog)
+        p = _Parser(prog=prog)
         p.add_argument("--config", required=True, help="the run's node settings (JSON)")
         p.add_argument("--vehicle", default="", help="the vehicle this node serves")
         p.add_argument("--edge", default="", help="the core/edge node serving the vehicle")
@@ -108,6 +121,11 @@ class NodeArgs:
             help="the sensor: once its subscribers are there, wait for the run's start time "
             "(JSON {start_epoch_s}) in this file and publish frame 0 then",
         )
+        p.add_argument(
+            "--frames",
+            default=None,
+            help="the sensor: the drive's camera frames rendered ahead (nodes.edgeloc.frames)",
+        )
         a = p.parse_args(argv)
         try:
             config = config_from_dict(json.loads(Path(a.config).read_text()))
@@ -131,6 +149,7 @@ class NodeArgs:
             record_images=a.record_images,
             edges=edges,
             start_file=Path(a.start_file) if a.start_file else None,
+            frames=Path(a.frames) if a.frames else None,
         )
 
 
