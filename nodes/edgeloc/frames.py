@@ -12,10 +12,10 @@ copy in the page cache. A frame beyond the file's end is rendered on demand, as 
 
 from __future__ import annotations
 
-import concurrent.futures
 import json
-import multiprocessing
 import os
+import subprocess
+import sys
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
@@ -48,14 +48,13 @@ def _key_path(path: Path) -> Path:
     return path.with_suffix(".json")
 
 
-def _render_part(key: FramesKey, path: str, part: int, parts: int) -> int:
+def _render_part(key: FramesKey, path: Path, part: int, parts: int) -> None:
     """A worker: render every `parts`-th frame from `part` into the shared file."""
     ds = key.dataset()
     out = np.load(path, mmap_mode="r+")
     for i in range(part, out.shape[0], parts):
         out[i] = ds.image(i)
     out.flush()
-    return part
 
 
 def render_frames(key: FramesKey, frames: int, path: Path, workers: int | None = None) -> Path:
@@ -67,12 +66,27 @@ def render_frames(key: FramesKey, frames: int, path: Path, workers: int | None =
     out = np.lib.format.open_memmap(path, mode="w+", dtype=np.uint8, shape=(n, *ds.image_shape))
     del out  # the header is written; workers fill the frames through their own maps
     parts = max(1, min(workers or os.cpu_count() or 1, n))
-    # Spawned, not forked: the caller (a run) has threads, and a fork copies their locks.
-    ctx = multiprocessing.get_context("spawn")
-    with concurrent.futures.ProcessPoolExecutor(parts, mp_context=ctx) as pool:
-        for done in [pool.submit(_render_part, key, str(path), p, parts) for p in range(parts)]:
-            done.result()
-    _key_path(path).write_text(json.dumps(asdict(key)))
+    # Workers are fresh interpreters (`python -m nodes.edgeloc.frames`), neither forked (the
+    # caller, a run, has threads, whose locks a fork would copy) nor multiprocessing's spawn
+    # (which re-imports the caller's main script, and a script without a main guard would
+    # run again in every worker).
+    key_json = json.dumps(asdict(key))
+    procs = [
+        subprocess.Popen(
+            [sys.executable, "-m", __name__, key_json, str(path), str(p), str(parts)],
+            stderr=subprocess.PIPE,
+            text=True,
+        )
+        for p in range(parts)
+    ]
+    failed = []
+    for p, proc in enumerate(procs):
+        _, err = proc.communicate()
+        if proc.returncode != 0:
+            failed.append(f"part {p}: exit {proc.returncode}: {err.strip()[-500:]}")
+    if failed:
+        raise FramesError(f"rendering the frames into {path} failed: {'; '.join(failed)}")
+    _key_path(path).write_text(key_json)
     return path
 
 
@@ -104,3 +118,8 @@ class Frames:
             return np.asarray(self._frames[i])
         self.rendered_here += 1
         return self.dataset.image(i)
+
+
+if __name__ == "__main__":
+    # A worker of `render_frames`: KEY_JSON PATH PART PARTS.
+    _render_part(FramesKey(**json.loads(sys.argv[1])), Path(sys.argv[2]), *map(int, sys.argv[3:5]))
