@@ -286,7 +286,9 @@ class Supervisor:
         for server in topo.servers():
             mine = [v for v in asking(scenario, server) if v in vehicles]
             if self.edge and mine:
-                add(server, "edge", "edge_inference", ["--edge", server], self.peers_of(server))
+                serve = ["--serve", ",".join(v.name for v in mine)]
+                add(server, "edge", "edge_inference", ["--edge", server, *serve],
+                    self.peers_of(server))  # fmt: skip
         for v in vehicles:
             cell = topo.cell_of_gnb(v.gnb)
             who = ["--vehicle", v.name, "--edge", cell.server]

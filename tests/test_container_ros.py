@@ -193,7 +193,8 @@ def test_a_vehicle_s_three_nodes_run_in_one_process_each_with_its_log_stats_and_
 ) -> None:
     d = domain
     edge = d.start(["-m", "nodes.ros.edge_inference", "--config", str(d.config),
-                    "--edge", "edge1", "--stats", str(d.folder / "edge1.edge.json")],
+                    "--edge", "edge1", "--serve", "av1",
+                    "--stats", str(d.folder / "edge1.edge.json")],
                    d.folder / "edge1.edge.log")  # fmt: skip
     roles = d.roles()
     container = d.start(["-m", "nodes.ros.container", *container_argv(roles)],

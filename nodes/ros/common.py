@@ -85,6 +85,8 @@ class NodeArgs:
     edges: dict[str, str] = field(default_factory=dict)
     #: The vehicle sensor: wait for the run's common start time in this file (`nodes.ros.start`).
     start_file: Path | None = None
+    #: The edge server: the vehicles it serves, one action each (`action_name`).
+    serve: tuple[str, ...] = ()
     #: The sensor: the run's pre-rendered camera frames (`nodes.edgeloc.frames`).
     frames: Path | None = None
 
@@ -122,6 +124,11 @@ class NodeArgs:
             "(JSON {start_epoch_s}) in this file and publish frame 0 then",
         )
         p.add_argument(
+            "--serve",
+            default="",
+            help="the edge server: the vehicles it serves (av1,av2,...), an action each",
+        )
+        p.add_argument(
             "--frames",
             default=None,
             help="the sensor: the drive's camera frames rendered ahead (nodes.edgeloc.frames)",
@@ -150,6 +157,7 @@ class NodeArgs:
             edges=edges,
             start_file=Path(a.start_file) if a.start_file else None,
             frames=Path(a.frames) if a.frames else None,
+            serve=tuple(v for v in a.serve.split(",") if v),
         )
 
 
@@ -293,9 +301,13 @@ def write_stats(path: Path | None, stats: dict[str, Any]) -> None:
     write_json(path, stats)
 
 
-def action_name(edge: str) -> str:
-    """The split-inference action of one edge server, e.g. `/core1/split_inference`."""
-    return f"/{edge}/split_inference"
+def action_name(edge: str, vehicle: str) -> str:
+    """The split-inference action one edge server offers one vehicle, e.g.
+    `/core1/av1/split_inference`. One action per vehicle, not one per server: an action's
+    status topic lists every goal its server holds and reaches every client, so with one
+    shared action each of N vehicles took (and its downlink carried) the goals of all N, N^2
+    goal states a second between them (with eight vehicles most of a vehicle's CPU)."""
+    return f"/{edge}/{vehicle}/split_inference"
 
 
 def to_stamp(t: float) -> Any:

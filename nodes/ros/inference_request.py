@@ -374,10 +374,10 @@ def main(argv: Sequence[str] | None = None) -> int:
         # cell's (read from its own default route, `nodes.ros.serving`), else `--edge`'s.
         serving = ServingEdge(args.edge, args.edges)
         clients = {
-            edge: ros.owns(ActionClient(node, SplitInference, action_name(edge)))
+            edge: ros.owns(ActionClient(node, SplitInference, action_name(edge, args.vehicle)))
             for edge in dict.fromkeys([args.edge, *args.edges.values()])
         }
-        emit(READY, node="inference_request", action=action_name(args.edge))
+        emit(READY, node="inference_request", action=action_name(args.edge, args.vehicle))
         last_frame = -1
         start_s = time.time()
         while not stop:
