@@ -413,15 +413,17 @@ class RosContext:
 
 
 @contextmanager
-def ros_node(name: str, spin: bool = True, record: Path | None = None) -> Iterator[RosContext]:
+def ros_node(
+    name: str, spin: bool = True, record: Path | None = None, events: bool = False
+) -> Iterator[RosContext]:
     """An initialised rclpy context with one node, spun by an executor thread (if `spin`), and
     torn down in the order Jazzy needs whatever the body does: stop flag, executor thread
     joined, owned entities and the node destroyed, then `rclpy.shutdown()`; last, the MCAP
-    part (`record`) is closed, after the last publish. In a container's role the context and
+    part (`record`) is closed, after the last publish. `events=True` spins it on rclpy's
+    EventsExecutor (`_executor`). In a container's role the context and
     the stop flag are the container's: the node gets its own executor and thread, and the
     container shuts rclpy down once every role has destroyed its node."""
     import rclpy
-    from rclpy.executors import SingleThreadedExecutor
     from rclpy.signals import SignalHandlerOptions
 
     from nodes.recording.parts import PartWriter
@@ -434,7 +436,7 @@ def ros_node(name: str, spin: bool = True, record: Path | None = None) -> Iterat
     else:
         stop = composed.stop
     ctx = RosContext(rclpy.create_node(name), stop, recorder)
-    executor = SingleThreadedExecutor()
+    executor = _executor(events)
     executor.add_node(ctx.node)
     thread = None
     if spin:
@@ -476,6 +478,27 @@ def ros_node(name: str, spin: bool = True, record: Path | None = None) -> Iterat
             recorder.close()
             step("recording")
         emit("exit", seconds=steps)
+
+
+#: Which executor spins a node: rclpy's pure-Python SingleThreadedExecutor, or for the nodes
+#: that ask (`ros_node(events=True)`: the vehicle's fusion and inference nodes) its
+#: EventsExecutor (C++, `rclpy.experimental`), unless EXECUTOR_ENV=single. The Python one
+#: rebuilds its wait set on every wake-up, a large share of a vehicle's CPU at 20 Hz, and eight
+#: vehicles needed more than a 2-core host had. Not for every node: with the experimental one
+#: `tests/bench/bench_vehicles.py` printed 0.685 cores for the edge serving eight vehicles
+#: (0.186 on the Python one), and the topic recorder never saw a message on subscriptions it
+#: made after it started spinning.
+EXECUTOR_ENV = "EDGELOC_EXECUTOR"
+
+
+def _executor(events: bool) -> Any:
+    if not events or os.environ.get(EXECUTOR_ENV) == "single":
+        from rclpy.executors import SingleThreadedExecutor
+
+        return SingleThreadedExecutor()
+    from rclpy.experimental import EventsExecutor
+
+    return EventsExecutor()
 
 
 #: Diagnostic (bench_soak --trace-python): with this set to N seconds, a node traces its Python

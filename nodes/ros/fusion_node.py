@@ -177,7 +177,7 @@ def main(argv: Sequence[str] | None = None) -> int:
 
     published: Counter[str] = Counter()
     stats: dict[str, Any] = {"node": "fusion_node", "vehicle": args.vehicle, "answers": 0}
-    with ros_node(f"{args.vehicle}_fusion", record=args.record) as ros:
+    with ros_node(f"{args.vehicle}_fusion", record=args.record, events=True) as ros:
         node = ros.node
         out = ros.publisher(PoseEstimate, vehicle_topic(args.vehicle, "pose"), 100)
         first: list[float] = []

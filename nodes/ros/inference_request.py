@@ -355,7 +355,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     compute = ComputeThread(args.compute_cgroup, name="dnn-head", warmup=warmup)
     loop = RequestLoop(cfg, args.vehicle, args.edge, args.timeout_s, compute.budget)
     learner = loop.learner
-    with ros_node(f"{args.vehicle}_inference_request", record=args.record) as ros:
+    with ros_node(f"{args.vehicle}_inference_request", record=args.record, events=True) as ros:
         node, stop = ros.node, ros.stop
 
         def on_image(msg: Image) -> None:
