@@ -1,9 +1,10 @@
 """A synthetic drive's camera frames rendered once, ahead, into one file every sensor reads.
 
-Rendering a synthetic frame (`world.Camera.render`) takes ~8 ms of CPU, so a sensor that
-rendered its own at 20 Hz spent 0.16 cores on drawing the world, more than the vehicle's own
-nodes, and eight vehicles spent 1.3 of a 2-core host's cores on it: the emulation, not the
-vehicles, then set the latency. A real camera hands its frames over for nothing, so a run
+Rendering a synthetic frame (`world.Camera.render`) costs more CPU than the vehicle's own
+work on it: with eight vehicles each sensor drawing its own frames at 20 Hz, `sudo
+.venv/bin/python tests/bench/bench_vehicles.py --seconds 30` printed 0.209 cores per vehicle,
+against 0.133 with the frames rendered ahead (modes `before` and `apart`), and the emulation,
+not the vehicles, set the latency. A real camera hands its frames over for nothing, so a run
 renders the drive's frames before its nodes start, spread over the host's cores, into an `.npy`
 array (N, H, W, 3) uint8 beside a JSON of what drive it holds (`FramesKey`); each sensor maps
 the file read-only, so all of a run's vehicles (they drive the same seeded drive) share one

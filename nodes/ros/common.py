@@ -306,7 +306,7 @@ def action_name(edge: str, vehicle: str) -> str:
     `/core1/av1/split_inference`. One action per vehicle, not one per server: an action's
     status topic lists every goal its server holds and reaches every client, so with one
     shared action each of N vehicles took (and its downlink carried) the goals of all N, N^2
-    goal states a second between them (with eight vehicles most of a vehicle's CPU)."""
+    goal states a second between them: with eight vehicles requests timed out waiting."""
     return f"/{edge}/{vehicle}/split_inference"
 
 
