@@ -125,6 +125,9 @@ def test_run_mcap_decodes_fully_and_counts_match_the_nodes(
     assert isinstance(host["sch_netem"], bool) and host["cpus"] >= 1
     nodes = {n: json.loads(v) for n, v in meta["edgeloc.nodes"].items()}
     assert set(nodes) == set(procs)
+    assert {n: v.get("process") for n, v in nodes.items() if n.startswith("av1.")} == dict.fromkeys(
+        ("av1.fusion", "av1.inference", "av1.sensor"), "av1.vehicle"
+    )
     assert all(v["namespace"].startswith(f"el-{result.run_id}-") for v in nodes.values())
     assert nodes["av1.fusion"]["stats"]["published"] == fusion["published"]
     assert meta["edgeloc.timeline"]["applied"] == "2"
