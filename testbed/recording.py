@@ -192,8 +192,12 @@ def _nodes_metadata(
 ) -> dict[str, str]:
     """Per node process: namespace, exit code, its stats file, last log lines if it failed."""
     processes = (nodes or {}).get("processes", {})
+    # A vehicle's process holds its nodes (`testbed.nodeprocs`): its nodes are listed, each
+    # naming it, and its own log is in run.json's containers, not a node here.
+    containers = (nodes or {}).get("containers", {})
+    inside = {n: c for c, info in containers.items() for n in info.get("nodes", [])}
     names = set(processes)
-    names |= {p.stem for p in (folder / "logs").glob("*.log")}
+    names |= {p.stem for p in (folder / "logs").glob("*.log")} - set(containers)
     namespaces = manifest.get("namespaces", {})
     out: dict[str, str] = {}
     for name in sorted(names):
@@ -205,6 +209,8 @@ def _nodes_metadata(
             "exit_code": code,
             "stats": stats,
         }
+        if name in inside:
+            entry["process"] = inside[name]
         if code != 0 and not (ok and code is None):
             entry["log_tail"] = _tail(folder / "logs" / f"{name}.log")
         out[name] = dumps(entry, indent=None)

@@ -1,10 +1,16 @@
-"""The EdgeLoc nodes of a run: each one its own process in its namespace, watched, then stopped.
+"""The EdgeLoc nodes of a run: started in their namespaces, watched, then stopped.
 
-What runs where (one process per node, `python -m nodes.ros.<module>`):
+What runs where (`python -m nodes.ros.<module>`, one process per node, except a vehicle's):
 
 - every vehicle namespace: `sensor` (vehicle_sensor), `inference` (inference_request),
-  `fusion` (fusion_node);
-- every core namespace: `edge` (edge_inference), serving the vehicles of its cell (with
+  `fusion` (fusion_node), the three in one process, `<vehicle>.vehicle`
+  (`nodes.ros.container`: one rclpy context, a node, executor and thread per role; each node
+  keeps its own log, stats file and MCAP part; `testbed.nodeprocs`). Three processes per
+  vehicle, each its own interpreter and DDS participant, made the host, not the cell, set the
+  latency with a few vehicles on two cores; `Supervisor(compose=False)` still starts them
+  apart, to compare;
+- every core namespace: `edge` (edge_inference), one process serving all the vehicles of its
+  cell (with
   `edge: follow` handovers, also those that may be handed over to it; their `inference`
   asks the serving cell's edge server, `nodes.ros.serving`);
 - the first gNB namespace: `link_events`, which publishes the timeline's `events.jsonl`;
@@ -23,7 +29,7 @@ of one scenario use the same settings), a log `logs/<name>.log`, a stats file
 `nodes/<name>.json` it writes when stopped and, when the scenario records, the MCAP part
 `parts/<name>.mcap` of everything it publishes (`testbed.recording`).
 
-CPU budgets: the processes of a vehicle share the cgroup `edgeloc/<run>/<vehicle>`, those of a
+CPU budgets: the process(es) of a vehicle share the cgroup `edgeloc/<run>/<vehicle>`, those of a
 core `edgeloc/<run>/<core>`. A real rclpy process cannot live on the scenario's 0.01 cores (the
 kernel gives it 1 ms per 100 ms: one DDS message and the VO callback would miss their frame), and
 the three vehicle processes together use ~0.4 cores at 20 Hz here. So the namespace's group gets
@@ -39,7 +45,9 @@ groups need cgroup v1 (`tasks` takes thread ids); on v2 the DNN stage runs unbud
 run.json says why (`compute_reason`).
 
 The watcher: `check()` raises `TestbedError` naming the node and its last log lines as soon as
-one process has exited while the run still needs it; `run.py` calls it every 0.2 s.
+one process has exited while the run still needs it (for a vehicle's process: the role that
+ended first, or the process and its roles when it was killed, `nodeprocs.death`); `run.py`
+calls it every 0.2 s.
 
 A quota alone is not a slow processor (a sub-millisecond head fits in a 0.025-core quota and
 runs at full speed), so each DNN call is also paced: a call that used c s of its thread's CPU
@@ -58,22 +66,23 @@ import json
 import os
 import signal
 import subprocess
-import sys
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from nodes.edgeloc.frames import FramesKey, render_frames
 from nodes.edgeloc.settings import config_to_dict
 from nodes.recording import layout as names
 from nodes.recording.jsonfile import write_json
-from nodes.ros.common import READY
+from nodes.ros.common import DATASET_MARGIN_S, READY
 from nodes.ros.env import RosEnv, domain_id_for
 from nodes.ros.start import MATCHED, write_start
 from testbed import cgroups
 from testbed.cgroups import CpuBudget
 from testbed.errors import BadInput, TestbedError
+from testbed.nodeprocs import VEHICLE_PROCESS, NodeProcess, command, death, process_log, processes
 from testbed.nodesettings import replay_config
 from testbed.scenario.model import Scenario, TopicRecord, Vehicle
 from testbed.topology import Net
@@ -86,50 +95,15 @@ MIN_PROCESS_CORES = 1.0
 READY_TIMEOUT_S = 90.0
 #: How long a stopped node may take to write its stats and exit before it is killed.
 STOP_GRACE_S = 10.0
-#: Log lines quoted when a node dies.
-TAIL_LINES = 15
 LOOPBACK = "127.0.0.1"
 #: The process that records `record.topics` in a namespace.
 RECORDER = "nodes.ros.topic_recorder"
 #: The vehicle's sensor node: the one that waits for the run's common start.
 SENSOR = "nodes.ros.vehicle_sensor"
+#: Seconds of frames rendered ahead beyond the run's duration (a sensor renders any later one).
+FRAMES_MARGIN_S = 5.0
 #: The least DNN-stage budget the kernel can enforce (1 ms quota per 1 s period).
 MIN_COMPUTE_CORES = 0.001
-
-
-@dataclass
-class NodeProcess:
-    """One EdgeLoc node of a run: where it runs, how it was started, and its process."""
-
-    name: str  # e.g. "av1.fusion": <namespace node>.<role>
-    host: str  # the topology node (namespace) it runs in
-    module: str  # nodes.ros.<module>
-    argv: list[str]
-    peers: list[str]
-    log: Path
-    stats: Path
-    proc: subprocess.Popen[Any] | None = None
-    exit_code: int | None = None
-
-    def tail(self, lines: int = TAIL_LINES) -> str:
-        try:
-            text = self.log.read_text(errors="replace")
-        except OSError:
-            return "(no log)"
-        return "\n".join(text.splitlines()[-lines:]) or "(empty log)"
-
-    def ready(self) -> bool:
-        return self.logged(READY)
-
-    def logged(self, event: str) -> bool:
-        """Whether the node has logged `event` (one of its JSON event lines)."""
-        try:
-            text = self.log.read_text(errors="replace")
-        except OSError:
-            return False
-        return any(
-            line.startswith("{") and f'"event": "{event}"' in line for line in text.splitlines()
-        )
 
 
 @dataclass
@@ -238,7 +212,9 @@ class Supervisor:
     `edge=False` leaves the edge servers out (the vehicles then run on VO alone: what the
     fault-tolerance test checks). `start_together=True` makes the vehicles' sensors wait, once
     matched, for `release()` (`nodes.ros.start`): what a run does, so that every drive's frame
-    0 and the timeline's 0 s are one instant.
+    0 and the timeline's 0 s are one instant. `compose=False` starts each vehicle node as a
+    process of its own, and `prerender=False` leaves each sensor to render its own frames, as
+    before (a benchmark's baselines).
     """
 
     def __init__(
@@ -248,9 +224,11 @@ class Supervisor:
         progress: Progress,
         edge: bool = True,
         start_together: bool = False,
+        compose: bool = True,
+        prerender: bool = True,
     ) -> None:
         self.net, self.folder, self.progress = net, Path(folder).resolve(), progress
-        self.edge = edge
+        self.edge, self.compose = edge, compose
         self.start_file = (self.folder / names.START_FILE) if start_together else None
         self.env = RosEnv(self.folder, domain_id_for(net.run_id))
         self.nodes: list[NodeProcess] = []
@@ -258,6 +236,9 @@ class Supervisor:
         self.stopping = False
         self.config_path = self.folder / names.NODE_CONFIG_FILE
         self.config = replay_config(net.scenario)
+        # Rendered ahead for a synthetic drive (`nodes.edgeloc.frames`); in `start`.
+        synthetic = self.config.dataset == "synthetic" and net.scenario.edgeloc_vehicles()
+        self.frames = (self.folder / names.FRAMES_FILE) if synthetic and prerender else None
 
     # ---- plan --------------------------------------------------------------------------
 
@@ -270,7 +251,14 @@ class Supervisor:
         record = self.net.scenario.record
         out: list[NodeProcess] = []
 
-        def add(host: str, role: str, module: str, extra: list[str], peers: list[str]) -> None:
+        def add(
+            host: str,
+            role: str,
+            module: str,
+            extra: list[str],
+            peers: list[str],
+            process: str = "",
+        ) -> None:
             name = f"{host}.{role}"
             budget = self.budgets.get(host)
             if role in ("edge", "inference") and budget is not None and budget.compute:
@@ -288,6 +276,7 @@ class Supervisor:
                     peers=peers,
                     log=logs / f"{name}.log",
                     stats=stats / f"{name}.json",
+                    process=process,
                 )
             )
 
@@ -297,7 +286,9 @@ class Supervisor:
         for server in topo.servers():
             mine = [v for v in asking(scenario, server) if v in vehicles]
             if self.edge and mine:
-                add(server, "edge", "edge_inference", ["--edge", server], self.peers_of(server))
+                serve = ["--serve", ",".join(v.name for v in mine)]
+                add(server, "edge", "edge_inference", ["--edge", server, *serve],
+                    self.peers_of(server))  # fmt: skip
         for v in vehicles:
             cell = topo.cell_of_gnb(v.gnb)
             who = ["--vehicle", v.name, "--edge", cell.server]
@@ -307,10 +298,13 @@ class Supervisor:
             follow = []
             if len(set(edges.values())) > 1:
                 follow = ["--edges", ",".join(f"{g}={e}" for g, e in edges.items())]
-            add(v.name, "fusion", "fusion_node", who, peers)
-            add(v.name, "inference", "inference_request", who + follow, peers)
+            own = f"{v.name}.{VEHICLE_PROCESS}" if self.compose else ""
+            add(v.name, "fusion", "fusion_node", who, peers, own)
+            add(v.name, "inference", "inference_request", who + follow, peers, own)
             start = [] if self.start_file is None else ["--start-file", str(self.start_file)]
-            add(v.name, "sensor", "vehicle_sensor", who + start, peers)
+            if self.frames is not None:
+                start += ["--frames", str(self.frames)]
+            add(v.name, "sensor", "vehicle_sensor", who + start, peers, own)
         if topo.cells:
             events = ["--events", str(self.folder / names.EVENTS_FILE)]
             add(topo.cells[0].gnb, "link_events", "link_events", events, self.peers_of(None))
@@ -374,27 +368,37 @@ class Supervisor:
         self.config_path.parent.mkdir(parents=True, exist_ok=True)
         write_json(self.config_path, config_to_dict(self.config))
         (self.folder / "logs").mkdir(parents=True, exist_ok=True)
+        self._render_frames()
         self._budgets()
         self.nodes = self.plan()
         t0 = time.monotonic()
-        for n in self.nodes:
-            env = self.env.environ(n.peers)
+        for process, group in processes(self.nodes).items():
+            first = group[0]
+            env = self.env.environ(first.peers)
             env["PYTHONUNBUFFERED"] = "1"
-            with open(n.log, "w") as log:
-                n.proc = self.net[n.host].popen(
-                    [sys.executable, "-m", n.module, *n.argv],
-                    what=f"{n.host}: EdgeLoc {n.name}",
+            if first.composed:  # the container appends each role's lines to its log
+                for n in group:
+                    n.log.write_text("")
+            log_path = process_log(self.folder, process) if first.composed else first.log
+            with open(log_path, "w") as log:
+                proc = self.net[first.host].popen(
+                    command(group),
+                    what=f"{first.host}: EdgeLoc {process}",
                     env=env,
                     stdout=log,
                     stderr=subprocess.STDOUT,
                 )
-            budget = self.budgets.get(n.host)
+            for n in group:
+                n.proc = proc
+            budget = self.budgets.get(first.host)
             if budget is not None and budget.group is not None:
-                budget.group.add(n.proc.pid)  # nsenter exec()s: the pid is the node's python
+                budget.group.add(proc.pid)  # nsenter exec()s: the pid is the node's python
         recorders = sum(n.module == RECORDER for n in self.nodes)
         also = f", {recorders} topic recorder(s)" if recorders else ""
+        count = len(processes([n for n in self.nodes if n.module != RECORDER]))
         self.progress(
-            f"ROS nodes: {len(self.nodes) - recorders} EdgeLoc process(es){also} started "
+            f"ROS nodes: {len(self.nodes) - recorders} EdgeLoc node(s) in {count} process(es)"
+            f"{also} started "
             f"(ROS domain {self.env.domain_id}); waiting until they are ready"
         )
         self._wait_for(READY, self.nodes, "ready", timeout_s)
@@ -409,6 +413,20 @@ class Supervisor:
         self.progress(f"  all ready in {time.monotonic() - t0:.1f} s; CPU cores: {shown}")
         if self.start_file is not None:
             self._wait_for(MATCHED, self._sensors(), "matched with its subscribers", timeout_s)
+
+    def _render_frames(self) -> None:
+        """The drive's camera frames, once for every sensor, before any node starts."""
+        if self.frames is None:
+            return
+        cfg = self.config
+        key = FramesKey(cfg.seed, cfg.rate_hz, cfg.duration_s + DATASET_MARGIN_S, cfg.corruption)
+        count = round((cfg.duration_s + FRAMES_MARGIN_S) * cfg.rate_hz)
+        t = time.monotonic()
+        render_frames(key, count, self.frames)
+        self.progress(
+            f"  camera frames: {count} rendered ahead in {time.monotonic() - t:.1f} s "
+            f"({self.frames.stat().st_size / 1e6:.0f} MB, shared by the sensors)"
+        )
 
     def _sensors(self) -> list[NodeProcess]:
         return [n for n in self.nodes if n.module == SENSOR]
@@ -444,13 +462,12 @@ class Supervisor:
         """Raise if a node process has exited (the run needs every one until `stop`)."""
         if self.stopping:
             return
-        for n in self.nodes:
-            if n.proc is not None and n.proc.poll() is not None:
-                n.exit_code = n.proc.returncode
-                raise TestbedError(
-                    f"run {self.net.run_id} failed: node {n.name} exited with "
-                    f"{n.exit_code}; last lines of {n.log}:\n{n.tail()}"
-                )
+        for group in processes(self.nodes).values():
+            proc = group[0].proc
+            if proc is not None and proc.poll() is not None:
+                for n in group:
+                    n.exit_code = proc.returncode
+                raise TestbedError(death(self.net.run_id, group, self.folder))
 
     # ---- stop --------------------------------------------------------------------------
 
@@ -458,21 +475,27 @@ class Supervisor:
         """SIGTERM every node (each writes its stats and exits), kill what is left after
         `grace_s`, read the CPU counters and remove the budgets. Returns `summary()`."""
         self.stopping = True
-        live = [n for n in self.nodes if n.proc is not None and n.proc.poll() is None]
-        for n in live:
-            with contextlib.suppress(ProcessLookupError):
-                os.kill(n.proc.pid, signal.SIGTERM)  # type: ignore[union-attr]
+        groups = list(processes(self.nodes).values())
+        for group in groups:
+            proc = group[0].proc
+            if proc is not None and proc.poll() is None:
+                with contextlib.suppress(ProcessLookupError):
+                    os.kill(proc.pid, signal.SIGTERM)
         deadline = time.monotonic() + grace_s
-        for n in self.nodes:
-            if n.proc is None:
+        for group in groups:
+            proc = group[0].proc
+            if proc is None:
                 continue
             try:
-                n.proc.wait(timeout=max(0.1, deadline - time.monotonic()))
+                proc.wait(timeout=max(0.1, deadline - time.monotonic()))
             except subprocess.TimeoutExpired:
-                self.progress(f"  warning: node {n.name} did not stop in {grace_s:g} s; killed")
-                n.proc.kill()
-                n.proc.wait(timeout=5)
-            n.exit_code = n.proc.returncode
+                self.progress(
+                    f"  warning: {group[0].process} did not stop in {grace_s:g} s; killed"
+                )
+                proc.kill()
+                proc.wait(timeout=5)
+            for n in group:
+                n.exit_code = proc.returncode
         for b in self.budgets.values():
             if b.compute is not None and b.compute.exists:
                 with contextlib.suppress(OSError):
@@ -482,6 +505,9 @@ class Supervisor:
                 with contextlib.suppress(OSError):
                     b.stats = b.group.stats()
                 b.group.remove()
+        if self.frames is not None:
+            for path in (self.frames, self.frames.with_suffix(".json")):
+                path.unlink(missing_ok=True)
         return self.summary()
 
     def node_stats(self) -> dict[str, dict[str, Any]]:
@@ -509,6 +535,17 @@ class Supervisor:
                     "stats": stats.get(n.name, {}),
                 }
                 for n in self.nodes
+            },
+            # The processes that held several nodes (a vehicle's container), and which.
+            "containers": {
+                process: {
+                    "host": group[0].host,
+                    "nodes": [n.name for n in group],
+                    "exit_code": group[0].exit_code,
+                    "log": str(process_log(self.folder, process).relative_to(self.folder)),
+                }
+                for process, group in processes(self.nodes).items()
+                if group[0].composed
             },
             "cpu_budgets": {h: b.to_dict() for h, b in self.budgets.items()},
         }

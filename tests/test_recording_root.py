@@ -125,6 +125,9 @@ def test_run_mcap_decodes_fully_and_counts_match_the_nodes(
     assert isinstance(host["sch_netem"], bool) and host["cpus"] >= 1
     nodes = {n: json.loads(v) for n, v in meta["edgeloc.nodes"].items()}
     assert set(nodes) == set(procs)
+    assert {n: v.get("process") for n, v in nodes.items() if n.startswith("av1.")} == dict.fromkeys(
+        ("av1.fusion", "av1.inference", "av1.sensor"), "av1.vehicle"
+    )
     assert all(v["namespace"].startswith(f"el-{result.run_id}-") for v in nodes.values())
     assert nodes["av1.fusion"]["stats"]["published"] == fusion["published"]
     assert meta["edgeloc.timeline"]["applied"] == "2"
@@ -258,7 +261,13 @@ def test_a_node_that_crashes_fails_the_run_and_run_mcap_names_it(
             assert run.folder is not None
             threading.Thread(target=kill_fusion, args=(Path(run.folder),), daemon=True).start()
 
-    with pytest.raises(TestbedError, match=r"node av1\.fusion exited with -9") as err:
+    # The fusion node's pid is its vehicle's process (`nodes.ros.container`): killed, the run
+    # fails naming that process, its vehicle and the nodes it held.
+    with pytest.raises(
+        TestbedError,
+        match=r"process av1\.vehicle of av1 \(nodes av1\.fusion, av1\.inference, "
+        r"av1\.sensor\) exited with -9",
+    ) as err:
         run_scenario(load(short_smoke(tmp_path, 30)), tmp_path, progress)
     assert killed
     folder = err.value.run_folder  # type: ignore[attr-defined]
@@ -267,7 +276,7 @@ def test_a_node_that_crashes_fails_the_run_and_run_mcap_names_it(
     assert counts["/av1/pose"] >= 4 and counts["/av1/vo"] >= counts["/av1/pose"] // 4
     meta, _ = mcap_extras(folder / "run.mcap")
     assert meta["edgeloc.run"]["status"].startswith("failed: ")
-    assert "node av1.fusion exited with -9" in meta["edgeloc.run"]["status"]
+    assert "process av1.vehicle of av1" in meta["edgeloc.run"]["status"]
     fusion = json.loads(meta["edgeloc.nodes"]["av1.fusion"])
     assert fusion["exit_code"] == -signal.SIGKILL
     assert any('"event": "ready"' in line for line in fusion["log_tail"])

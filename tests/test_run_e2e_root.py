@@ -10,6 +10,7 @@ Each test writes its own short scenario (the default one, 15 s, no link self-tes
 
 from __future__ import annotations
 
+import json
 import os
 import shutil
 import signal
@@ -101,10 +102,29 @@ def test_run_starts_every_node_and_leaves_nothing(
 
     # Each node ran in its own run namespace: the vehicle's three share one, the edge and the
     # gNB have others, and none is the host's.
-    netns = {n: _ready_lines(folder / p["log"])["netns"] for n, p in procs.items()}
+    ready = {n: _ready_lines(folder / p["log"]) for n, p in procs.items()}
+    netns = {n: line["netns"] for n, line in ready.items()}
     host = os.stat("/proc/self/ns/net").st_ino
     assert netns["av1.fusion"] == netns["av1.inference"] == netns["av1.sensor"]
     assert len({netns["av1.fusion"], netns["edge1.edge"], netns["gnb1.link_events"], host}) == 4
+    # ... and one process, the vehicle's container, whose own log saw each role end on the stop;
+    # the edge and the link events are processes of their own.
+    vehicle = ("av1.fusion", "av1.inference", "av1.sensor")
+    assert result.nodes["containers"] == {
+        "av1.vehicle": {"host": "av1", "nodes": list(vehicle), "exit_code": 0,
+                        "log": "logs/av1.vehicle.log"}
+    }  # fmt: skip
+    assert len({ready[n]["pid"] for n in vehicle}) == 1
+    assert len({ready[n]["pid"] for n in ("av1.fusion", "edge1.edge", "gnb1.link_events")}) == 3
+    ends = [json.loads(line) for line in (folder / "logs" / "av1.vehicle.log").read_text()
+            .splitlines() if '"event": "role-exit"' in line]  # fmt: skip
+    assert {e["role"]: e["stopped"] for e in ends} == dict.fromkeys(vehicle, True)
+    for n in vehicle:  # each role its own MCAP part, merged into run.mcap
+        assert procs[n]["stats"]["recorded"], (n, procs[n]["stats"])
+    # The sensor read the frames rendered ahead, and the file went with the nodes.
+    assert procs["av1.sensor"]["stats"]["prerendered_frames"] >= RATE_HZ * DURATION_S
+    assert procs["av1.sensor"]["stats"]["rendered_here"] == 0
+    assert not (folder / "nodes" / "frames.npy").exists()
 
     fusion = procs["av1.fusion"]["stats"]
     inference = procs["av1.inference"]["stats"]
@@ -286,6 +306,42 @@ def test_vehicle_keeps_publishing_fused_poses_when_the_edge_dies(
         f"requests {inference['requests']}, answers {inference['answers']}, "
         f"lost {inference['lost']}"
     )
+
+
+def test_a_killed_vehicle_process_fails_the_run_naming_the_vehicle_and_its_nodes(
+    state_dir: Path, interfaces: None, tmp_path: Path
+) -> None:
+    """The vehicle's three nodes share one process: killed from outside, the watcher names that
+    process, its vehicle and the nodes it held; the edge, a process of its own, stops cleanly."""
+    from testbed.errors import TestbedError
+    from testbed.scenario.loader import load
+    from testbed.supervisor import Supervisor
+    from testbed.topology import build
+
+    scenario = load(short_scenario(tmp_path, duration_s=10))
+    with build(scenario, mode="run") as net:
+        folder = tmp_path / "runs" / net.run_id
+        nodes = Supervisor(net, folder, print)
+        try:
+            nodes.start()
+            vehicle = [n for n in nodes.nodes if n.host == "av1"]
+            assert len(vehicle) == 3 and len({n.proc.pid for n in vehicle}) == 1  # type: ignore[union-attr]
+            nodes.check()
+            os.kill(vehicle[0].proc.pid, signal.SIGKILL)  # type: ignore[union-attr]
+            deadline = time.monotonic() + 10
+            with pytest.raises(TestbedError) as err:
+                while time.monotonic() < deadline:
+                    nodes.check()
+                    time.sleep(0.1)
+            text = str(err.value)
+            assert "process av1.vehicle of av1" in text and "exited with -9" in text, text
+            assert all(n in text for n in ("av1.fusion", "av1.inference", "av1.sensor")), text
+        finally:
+            summary = nodes.stop()
+    procs = summary["processes"]
+    assert procs["edge1.edge"]["exit_code"] == 0
+    assert {procs[n]["exit_code"] for n in ("av1.fusion", "av1.inference", "av1.sensor")} == {-9}
+    assert summary["containers"]["av1.vehicle"]["exit_code"] == -signal.SIGKILL
 
 
 def test_ctrl_c_mid_run_tears_everything_down(

@@ -130,6 +130,10 @@ class SlidingWindowUCB1Normal:
         self._plays: deque[int] = deque()
         self._costs: list[deque[float]] = [deque() for _ in self.arms]
         self.total_plays = 0  # every update since construction, resets included
+        # `select` and `stats` of one request see the same figures: computed once (the
+        # medians are most of a vehicle's learner CPU), again after an update or a reset.
+        self._version = 0
+        self._cached: tuple[int, list[ArmStats]] | None = None
 
     # ---- learning ---------------------------------------------------------------------------
 
@@ -154,6 +158,7 @@ class SlidingWindowUCB1Normal:
         """Record the cost measured for one play of `arm`."""
         slot = self._slot_of(arm)
         cost = finite_cost(arm, cost)
+        self._version += 1
         self._plays.append(slot)
         self._costs[slot].append(cost)
         if self.window is not None and len(self._plays) > self.window:
@@ -162,6 +167,7 @@ class SlidingWindowUCB1Normal:
 
     def reset(self) -> None:
         """Forget every play ("retrain" after a change was detected)."""
+        self._version += 1
         self._plays.clear()
         for costs in self._costs:
             costs.clear()
@@ -186,6 +192,11 @@ class SlidingWindowUCB1Normal:
         return self.forced_exploration and n < math.ceil(8.0 * math.log(t))
 
     def _arm_stats(self) -> list[ArmStats]:
+        if self._cached is None or self._cached[0] != self._version:
+            self._cached = (self._version, self._fit_arms())
+        return list(self._cached[1])
+
+    def _fit_arms(self) -> list[ArmStats]:
         t = self.t
         log_term = math.log(t - 1) if t > 1 else 0.0
         out = []

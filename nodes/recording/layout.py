@@ -30,6 +30,9 @@ PCAP_DIR = "pcap"
 #: The nodes' settings (`nodes.edgeloc.settings.config_to_dict` of the run's ReplayConfig):
 #: the report replays the drive with them (fixed splits and the oracle beside the learner).
 NODE_CONFIG_FILE = "nodes/config.json"
+#: The drive's camera frames rendered ahead for the sensors (`nodes.edgeloc.frames`); removed
+#: when the nodes stop (tens of MB).
+FRAMES_FILE = "nodes/frames.npy"
 #: The run's common start time, which the vehicles' sensors wait for (`nodes.ros.start`).
 START_FILE = "nodes/start.json"
 #: The report's machine-readable figures.

@@ -1,10 +1,12 @@
 """EdgeLoc as ROS 2 (rclpy) nodes: thin adapters between topics/actions and `nodes.edgeloc`.
 
-One node per module, each started as its own process inside a namespace by
-`testbed.supervisor`: `vehicle_sensor` (camera frames, VO, ground truth), `inference_request`
-(DNN head, split learner, SplitInference client), `fusion_node` (EdgeLoc fusion and the
-baselines), `edge_inference` (action server, DNN tail), `link_events` (timeline events as
-LinkEvent messages). `common` holds what every node shares (settings, lifecycle, stats).
+One node per module, each runnable as its own process: `vehicle_sensor` (camera frames, VO,
+ground truth), `inference_request` (DNN head, split learner, SplitInference client),
+`fusion_node` (EdgeLoc fusion and the baselines), `edge_inference` (action servers, one per
+vehicle, DNN tail), `link_events` (timeline events as LinkEvent messages). `container` runs
+several in one process, one rclpy context, a node and executor thread each: in a run
+(`testbed.supervisor`) a vehicle's three nodes are one process. `common` holds what every node
+shares (settings, lifecycle, stats, and what a container's roles share).
 
 Every drive starts at the timeline's 0 s: each vehicle's sensor, once its subscribers are there,
 waits for a start time the supervisor writes once all are (`start`), so a `set` at 20 s reaches

@@ -8,6 +8,14 @@ replay of the same scenario use the same learner, fusion, Kalman and gate settin
 Lifecycle (Jazzy aborts at exit otherwise, SPEC §8): our own SIGTERM/SIGINT handler sets a
 stop flag; the node's loop ends; the executor thread is joined and the node destroyed before
 `rclpy.shutdown()`.
+
+A node runs alone (`python -m nodes.ros.<module>`: it owns the process, its rclpy context and
+its signal handler, and logs on stdout) or as one role of a container (`nodes.ros.container`:
+several nodes in one process). A role runs its module's `main(argv)` in a thread whose
+`Composed` (a context variable, so the threads the role starts carry it too) gives it its own
+log file, the container's stop flag and the container's rclpy context: `emit` writes to the
+role's log, `ros_node` neither initialises nor shuts down rclpy (the container does, once), and
+everything else a role does (its executor thread, stats, MCAP part) is what it does alone.
 """
 
 from __future__ import annotations
@@ -15,6 +23,7 @@ from __future__ import annotations
 import argparse
 import concurrent.futures
 import contextlib
+import contextvars
 import faulthandler
 import json
 import math
@@ -27,7 +36,7 @@ from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, TypeVar
+from typing import Any, NoReturn, TextIO, TypeVar
 
 from nodes.edgeloc.settings import REQUEST_TIMEOUT_S, ReplayConfig, config_from_dict
 from nodes.recording.jsonfile import write_json
@@ -44,6 +53,17 @@ RECORDING_FAILED = 3
 STOP_DUMP_S = 8.0
 
 T = TypeVar("T")
+
+
+class _Parser(argparse.ArgumentParser):
+    """A node's parser: alone, a refused command line exits (status 2) as argparse does; as a
+    container's role it raises ValueError instead, so the reason lands in the role's own log
+    (`call_main`), not in the container's shared stderr."""
+
+    def error(self, message: str) -> NoReturn:
+        if COMPOSED.get() is not None:
+            raise ValueError(f"{self.prog}: {message}")
+        super().error(message)
 
 
 @dataclass(frozen=True)
@@ -65,10 +85,14 @@ class NodeArgs:
     edges: dict[str, str] = field(default_factory=dict)
     #: The vehicle sensor: wait for the run's common start time in this file (`nodes.ros.start`).
     start_file: Path | None = None
+    #: The edge server: the vehicles it serves, one action each (`action_name`).
+    serve: tuple[str, ...] = ()
+    #: The sensor: the run's pre-rendered camera frames (`nodes.edgeloc.frames`).
+    frames: Path | None = None
 
     @classmethod
     def parse(cls, argv: Sequence[str] | None = None, prog: str = "") -> NodeArgs:
-        p = argparse.ArgumentParser(prog=prog)
+        p = _Parser(prog=prog)
         p.add_argument("--config", required=True, help="the run's node settings (JSON)")
         p.add_argument("--vehicle", default="", help="the vehicle this node serves")
         p.add_argument("--edge", default="", help="the core/edge node serving the vehicle")
@@ -99,6 +123,16 @@ class NodeArgs:
             help="the sensor: once its subscribers are there, wait for the run's start time "
             "(JSON {start_epoch_s}) in this file and publish frame 0 then",
         )
+        p.add_argument(
+            "--serve",
+            default="",
+            help="the edge server: the vehicles it serves (av1,av2,...), an action each",
+        )
+        p.add_argument(
+            "--frames",
+            default=None,
+            help="the sensor: the drive's camera frames rendered ahead (nodes.edgeloc.frames)",
+        )
         a = p.parse_args(argv)
         try:
             config = config_from_dict(json.loads(Path(a.config).read_text()))
@@ -122,6 +156,8 @@ class NodeArgs:
             record_images=a.record_images,
             edges=edges,
             start_file=Path(a.start_file) if a.start_file else None,
+            frames=Path(a.frames) if a.frames else None,
+            serve=tuple(v for v in a.serve.split(",") if v),
         )
 
 
@@ -208,14 +244,53 @@ class ComputeThread:
         self._pool.shutdown(wait=True)
 
 
+@dataclass(frozen=True)
+class Composed:
+    """What a role of a container shares with the container (see the module doc): its name
+    (e.g. `av1.fusion`), its own log, and the container's stop flag."""
+
+    name: str
+    log: TextIO
+    stop: Stop
+
+
+#: Set in a container's role threads (and the threads they start); None in a node alone.
+COMPOSED: contextvars.ContextVar[Composed | None] = contextvars.ContextVar(
+    "edgeloc_composed", default=None
+)
+
+
+def log_stream() -> TextIO:
+    """Where this node's lines go: its role's log in a container, else stdout."""
+    composed = COMPOSED.get()
+    return composed.log if composed is not None else sys.stdout
+
+
+def start_thread(target: Callable[[], object], name: str) -> threading.Thread:
+    """A daemon thread that runs `target` in a copy of the caller's context, so a role's
+    threads log into the role's log (`threading.Thread` does not carry context variables)."""
+    ctx = contextvars.copy_context()
+    thread = threading.Thread(target=ctx.run, args=(target,), name=name, daemon=True)
+    thread.start()
+    return thread
+
+
 def emit(event: str, **values: Any) -> None:
-    """One JSON line on stdout (the node's log file): what the supervisor and tests read.
-    The ready line also names the process's network namespace (inode), so a reader can check
-    where each node ran."""
+    """One JSON line in the node's log file (stdout alone, its role's log in a container):
+    what the supervisor and tests read. The ready line also names the process's network
+    namespace (inode) and pid, so a reader can check where each node ran, and in which
+    process."""
     if event == READY:
         values["netns"] = os.stat("/proc/self/ns/net").st_ino
         values["pid"] = os.getpid()
-    print(json.dumps({"event": event, "t": round(time.time(), 6), **values}), flush=True)
+        composed = COMPOSED.get()
+        if composed is not None:
+            values["role"] = composed.name
+    line = json.dumps({"event": event, "t": round(time.time(), 6), **values})
+    out = log_stream()
+    # A role's log is shared by its threads: one write per line keeps lines whole.
+    out.write(line + "\n")
+    out.flush()
 
 
 def write_stats(path: Path | None, stats: dict[str, Any]) -> None:
@@ -226,9 +301,13 @@ def write_stats(path: Path | None, stats: dict[str, Any]) -> None:
     write_json(path, stats)
 
 
-def action_name(edge: str) -> str:
-    """The split-inference action of one edge server, e.g. `/core1/split_inference`."""
-    return f"/{edge}/split_inference"
+def action_name(edge: str, vehicle: str) -> str:
+    """The split-inference action one edge server offers one vehicle, e.g.
+    `/core1/av1/split_inference`. One action per vehicle, not one per server: an action's
+    status topic lists every goal its server holds and reaches every client, so with one
+    shared action each of N vehicles took (and its downlink carried) the goals of all N, N^2
+    goal states a second between them: with eight vehicles requests timed out waiting."""
+    return f"/{edge}/{vehicle}/split_inference"
 
 
 def to_stamp(t: float) -> Any:
@@ -244,15 +323,21 @@ def from_stamp(stamp: Any) -> float:
 
 
 class Stop:
-    """Set by SIGTERM/SIGINT: the node's loops poll it and end."""
+    """Set by SIGTERM/SIGINT: the node's loops poll it and end. One per process: a container
+    makes it in its main thread (only there may Python install a signal handler) and hands it
+    to every role."""
 
     def __init__(self) -> None:
         self.event = threading.Event()
-        self.since = math.nan  # monotonic time of the signal
+        self.since = math.nan  # monotonic time of the signal (or of `set`)
         for sig in (signal.SIGTERM, signal.SIGINT):
             signal.signal(sig, self._on_signal)
 
     def _on_signal(self, signum: int, frame: object) -> None:
+        self.set()
+
+    def set(self) -> None:
+        """Stop, as a signal would (a container stops its other roles when one ends)."""
         if not self.event.is_set():
             self.since = time.monotonic()
             # A node still here just before the supervisor's SIGKILL writes where each of its
@@ -328,22 +413,30 @@ class RosContext:
 
 
 @contextmanager
-def ros_node(name: str, spin: bool = True, record: Path | None = None) -> Iterator[RosContext]:
+def ros_node(
+    name: str, spin: bool = True, record: Path | None = None, events: bool = False
+) -> Iterator[RosContext]:
     """An initialised rclpy context with one node, spun by an executor thread (if `spin`), and
     torn down in the order Jazzy needs whatever the body does: stop flag, executor thread
     joined, owned entities and the node destroyed, then `rclpy.shutdown()`; last, the MCAP
-    part (`record`) is closed, after the last publish."""
+    part (`record`) is closed, after the last publish. `events=True` spins it on rclpy's
+    EventsExecutor (`_executor`). In a container's role the context and
+    the stop flag are the container's: the node gets its own executor and thread, and the
+    container shuts rclpy down once every role has destroyed its node."""
     import rclpy
-    from rclpy.executors import SingleThreadedExecutor
     from rclpy.signals import SignalHandlerOptions
 
     from nodes.recording.parts import PartWriter
 
+    composed = COMPOSED.get()
     recorder = PartWriter(record) if record is not None else None
-    rclpy.init(signal_handler_options=SignalHandlerOptions.NO)
-    stop = Stop()
+    if composed is None:
+        rclpy.init(signal_handler_options=SignalHandlerOptions.NO)
+        stop = Stop()
+    else:
+        stop = composed.stop
     ctx = RosContext(rclpy.create_node(name), stop, recorder)
-    executor = SingleThreadedExecutor()
+    executor = _executor(events)
     executor.add_node(ctx.node)
     thread = None
     if spin:
@@ -352,8 +445,7 @@ def ros_node(name: str, spin: bool = True, record: Path | None = None) -> Iterat
             while not stop:
                 executor.spin_once(timeout_sec=0.1)
 
-        thread = threading.Thread(target=loop, name=f"{name}-executor", daemon=True)
-        thread.start()
+        thread = start_thread(loop, f"{name}-executor")
     try:
         yield ctx
     finally:
@@ -379,12 +471,34 @@ def ros_node(name: str, spin: bool = True, record: Path | None = None) -> Iterat
         executor.shutdown()
         ctx.node.destroy_node()
         step("destroy")
-        rclpy.shutdown()
-        step("rclpy_shutdown")
+        if composed is None:
+            rclpy.shutdown()
+            step("rclpy_shutdown")
         if recorder is not None:
             recorder.close()
             step("recording")
         emit("exit", seconds=steps)
+
+
+#: Which executor spins a node: rclpy's pure-Python SingleThreadedExecutor, or for the nodes
+#: that ask (`ros_node(events=True)`: the vehicle's fusion and inference nodes) its
+#: EventsExecutor (C++, `rclpy.experimental`), unless EXECUTOR_ENV=single. The Python one
+#: rebuilds its wait set on every wake-up, a large share of a vehicle's CPU at 20 Hz, and eight
+#: vehicles needed more than a 2-core host had. Not for every node: with the experimental one
+#: `tests/bench/bench_vehicles.py` printed 0.685 cores for the edge serving eight vehicles
+#: (0.186 on the Python one), and the topic recorder never saw a message on subscriptions it
+#: made after it started spinning.
+EXECUTOR_ENV = "EDGELOC_EXECUTOR"
+
+
+def _executor(events: bool) -> Any:
+    if not events or os.environ.get(EXECUTOR_ENV) == "single":
+        from rclpy.executors import SingleThreadedExecutor
+
+        return SingleThreadedExecutor()
+    from rclpy.experimental import EventsExecutor
+
+    return EventsExecutor()
 
 
 #: Diagnostic (bench_soak --trace-python): with this set to N seconds, a node traces its Python
@@ -428,15 +542,21 @@ def _python_heap_tracer() -> Callable[[], None] | None:
     return report
 
 
-def run_main(main: Any) -> None:
-    """Run a node's `main()` and exit with its status; a bad setting is one line, not a trace."""
-    report_heap = _python_heap_tracer()
+def call_main(main: Callable[..., int], argv: Sequence[str] | None = None) -> int:
+    """A node's `main(argv)` (argv None: the process's command line) as an exit status; a bad
+    setting is one line in the node's log, not a trace."""
     try:
-        code = main()
+        return main() if argv is None else main(list(argv))
     except (ValueError, FileNotFoundError) as err:
         emit("error", message=str(err))
         print(f"error: {err}", file=sys.stderr, flush=True)
-        code = 2
+        return 2
+
+
+def run_main(main: Any) -> None:
+    """Run a node's `main()` and exit with its status; a bad setting is one line, not a trace."""
+    report_heap = _python_heap_tracer()
+    code = call_main(main)
     if report_heap is not None:
         report_heap()
     sys.exit(code)

@@ -1,6 +1,7 @@
 """The edge server's RSU inference (paper §4): layers [k:] of the split DNN for each request.
 
-Serves the SplitInference action `/<edge>/split_inference`: decodes the activation
+Serves the SplitInference action `/<edge>/<vehicle>/split_inference` of every vehicle it
+serves (`--serve`; one action each, `nodes.ros.common.action_name`): decodes the activation
 (`codec.decode`, self-describing blob), runs `LocNet.edge_side(split)` and answers L_alpha(t0)
 with the goal's capture stamp and the DNN's place entropy (its doubt, for the fusion's
 confidence weight; NaN for the vehicle split, where the vehicle reads it). A goal that cannot be
@@ -13,6 +14,7 @@ from __future__ import annotations
 import math
 import time
 from collections import Counter
+from collections.abc import Sequence
 from typing import Any
 
 import torch
@@ -34,8 +36,10 @@ from nodes.ros.common import (
 RESULT_TIMEOUT_S = 1  # seconds a finished goal's result is kept for the client
 
 
-def main() -> int:
-    args = NodeArgs.parse(prog="edge_inference")
+def main(argv: Sequence[str] | None = None) -> int:
+    args = NodeArgs.parse(argv, prog="edge_inference")
+    if not args.serve:
+        raise ValueError("edge_inference: --serve names no vehicle (av1,av2,...)")
     torch.set_num_threads(1)
     model = load_model(args.config.weights)
     from edgeloc_interfaces.action import SplitInference
@@ -107,16 +111,13 @@ def main() -> int:
         # Results are fetched right after they are ready; keeping them for rclpy's default
         # 900 s would make every goal-status message list every goal of the run (its size,
         # and so the downlink bytes per request, would grow with the run's length).
-        ros.owns(
-            ActionServer(
-                node,
-                SplitInference,
-                action_name(args.edge),
-                execute,
-                result_timeout=RESULT_TIMEOUT_S,
+        # One action per vehicle (`action_name`), all served by this node and its executor.
+        actions = [action_name(args.edge, v) for v in args.serve]
+        for name in actions:
+            ros.owns(
+                ActionServer(node, SplitInference, name, execute, result_timeout=RESULT_TIMEOUT_S)
             )
-        )
-        emit(READY, node="edge_inference", action=action_name(args.edge))
+        emit(READY, node="edge_inference", actions=actions)
         ros.stop.wait(1e9)
     tail_thread.close()
     stats["per_vehicle"] = dict(per_vehicle)

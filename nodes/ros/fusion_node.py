@@ -19,6 +19,7 @@ from __future__ import annotations
 import math
 import time
 from collections import Counter
+from collections.abc import Sequence
 from dataclasses import asdict
 from typing import Any
 
@@ -168,15 +169,15 @@ def _keep_latest(by_frame: dict[int, Any], n: int) -> None:
         del by_frame[next(iter(by_frame))]
 
 
-def main() -> int:
-    args = NodeArgs.parse(prog="fusion_node")
+def main(argv: Sequence[str] | None = None) -> int:
+    args = NodeArgs.parse(argv, prog="fusion_node")
     est = VehicleEstimators(args.config)
     board = Scoreboard()
     from edgeloc_interfaces.msg import PoseEstimate
 
     published: Counter[str] = Counter()
     stats: dict[str, Any] = {"node": "fusion_node", "vehicle": args.vehicle, "answers": 0}
-    with ros_node(f"{args.vehicle}_fusion", record=args.record) as ros:
+    with ros_node(f"{args.vehicle}_fusion", record=args.record, events=True) as ros:
         node = ros.node
         out = ros.publisher(PoseEstimate, vehicle_topic(args.vehicle, "pose"), 100)
         first: list[float] = []

@@ -29,6 +29,7 @@ import math
 import threading
 import time
 from collections import Counter
+from collections.abc import Sequence
 from typing import Any
 
 import numpy as np
@@ -331,8 +332,8 @@ def _ask(
     return pose, handle, edge_s, entropy, error, timed_out
 
 
-def main() -> int:
-    args = NodeArgs.parse(prog="inference_request")
+def main(argv: Sequence[str] | None = None) -> int:
+    args = NodeArgs.parse(argv, prog="inference_request")
     cfg = args.config
     torch.set_num_threads(1)  # the head is small; one thread keeps the budget honest
     model = load_model(cfg.weights)
@@ -354,7 +355,7 @@ def main() -> int:
     compute = ComputeThread(args.compute_cgroup, name="dnn-head", warmup=warmup)
     loop = RequestLoop(cfg, args.vehicle, args.edge, args.timeout_s, compute.budget)
     learner = loop.learner
-    with ros_node(f"{args.vehicle}_inference_request", record=args.record) as ros:
+    with ros_node(f"{args.vehicle}_inference_request", record=args.record, events=True) as ros:
         node, stop = ros.node, ros.stop
 
         def on_image(msg: Image) -> None:
@@ -373,10 +374,10 @@ def main() -> int:
         # cell's (read from its own default route, `nodes.ros.serving`), else `--edge`'s.
         serving = ServingEdge(args.edge, args.edges)
         clients = {
-            edge: ros.owns(ActionClient(node, SplitInference, action_name(edge)))
+            edge: ros.owns(ActionClient(node, SplitInference, action_name(edge, args.vehicle)))
             for edge in dict.fromkeys([args.edge, *args.edges.values()])
         }
-        emit(READY, node="inference_request", action=action_name(args.edge))
+        emit(READY, node="inference_request", action=action_name(args.edge, args.vehicle))
         last_frame = -1
         start_s = time.time()
         while not stop:

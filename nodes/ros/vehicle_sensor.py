@@ -6,19 +6,23 @@ that wall-clock instant as its capture stamp t0, on
 - `/<vehicle>/vo` (PoseEstimate, method "vo": L_beta(t)),
 - `/<vehicle>/gt` (PoseEstimate, method "gt": for scoring only; no estimator reads it).
 The dataset is the scenario's (synthetic world with its seed, or a recorded folder), opened
-with `DATASET_MARGIN_S` more seconds than the run lasts. Publishing starts once the fusion and
-inference nodes subscribe (or after 20 s), so no frame is lost to discovery; in a run, at the
-run's common start (`nodes.ros.start`: frame 0 at the timeline's 0 s, every vehicle together).
+with `DATASET_MARGIN_S` more seconds than the run lasts; with `--frames` a synthetic drive's
+images come from the frames the run rendered ahead (`nodes.edgeloc.frames`). Publishing
+starts once the fusion and inference nodes subscribe (or after 20 s), so no frame is lost to
+discovery; in a run, at the run's common start (`nodes.ros.start`: frame 0 at the timeline's
+0 s, every vehicle together).
 """
 
 from __future__ import annotations
 
 import array
 import time
+from collections.abc import Sequence
 
 import numpy as np
 
-from nodes.edgeloc.dataset import open_dataset
+from nodes.edgeloc.dataset import SyntheticDataset, open_dataset
+from nodes.edgeloc.frames import Frames, FramesKey
 from nodes.recording.layout import vehicle_topic
 from nodes.ros.common import (
     DATASET_MARGIN_S,
@@ -53,8 +57,8 @@ def pose_msg(vehicle: str, method: str, pose: np.ndarray, t: float, frame: int) 
     )
 
 
-def main() -> int:
-    args = NodeArgs.parse(prog="vehicle_sensor")
+def main(argv: Sequence[str] | None = None) -> int:
+    args = NodeArgs.parse(argv, prog="vehicle_sensor")
     cfg = args.config
     dataset = open_dataset(
         cfg.dataset,
@@ -63,6 +67,14 @@ def main() -> int:
         duration_s=cfg.duration_s + DATASET_MARGIN_S,
         corruption=cfg.corruption,
     )
+    # A run renders the drive once, ahead (`nodes.edgeloc.frames`): drawing the world is the
+    # emulation's work, not the vehicle's, and would cost this node most of its CPU.
+    image = dataset.image
+    frames = None
+    if args.frames is not None and isinstance(dataset, SyntheticDataset):
+        key = FramesKey(cfg.seed, cfg.rate_hz, cfg.duration_s + DATASET_MARGIN_S, cfg.corruption)
+        frames = Frames(args.frames, dataset, key)
+        image = frames.image
     from edgeloc_interfaces.msg import PoseEstimate
     from sensor_msgs.msg import Image
 
@@ -97,7 +109,7 @@ def main() -> int:
             img = Image(height=h, width=w, encoding="rgb8", is_bigendian=0, step=w * 3)
             img.header.stamp = to_stamp(due)
             img.header.frame_id = str(i)
-            img.data = array.array("B", np.ascontiguousarray(dataset.image(i)).tobytes())
+            img.data = array.array("B", np.ascontiguousarray(image(i)).tobytes())
             camera.publish(img)
             vo_pub.publish(pose_msg(args.vehicle, "vo", dataset.vo_pose(i), due, i))
             gt_pub.publish(pose_msg(args.vehicle, "gt", dataset.gt_pose(i), due, i))
@@ -107,6 +119,8 @@ def main() -> int:
             stop.wait(1e9)  # stay up until stopped: the supervisor treats an exit as a failure
         stats["end_s"] = time.time()
         stats["max_lateness_s"] = late_max
+        stats["prerendered_frames"] = len(frames) if frames is not None else 0
+        stats["rendered_here"] = frames.rendered_here if frames is not None else None
     stats["recorded"] = ros.recorded
     write_stats(args.stats, stats)
     return 0
