@@ -138,7 +138,8 @@ class LinkTest:
             probed = self._delays_together()
         for link in self.links:
             self.progress(f"link test: {link.name}")
-            results.append(self.link(link, probed.get(link.name)))
+            done = probed.get(link.name)
+            results.append(self.link(link) if done is None else self.link(link, done))
             self._check_alive()
         cpu1 = _cpu_sample()
         load = cpu_load_between(cpu0, cpu1) if cpu0 is not None and cpu1 is not None else None
