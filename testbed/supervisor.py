@@ -72,7 +72,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from nodes.edgeloc.frames import FramesKey, render_frames
+from nodes.edgeloc.frames import FramesKey, cached_frames, render_frames
 from nodes.edgeloc.settings import config_to_dict
 from nodes.recording import layout as names
 from nodes.recording.jsonfile import write_json
@@ -239,6 +239,7 @@ class Supervisor:
         # Rendered ahead for a synthetic drive (`nodes.edgeloc.frames`); in `start`.
         synthetic = self.config.dataset == "synthetic" and net.scenario.edgeloc_vehicles()
         self.frames = (self.folder / names.FRAMES_FILE) if synthetic and prerender else None
+        self._frames_kept = False  # the frames are the cache's (`_render_frames`)
 
     # ---- plan --------------------------------------------------------------------------
 
@@ -422,10 +423,17 @@ class Supervisor:
         key = FramesKey(cfg.seed, cfg.rate_hz, cfg.duration_s + DATASET_MARGIN_S, cfg.corruption)
         count = round((cfg.duration_s + FRAMES_MARGIN_S) * cfg.rate_hz)
         t = time.monotonic()
-        render_frames(key, count, self.frames)
+        # From the cache when an earlier run rendered this drive (kept there, not removed at
+        # the stop); else into the run's folder.
+        cached = cached_frames(key, count)
+        if cached is not None:
+            self.frames, self._frames_kept = cached, True
+        else:
+            render_frames(key, count, self.frames)
+        where = "the cache's, kept for the next run of this drive" if cached else "in the run"
         self.progress(
-            f"  camera frames: {count} rendered ahead in {time.monotonic() - t:.1f} s "
-            f"({self.frames.stat().st_size / 1e6:.0f} MB, shared by the sensors)"
+            f"  camera frames: {count} ready in {time.monotonic() - t:.1f} s "
+            f"({self.frames.stat().st_size / 1e6:.0f} MB, shared by the sensors; {where})"
         )
 
     def _sensors(self) -> list[NodeProcess]:
@@ -505,7 +513,7 @@ class Supervisor:
                 with contextlib.suppress(OSError):
                     b.stats = b.group.stats()
                 b.group.remove()
-        if self.frames is not None:
+        if self.frames is not None and not self._frames_kept:
             for path in (self.frames, self.frames.with_suffix(".json")):
                 path.unlink(missing_ok=True)
         return self.summary()

@@ -9,10 +9,17 @@ renders the drive's frames before its nodes start, spread over the host's cores,
 array (N, H, W, 3) uint8 beside a JSON of what drive it holds (`FramesKey`); each sensor maps
 the file read-only, so all of a run's vehicles (they drive the same seeded drive) share one
 copy in the page cache. A frame beyond the file's end is rendered on demand, as before.
+
+The frames depend only on the drive and the code that draws it, so `cached_frames` keeps them
+from one run to the next (beside the DNN answers, `nodes.edgeloc.answerstore.cache_dir()`,
+under `frames/`, keyed by the drive, the count, this package's sources and numpy's version;
+the `CACHED_FILES` most recently used are kept): a second run of the same drive renders none.
 """
 
 from __future__ import annotations
 
+import contextlib
+import hashlib
 import json
 import os
 import subprocess
@@ -88,6 +95,41 @@ def render_frames(key: FramesKey, frames: int, path: Path, workers: int | None =
     if failed:
         raise FramesError(f"rendering the frames into {path} failed: {'; '.join(failed)}")
     _key_path(path).write_text(key_json)
+    return path
+
+
+#: Frames files kept in the cache (~70 MB each for a 90-s drive at 20 Hz).
+CACHED_FILES = 4
+
+
+def cached_frames(key: FramesKey, frames: int) -> Path | None:
+    """The drive's first `frames` frames from the cache, rendered into it first where no
+    earlier run left them; None where the cache cannot be written (render into the run)."""
+    from nodes.edgeloc.answerstore import cache_dir
+
+    h = hashlib.sha256(json.dumps([asdict(key), frames, np.__version__]).encode())
+    for source in sorted(Path(__file__).resolve().parent.glob("*.py")):
+        h.update(source.read_bytes())
+    folder = cache_dir() / "frames"
+    path = folder / f"{h.hexdigest()[:32]}.npy"
+    if path.is_file() and _key_path(path).is_file():
+        with contextlib.suppress(OSError):
+            os.utime(path)  # recently used: kept when older files are pruned
+        return path
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+        tmp = folder / f".{path.stem}.{os.getpid()}.npy"
+        render_frames(key, frames, tmp)
+        # the key first: a reader takes the frames once both are there
+        os.replace(_key_path(tmp), _key_path(path))
+        os.replace(tmp, path)
+    except OSError:
+        return None
+    kept = sorted(folder.glob("*.npy"), key=lambda f: f.stat().st_mtime, reverse=True)
+    for old in kept[CACHED_FILES:]:
+        for f in (old, _key_path(old)):
+            with contextlib.suppress(OSError):
+                f.unlink()
     return path
 
 
