@@ -9,6 +9,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import torch
 
 from nodes.edgeloc.answerstore import AnswerStore, answers_key, cache_dir
 from nodes.edgeloc.compare import answer_all, compare_splits
@@ -49,7 +50,7 @@ def test_the_key_changes_with_the_weights_the_drive_and_the_codec() -> None:
     assert answers_key(model, drive, "fp32") != key
     other = LocNet()
     other.load_state_dict(model.state_dict())
-    with __import__("torch").no_grad():
+    with torch.no_grad():
         next(other.parameters()).view(-1)[0] += 1e-6
     assert answers_key(other, drive, cfg.codec) != key
 

@@ -50,6 +50,14 @@ def cache_dir() -> Path:
     return Path(base) / "edgeloc-testbed"
 
 
+def hash_sources(h: Any) -> None:
+    """Feed this package's sources to the hash `h`: what a kept answer or frame was computed
+    by (any edit makes another key)."""
+    for source in sorted(_PACKAGE.glob("*.py")):
+        h.update(source.name.encode())
+        h.update(source.read_bytes())
+
+
 def answers_key(model: LocNet, drive: Mapping[str, Any], codec: str) -> str:
     """The key of the answers `model` gives to `drive`'s frames through `codec`."""
     import torch
@@ -58,9 +66,7 @@ def answers_key(model: LocNet, drive: Mapping[str, Any], codec: str) -> str:
     for name, tensor in sorted(model.state_dict().items()):
         h.update(name.encode())
         h.update(tensor.detach().cpu().contiguous().numpy().tobytes())
-    for source in sorted(_PACKAGE.glob("*.py")):
-        h.update(source.name.encode())
-        h.update(source.read_bytes())
+    hash_sources(h)
     parts = {"drive": dict(drive), "codec": codec, "torch": torch.__version__,
              "numpy": np.__version__}  # fmt: skip
     h.update(json.dumps(parts, sort_keys=True, default=str).encode())

@@ -105,11 +105,10 @@ CACHED_FILES = 4
 def cached_frames(key: FramesKey, frames: int) -> Path | None:
     """The drive's first `frames` frames from the cache, rendered into it first where no
     earlier run left them; None where the cache cannot be written (render into the run)."""
-    from nodes.edgeloc.answerstore import cache_dir
+    from nodes.edgeloc.answerstore import cache_dir, hash_sources
 
     h = hashlib.sha256(json.dumps([asdict(key), frames, np.__version__]).encode())
-    for source in sorted(Path(__file__).resolve().parent.glob("*.py")):
-        h.update(source.read_bytes())
+    hash_sources(h)
     folder = cache_dir() / "frames"
     path = folder / f"{h.hexdigest()[:32]}.npy"
     if path.is_file() and _key_path(path).is_file():
